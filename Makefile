@@ -1,0 +1,31 @@
+# Two entry points for a fresh machine: `make demo` (main job) and `make test` (test suite).
+# Both create .venv and install pinned dependencies first.
+PYTHON ?= python3
+VENV ?= .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+
+.PHONY: install demo test test-slow bench clean
+
+$(STAMP): pyproject.toml constraints.txt
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install -q --upgrade pip
+	$(BIN)/pip install -q -c constraints.txt -e ".[dev]"
+	touch $(STAMP)
+
+install: $(STAMP)
+
+demo: install
+	$(BIN)/metarig simulate --out runs/demo
+
+test: install
+	$(BIN)/python -m pytest
+
+test-slow: install
+	$(BIN)/python -m pytest --runslow
+
+bench: install
+	$(BIN)/python benchmarks/bench_core.py --out runs/bench
+
+clean:
+	rm -rf $(VENV) runs

@@ -1,0 +1,3 @@
+from metarig.cli import main
+
+raise SystemExit(main())

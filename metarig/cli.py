@@ -1,0 +1,46 @@
+"""`metarig` command: dispatches subcommands to the package that owns them.
+
+Subcommand modules are imported lazily, so `metarig simulate` never imports ROS and a
+missing optional piece only affects its own subcommand.
+"""
+
+import importlib
+import sys
+
+# subcommand -> (module, function, one-line help). Each function is `main(argv) -> int`.
+SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
+    "simulate": ("design_engine.cli", "simulate_main", "simulate a scene and write its outputs"),
+    "modes": ("design_engine.cli", "modes_main", "linear modal analysis of a scene"),
+}
+
+
+def _usage() -> str:
+    lines = ["usage: metarig <command> [options]", "", "commands:"]
+    for name, (_, _, text) in SUBCOMMANDS.items():
+        lines.append(f"  {name:<16}{text}")
+    lines.append("")
+    lines.append("Run `metarig <command> --help` for the options of one command.")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the `metarig` console script."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if not argv or argv[0] in ("-h", "--help"):
+        print(_usage())
+        return 0
+    name, rest = argv[0], argv[1:]
+    if name not in SUBCOMMANDS:
+        print(f"metarig: unknown command {name!r}\n\n{_usage()}", file=sys.stderr)
+        return 2
+    module_name, func_name, _ = SUBCOMMANDS[name]
+    func = getattr(importlib.import_module(module_name), func_name)
+    try:
+        return int(func(rest) or 0)
+    except KeyboardInterrupt:
+        print("metarig: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

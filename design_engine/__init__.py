@@ -1,0 +1,39 @@
+"""design_engine: differentiable simulation and design of rigid-unit metamaterials (JAX).
+
+Public API re-exported here. The engine runs in float64 (enabled on import) and keeps a
+persistent XLA compilation cache (directory `$METARIG_JAX_CACHE`, default
+`~/.cache/metarig/jax`; set it to an empty string to disable). Errors inside compiled code are
+turned into NaN (`EQX_ON_ERROR=nan`, required for the cache to hold diffrax programs) and every
+run checks its results for NaN and solver failure itself.
+"""
+
+import os
+
+os.environ.setdefault("EQX_ON_ERROR", "nan")
+
+import jax  # noqa: E402
+
+jax.config.update("jax_enable_x64", True)
+_cache = os.environ.get("METARIG_JAX_CACHE", os.path.expanduser("~/.cache/metarig/jax"))
+if _cache:
+    jax.config.update("jax_compilation_cache_dir", _cache)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+
+from design_engine.constraints import ConstraintLimits as ConstraintLimits  # noqa: E402
+from design_engine.constraints import make_constraints as make_constraints  # noqa: E402
+from design_engine.geometry import InvalidDesignError as InvalidDesignError  # noqa: E402
+from design_engine.lattice import Lattice as Lattice  # noqa: E402
+from design_engine.lattice import kagome as kagome  # noqa: E402
+from design_engine.lattice import periodic_design as periodic_design  # noqa: E402
+from design_engine.lattice import quads as quads  # noqa: E402
+from design_engine.material import Material as Material  # noqa: E402
+from design_engine.run import SceneRun as SceneRun  # noqa: E402
+from design_engine.run import make_objective as make_objective  # noqa: E402
+from design_engine.run import simulate_rig as simulate_rig  # noqa: E402
+from design_engine.run import simulate_scene as simulate_scene  # noqa: E402
+from design_engine.scenes import PRESETS as PRESETS  # noqa: E402
+from design_engine.scenes import Scene as Scene  # noqa: E402
+from design_engine.scenes import build_scene as build_scene  # noqa: E402
+from design_engine.simulate import SimulationError as SimulationError  # noqa: E402
+from design_engine.simulate import SolverConfig as SolverConfig  # noqa: E402
+from design_engine.trajectory import Trajectory as Trajectory  # noqa: E402

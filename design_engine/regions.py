@@ -27,6 +27,9 @@ def window(lattice: Lattice, size: tuple[int, int], offset: tuple[int, int]) -> 
     """Units of a (w, h) window offset (sx, sy) from the centre; kagome: both triangles per cell."""
     nx, ny = lattice.shape
     cols, rows = _span(nx, size[0], offset[0]), _span(ny, size[1], offset[1])
+    if cols.start < 0 or rows.start < 0 or cols.stop > nx or rows.stop > ny:
+        raise ValueError(f"region window {tuple(size)} at offset {tuple(offset)} does not fit the "
+                         f"{nx}x{ny} lattice (columns {list(cols)}, rows {list(rows)})")
     return _blocks_in_cells(lattice, [(i, j) for j in rows for i in cols])
 
 

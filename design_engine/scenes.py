@@ -158,6 +158,7 @@ def build_scene(
     strain: float | None = None,
     design: np.ndarray | None = None,
     n_samples: int | None = None,
+    target_windows: dict[str, tuple[tuple[int, int], tuple[int, int]]] | None = None,
 ) -> Scene:
     """Build a preset scene, optionally resized or re-loaded.
 
@@ -170,6 +171,8 @@ def build_scene(
         strain: pre-compression strain of stage scenes (0..0.2).
         design: design vector in mm (overrides the periodic design); validated.
         n_samples: samples in the dynamic window (default 200; spin 250).
+        target_windows: name -> ((w, h), (sx, sy)) target regions replacing the preset's (for
+            resized lattices whose preset windows do not fit).
     """
     if name not in PRESETS:
         raise ValueError(f"unknown scene {name!r}; choose one of: {', '.join(PRESETS)}")
@@ -205,6 +208,8 @@ def build_scene(
         strain_rate=STRAIN_RATE,
         stage_height=(shape[1] - 1) * lattice.spacing,
     )
+    if target_windows is not None:
+        r["targets"] = dict(target_windows)
     targets = {k: window(lattice, *v) for k, v in r["targets"].items()}
     window_start = tc + loading.delay if r["supports"] == "stages" else 0.0
     scene = Scene(

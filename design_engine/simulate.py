@@ -83,7 +83,8 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
         x: [n_design] design vector, mm.
         material: `Material`.
         loading: `Loading`.
-        ts: [n_t] increasing sample times, ms; the solve runs from t = 0 (rest, reference state).
+        ts: [n_t] increasing sample times, ms; the solve runs from t = 0.
+        initial: optional (q_f, qdot_f) free-DOF state at t = 0 (default: rest, reference state).
     """
     energy_fn = make_energy(lattice, linearized=config.linearized, use_contact=config.use_contact)
     rhs = make_rhs(supports, energy_fn, VELOCITY_SCALE)
@@ -96,10 +97,13 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
     controller = diffrax.PIDController(rtol=config.rtol, atol=config.atol)
     meter = diffrax.TqdmProgressMeter() if config.progress else diffrax.NoProgressMeter()
 
-    def simulate(x: DesignVector, material: Material, loading: Loading, ts) -> Solution:
+    def simulate(x: DesignVector, material: Material, loading: Loading, ts, initial=None) -> Solution:
         geom = block_geometry(lattice, x)
         args = make_dynamics_args(lattice, supports, geom, material, loading)
-        y0 = jnp.zeros(2 * n_free, dtype=ts.dtype)
+        if initial is None:  # every task starts at rest in the reference configuration
+            y0 = jnp.zeros(2 * n_free, dtype=ts.dtype)
+        else:  # (q_f [n_free] mm/rad, qdot_f [n_free] mm/ms, rad/ms)
+            y0 = jnp.concatenate([initial[0], VELOCITY_SCALE * initial[1]])
         sol = diffrax.diffeqsolve(
             term,
             config.solver,

@@ -1,0 +1,167 @@
+"""`metarig simulate` and `metarig modes`: run a preset scene and write its outputs (SI)."""
+
+import argparse
+import json
+import logging
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger("metarig.simulate")
+
+
+def _scene_args(p: argparse.ArgumentParser) -> None:
+    from design_engine.scenes import PRESETS
+
+    p.add_argument("--preset", default="focusing-24x16", choices=list(PRESETS),
+                   help="scene of the paper to simulate")
+    p.add_argument("--nx", type=int, help="units (kagome: cells) along x; default the preset's")
+    p.add_argument("--ny", type=int, help="units (kagome: cells) along y; default the preset's")
+    p.add_argument("--bias-angle-deg", type=float, help="bias angle of the periodic design, degrees "
+                   "(default 25; kagome 0)")
+    p.add_argument("--amplitude", type=float, help="input amplitude, m (default half the spacing)")
+    p.add_argument("--frequency", type=float, default=30.0, help="input frequency, Hz")
+    p.add_argument("--precompression", type=float, help="pre-compression strain of stage scenes "
+                   "(e.g. 0.02)")
+    p.add_argument("--design", type=Path, help="design file (JSON, metarig-design/1) to simulate "
+                   "instead of the periodic design")
+    p.add_argument("--samples", type=int, help="samples in the dynamic window (default 200)")
+
+
+def _build(args):
+    from design_engine.design_io import load_design
+    from design_engine.scenes import build_scene
+
+    design = None
+    nx, ny = args.nx, args.ny
+    if args.design is not None:
+        lattice, design = load_design(args.design)
+        if (nx and nx != lattice.shape[0]) or (ny and ny != lattice.shape[1]):
+            raise ValueError(f"--nx/--ny disagree with the design file's lattice {lattice.shape}")
+        nx, ny = lattice.shape
+    if args.samples is not None and args.samples < 2:
+        raise ValueError("--samples must be at least 2")
+    return build_scene(args.preset, nx=nx, ny=ny, bias_angle_deg=args.bias_angle_deg,
+                       amplitude_m=args.amplitude, frequency_hz=args.frequency,
+                       strain=args.precompression, design=design, n_samples=args.samples)
+
+
+def _config(args):
+    from design_engine.simulate import SolverConfig
+
+    return SolverConfig(rtol=args.rtol, atol=args.atol, linearized=args.linearized,
+                        use_contact=not args.no_contact,
+                        progress=not args.quiet and sys.stderr.isatty())
+
+
+def simulate_main(argv: list[str] | None = None) -> int:
+    """Simulate a scene; write summary.json, trajectory.npz, design.json and PNG plots to --out."""
+    p = argparse.ArgumentParser(prog="metarig simulate", description=simulate_main.__doc__,
+                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    _scene_args(p)
+    p.add_argument("--out", type=Path, default=None, help="output folder (default runs/<preset>)")
+    p.add_argument("--rtol", type=float, default=1e-8, help="solver relative tolerance")
+    p.add_argument("--atol", type=float, default=1e-4, help="solver absolute tolerance (mm, mm/s)")
+    p.add_argument("--linearized", action="store_true", help="linearised strain measures")
+    p.add_argument("--no-contact", action="store_true", help="switch the contact barrier off")
+    p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+
+    import design_engine  # noqa: F401  (x64, cache)
+    from design_engine.design_io import save_design
+    from design_engine.geometry import InvalidDesignError
+    from design_engine.run import simulate_scene
+    from design_engine.simulate import SimulationError
+
+    out = args.out or Path("runs") / args.preset
+    try:
+        scene = _build(args)
+        config = _config(args)
+        out.mkdir(parents=True, exist_ok=True)
+        log.info("simulating %s: %d units, %d free DOFs, window %.1f ms (compiling on first use)",
+                 scene.name, scene.n_units, scene.supports.free.size, scene.window)
+        t0 = time.perf_counter()
+        run = simulate_scene(scene, config)
+    except (ValueError, InvalidDesignError, SimulationError, OSError) as exc:
+        print(f"metarig simulate: error: {exc}", file=sys.stderr)
+        return 2
+    summary = {"scene": scene.name, "lattice": scene.lattice.describe(), "n_units": scene.n_units,
+               "input_units": scene.input_units.tolist(),
+               "precompression_strain": float(scene.loading.strain),
+               "amplitude_m": float(scene.loading.amplitude) / 1e3,
+               "frequency_hz": float(scene.loading.frequency) * 1e3,
+               "wall_s": time.perf_counter() - t0, **run.metrics}
+    summary["solver"].update({"solver": type(config.solver).__name__, "rtol": config.rtol,
+                              "atol": config.atol, "linearized": config.linearized,
+                              "use_contact": config.use_contact})
+    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    ke = _block_ke_si(run)
+    run.trajectory.save_npz(out / "trajectory.npz")
+    save_design(out / "design.json", scene.lattice, scene.design)
+    if not args.no_plots:
+        _plots(out, scene, run, config, ke)
+    log.info("target kinetic energy, mean over the window: %.6g J (%.6g mJ)",
+             summary["target_ke_mean_J"], 1e3 * summary["target_ke_mean_J"])
+    log.info("wrote %s", ", ".join(sorted(f.name for f in out.iterdir())))
+    return 0
+
+
+def _block_ke_si(run) -> np.ndarray:
+    from design_engine.objectives import block_kinetic_energy
+
+    return np.asarray(block_kinetic_energy(run.solution)) * 1e-3  # mJ -> J
+
+
+def _plots(out: Path, scene, run, config, ke_j: np.ndarray) -> None:
+    from design_engine.objectives import energy_components
+    from design_engine.plots import plot_energy_components, plot_ke_map, plot_line_peaks
+    from design_engine.regions import row_units
+
+    traj = run.trajectory
+    k_peak = int(np.argmax(ke_j.sum(axis=1)))
+    plot_ke_map(out / "ke_map.png", scene.reference_polygons_m(), traj.q[k_peak], ke_j.mean(axis=0),
+                scene.targets, f"{scene.name}: time-averaged KE, lattice at t = "
+                f"{traj.t[k_peak] * 1e3:.1f} ms (peak total KE)")
+    comps = {k: v * 1e-3 for k, v in energy_components(scene, run.solution, config).items()}
+    first = next(iter(scene.targets.values()))
+    plot_energy_components(out / "energy_components.png", traj.t, comps, ke_j[:, first].sum(axis=1),
+                           f"{scene.name}: energy components")
+    line = row_units(scene.lattice, scene.line_row)
+    cols = scene.lattice.cell_of_block[line, 0] + (line % 2 if scene.lattice.kind == "kagome" else 0) * 0.5
+    plot_line_peaks(out / "line_peak_ke.png", cols, ke_j[:, line].max(axis=0), scene.line_row,
+                    f"{scene.name}: peak kinetic energy along row {scene.line_row}")
+
+
+def modes_main(argv: list[str] | None = None) -> int:
+    """Natural frequencies of a scene about its reference state; writes modes.json to --out."""
+    p = argparse.ArgumentParser(prog="metarig modes", description=modes_main.__doc__,
+                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    _scene_args(p)
+    p.add_argument("--count", type=int, default=20, help="lowest and highest modes to print")
+    p.add_argument("--out", type=Path, default=None, help="folder for modes.json")
+    args = p.parse_args(argv)
+    import design_engine  # noqa: F401
+    from design_engine.geometry import InvalidDesignError
+    from design_engine.modal import modal_analysis
+
+    try:
+        scene = _build(args)
+        modes = modal_analysis(scene)
+    except (ValueError, InvalidDesignError, OSError) as exc:
+        print(f"metarig modes: error: {exc}", file=sys.stderr)
+        return 2
+    f = modes.frequencies_hz
+    n = min(args.count, f.size)
+    print(f"{scene.name}: {f.size} free DOFs; lowest {n} modes [Hz]: "
+          + ", ".join(f"{v:.2f}" for v in f[:n]))
+    print(f"highest mode {f[-1]:.1f} Hz -> explicit-step bound ~ {2.8 / (2 * math.pi * f[-1]) * 1e3:.3f} ms")
+    if args.out:
+        args.out.mkdir(parents=True, exist_ok=True)
+        (args.out / "modes.json").write_text(json.dumps({"scene": scene.name,
+                                                         "frequencies_hz": f.tolist()}))
+    return 0

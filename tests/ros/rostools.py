@@ -1,0 +1,45 @@
+"""Waiting helpers for real-node tests: spin until a condition holds or a deadline passes."""
+
+import subprocess
+import time
+
+
+def spin_until(executor, predicate, timeout_s: float, what: str) -> None:
+    """Spin `executor` until `predicate()` is true; fail with `what` after `timeout_s`."""
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+        executor.spin_once(timeout_sec=0.05)
+
+
+def wait_for_service(client, executor, timeout_s: float = 20.0) -> None:
+    spin_until(executor, lambda: client.service_is_ready(), timeout_s,
+               f"service {client.srv_name}")
+
+
+def call(client, request, executor, timeout_s: float = 20.0):
+    """Call a service and spin until the response arrives."""
+    wait_for_service(client, executor, timeout_s)
+    fut = client.call_async(request)
+    spin_until(executor, fut.done, timeout_s, f"response of {client.srv_name}")
+    return fut.result()
+
+
+def wait_matched(pub_or_sub, executor, timeout_s: float = 20.0, count: int = 1) -> None:
+    """Wait until a publisher has `count` matched subscriptions (or a subscription publishers)."""
+    get = getattr(pub_or_sub, "get_subscription_count", None) or pub_or_sub.get_publisher_count
+    spin_until(executor, lambda: get() >= count, timeout_s, f"{count} match(es) on {pub_or_sub.topic_name}")
+
+
+def stop_process(proc: subprocess.Popen, timeout_s: float = 15.0) -> str:
+    """SIGINT a node process, wait for it (kill if it hangs), return its combined output."""
+    if proc.poll() is None:
+        proc.send_signal(subprocess.signal.SIGINT)
+    try:
+        out, _ = proc.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, _ = proc.communicate()
+        raise AssertionError(f"process did not stop on SIGINT within {timeout_s} s:\n{out}")
+    return out

@@ -1,0 +1,59 @@
+"""Linear stage simulator: limits, rate-limited motion, holding, stop, jam fault."""
+
+import numpy as np
+import pytest
+
+from hardware_sim import stage as sg
+from hardware_sim.shaker import LimitError
+
+
+def _run(cfg, st, cmd, seconds, dt=1e-3, rng=None):
+    rng = rng or np.random.default_rng(0)
+    st, r = sg.step(cfg, st, cmd, dt, rng)
+    for _ in range(int(round(seconds / dt)) - 1):
+        st, r = sg.step(cfg, st, sg.StageCommand(), dt, rng)
+    return st, r
+
+
+def test_moves_at_rate_then_holds():
+    cfg = sg.StageConfig(noise_std_m=0.0)
+    st = sg.init(cfg, np.random.default_rng(0))
+    st, r = _run(cfg, st, sg.StageCommand(target_strain=0.02), 0.04)
+    assert st.mode == sg.StageMode.MOVING
+    assert st.closing_m == pytest.approx(0.04 * cfg.closing_speed_m_s, rel=1e-9)
+    st, r = _run(cfg, st, sg.StageCommand(), 0.06)
+    assert st.mode == sg.StageMode.HOLDING
+    assert r.closing_m == pytest.approx(0.02 * cfg.sample_height_m)
+    assert sg.eta_s(cfg, sg.init(cfg, None), 0.02) == pytest.approx(0.08)
+
+
+@pytest.mark.parametrize("strain", [0.2, -0.01, float("inf")])
+def test_refuses_out_of_limit_strain(strain):
+    cfg = sg.StageConfig()
+    with pytest.raises(LimitError, match="strain"):
+        sg.step(cfg, sg.init(cfg, None), sg.StageCommand(target_strain=strain), 1e-3,
+                np.random.default_rng(0))
+
+
+def test_config_refuses_too_fast_closing():
+    with pytest.raises(ValueError, match="strain rate"):
+        sg.StageConfig(closing_speed_m_s=1.0)
+
+
+def test_stop_holds_in_place():
+    cfg = sg.StageConfig(noise_std_m=0.0)
+    st, _ = _run(cfg, sg.init(cfg, None), sg.StageCommand(target_strain=0.05), 0.05)
+    st, _ = _run(cfg, st, sg.StageCommand(stop=True), 0.05)
+    assert st.mode == sg.StageMode.HOLDING
+    assert st.closing_m == pytest.approx(0.05 * cfg.closing_speed_m_s)
+
+
+def test_jam_faults_and_needs_reset():
+    cfg = sg.StageConfig(noise_std_m=0.0, jam_closing_m=0.002)
+    st, _ = _run(cfg, sg.init(cfg, None), sg.StageCommand(target_strain=0.02), 0.08)
+    assert st.mode == sg.StageMode.FAULT and "following error" in st.fault
+    assert st.closing_m == pytest.approx(0.002)
+    with pytest.raises(LimitError, match="FAULT"):
+        sg.step(cfg, st, sg.StageCommand(target_strain=0.0), 1e-3, np.random.default_rng(0))
+    st, _ = sg.step(cfg, st, sg.StageCommand(reset=True), 1e-3, np.random.default_rng(0))
+    assert st.mode == sg.StageMode.IDLE

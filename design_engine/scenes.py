@@ -164,7 +164,9 @@ def build_scene(
 
     Args:
         name: a key of `PRESETS`.
-        nx, ny: lattice size (units for quads, cells for kagome); default the preset's.
+        nx, ny: lattice size (units for quads, cells for kagome); default the preset's. A resized
+            lattice keeps targets and input offsets at the same relative position (offsets scaled
+            by the size ratio and rounded).
         bias_angle_deg: bias angle of the periodic initial design (default 25 deg; kagome 0).
         amplitude_m: input amplitude, m (default half the spacing: 7.5 mm quads, 10 mm kagome).
         frequency_hz: input frequency, Hz (also sets delay 0.1/f and window periods/f).
@@ -186,7 +188,11 @@ def build_scene(
     x = check_design(lattice, x)
     cmin, ccut = r.get("contact_deg", (-15.0, -10.0))
     material = Material.paper(lattice, contact_min_deg=cmin, contact_cutoff_deg=ccut)
-    inputs = driven_units(lattice, r["side"], 2, r["shift"])
+    shift = r["shift"]
+    if shape != tuple(r["shape"]):
+        axis = 1 if r["side"] in ("left", "right") else 0
+        shift = round(shift * shape[axis] / r["shape"][axis])
+    inputs = driven_units(lattice, r["side"], 2, shift)
     supports, sets = _supports(lattice, r["supports"], inputs, r["side"])
     amp = 0.5 * lattice.spacing if amplitude_m is None else 1e3 * amplitude_m
     if not 0.0 < amp < 2.0 * lattice.spacing:
@@ -210,6 +216,10 @@ def build_scene(
     )
     if target_windows is not None:
         r["targets"] = dict(target_windows)
+    elif shape != tuple(r["shape"]):
+        # a resized lattice keeps each target at the same relative position
+        fx, fy = shape[0] / r["shape"][0], shape[1] / r["shape"][1]
+        r["targets"] = {k: (wh, (round(o[0] * fx), round(o[1] * fy))) for k, (wh, o) in r["targets"].items()}
     targets = {k: window(lattice, *v) for k, v in r["targets"].items()}
     window_start = tc + loading.delay if r["supports"] == "stages" else 0.0
     scene = Scene(

@@ -1,0 +1,111 @@
+"""Energy laws: zero force at reference, rigid-motion invariance, contact barrier, shear wrap."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from design_engine.energy import bond_geometry, contact_energy, make_bond_terms, make_energy
+from design_engine.geometry import block_geometry
+from design_engine.lattice import kagome, periodic_design, quads
+from design_engine.material import Material
+
+TH_MIN, TH_CUT, KC = math.radians(-15), math.radians(-10), 1.5
+
+
+def _setup(lat, x, **kw):
+    g = block_geometry(lat, jnp.asarray(x))
+    return g, bond_geometry(lat, g), Material.paper(lat), make_energy(lat, **kw)
+
+
+@pytest.mark.parametrize("kind", ["quads", "kagome"])
+def test_zero_force_at_reference_for_feasible_designs(kind):
+    lat = quads(6, 5) if kind == "quads" else kagome(4, 3)
+    rng = np.random.default_rng(3)
+    x = (periodic_design(lat, 0.35) if kind == "quads" else np.zeros(lat.n_design))
+    x = x + rng.uniform(-0.3, 0.3, lat.n_design)
+    _, bonds, mat, energy = _setup(lat, x)
+    force = jax.grad(energy)(jnp.zeros((lat.n_blocks, 3)), bonds, mat)
+    assert float(jnp.max(jnp.abs(force))) == 0.0
+    assert float(energy(jnp.zeros((lat.n_blocks, 3)), bonds, mat)) == 0.0
+
+
+@pytest.mark.parametrize("angle", [0.7, -2.5, 3 * math.pi])
+@pytest.mark.parametrize("linearized", [False])
+def test_rigid_motion_stores_no_energy(angle, linearized):
+    lat = quads(6, 5)
+    x = periodic_design(lat, math.radians(25))
+    g, bonds, mat, energy = _setup(lat, x, linearized=linearized)
+    c = np.asarray(g.centroids)
+    rot = np.array([[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]])
+    uv = c @ rot.T - c + np.array([3.0, -7.0])
+    q = jnp.asarray(np.column_stack([uv, np.full(lat.n_blocks, angle)]))
+    assert float(energy(q, bonds, mat)) < 1e-20
+    terms = make_bond_terms(lat)(q, bonds, mat)
+    assert float(jnp.max(jnp.abs(terms["shear"]))) < 1e-20
+
+
+def test_single_unit_full_turn_is_not_free():
+    lat = quads(2, 2)
+    _, bonds, mat, energy = _setup(lat, periodic_design(lat, 0.3))
+    q = jnp.zeros((4, 3)).at[0, 2].set(2 * math.pi)
+    # bending is not wrapped: a full turn of one unit stores k_b (2 pi)^2 / 2 per attached bond,
+    # and the mean rotation pi carries the reference ligament half a turn: shear angle pi
+    per_bond = 0.5 * 1.5 * (2 * math.pi) ** 2 + 0.5 * 1.19 * (math.pi * 2.25) ** 2
+    assert float(energy(q, bonds, mat)) == pytest.approx(2 * per_bond, rel=1e-9)
+
+
+def test_contact_law_values_continuity_and_asymptote():
+    f = lambda a: float(contact_energy(jnp.asarray(a), KC, TH_MIN, TH_CUT))  # noqa: E731
+    assert f(math.radians(-12.5)) == pytest.approx(1.9039e-3, rel=1e-4)
+    for a in (TH_CUT, 0.0, 1.0, TH_MIN - 1e-9, -math.pi):
+        assert f(a) == 0.0
+    assert f(TH_CUT - 1e-6) < 1e-11  # C1 at the cutoff: energy ~ (delta alpha)^2
+    vals = [f(TH_MIN + d) for d in (1e-2, 1e-4, 1e-6)]
+    assert vals[0] < vals[1] < vals[2] and vals[2] > 1e2 * vals[0]
+    # the two written forms of the middle branch agree
+    a = math.radians(-13.7)
+    tau = (a - TH_CUT) / (TH_CUT - TH_MIN)
+    alt = KC / 4 * (TH_CUT - TH_MIN) ** 2 * (1 / (tau + 1) - 1 / (tau - 1) - 2)
+    assert f(a) == pytest.approx(alt, rel=1e-12)
+
+
+def test_contact_gradient_has_no_nan_anywhere():
+    grad = jax.vmap(jax.grad(lambda a: contact_energy(a, KC, TH_MIN, TH_CUT)))
+    pts = jnp.concatenate([jnp.linspace(-math.pi, math.pi, 2001),
+                           jnp.asarray([TH_MIN, TH_CUT, 2 * TH_CUT - TH_MIN])])
+    g = grad(pts)
+    assert not bool(jnp.any(jnp.isnan(g)))
+    # finite everywhere except exactly at the asymptote theta_min, where the barrier is infinite
+    assert bool(jnp.all(jnp.isfinite(g[pts != TH_MIN])))
+    # force is continuous at the cutoff (zero on both sides)
+    assert abs(float(grad(jnp.asarray([TH_CUT - 1e-9]))[0])) < 1e-6
+
+
+def test_shear_angle_is_continuous_through_zero_and_bounded():
+    lat = quads(2, 1 + 1)
+    _, bonds, mat, _ = _setup(lat, np.zeros(lat.n_design))
+    terms = make_bond_terms(lat)
+    # rotate unit 1 rigidly about unit 0's bond node: the ligament turns with it
+    psis = []
+    for phi in np.linspace(-3 * math.pi, 3 * math.pi, 301):
+        q = jnp.zeros((4, 3)).at[1, 0].set(0.0).at[1, 2].set(phi)
+        psis.append(float(terms(q, bonds, mat)["shear"][0]))
+    psis = np.array(psis)
+    assert np.all(np.isfinite(psis))
+    assert psis.max() <= 0.5 * 1.19 * (math.pi * 2.25) ** 2 + 1e-12
+
+
+def test_linearised_strains_agree_at_small_motion():
+    lat = quads(5, 4)
+    x = periodic_design(lat, math.radians(25))
+    _, bonds, mat, e_nl = _setup(lat, x)
+    e_lin = make_energy(lat, linearized=True)
+    q = jnp.asarray(np.random.default_rng(2).normal(size=(lat.n_blocks, 3)))
+    rel = []
+    for h in (1e-2, 1e-3, 1e-4):
+        a, b = float(e_nl(h * q, bonds, mat)), float(e_lin(h * q, bonds, mat))
+        rel.append(abs(a - b) / a)
+    assert rel[2] < 1e-3 and rel[1] < rel[0] / 5 and rel[2] < rel[1] / 5

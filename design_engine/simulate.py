@@ -145,13 +145,15 @@ def failure_message(result: int, config: SolverConfig) -> str | None:
     """Human-readable cause of a non-zero diffrax result code, or None for success."""
     if int(result) == 0:
         return None
-    names = {int(getattr(diffrax.RESULTS, k)._value): k for k in dir(diffrax.RESULTS)
-             if not k.startswith("_") and hasattr(getattr(diffrax.RESULTS, k), "_value")}
-    name = names.get(int(result), f"code {int(result)}")
-    if name == "max_steps_reached":
+    if int(result) == int(diffrax.RESULTS.max_steps_reached._value):
         return (f"the solver hit its step budget (max_steps={config.max_steps}); the scene is too "
                 "stiff for the explicit solver at this tolerance, or the state blew up")
-    return f"the solver failed: {name.replace('_', ' ')}"
+    for name in ("successful", "singular", "breakdown", "divergence", "nonfinite_input",
+                 "event_occurred", "discrete_terminating_event_occurred"):
+        item = getattr(diffrax.RESULTS, name, None)
+        if item is not None and int(item._value) == int(result):
+            return f"the solver failed: {name.replace('_', ' ')}"
+    return f"the solver failed (diffrax result code {int(result)})"
 
 
 def check_solution(sol: Solution, config: SolverConfig) -> Solution:

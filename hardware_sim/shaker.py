@@ -206,3 +206,38 @@ def run(cfg: ShakerConfig, waveform: Waveform, times_s: np.ndarray, start_s: flo
         st, r = step(cfg, st, cmd, t - st.t, rng)
         out[i] = (r.t, r.x_m, r.v_m_s)
     return st, out
+
+
+@dataclass(frozen=True, slots=True)
+class Program:
+    """A waveform scheduled to start at `start_s` (device time, s)."""
+
+    waveform: Waveform
+    start_s: float
+
+    @property
+    def end_s(self) -> float:
+        return self.start_s + self.waveform.duration_s
+
+    def command(self, t_s: float) -> float:
+        return float(self.waveform.displacement(t_s - self.start_s))
+
+
+def advance(cfg: ShakerConfig, state: ShakerState, program: Program | None, t_s: float,
+            rng: np.random.Generator, command_step_s: float = 1e-4
+            ) -> tuple[ShakerState, ShakerReading]:
+    """Advance the shaker to device time `t_s` under `program` (None: hold zero), read once.
+
+    The command is re-sampled every `command_step_s` inside the interval (zero-order hold), so
+    the response does not depend on how often a caller happens to advance the device.
+    """
+    if t_s < state.t:
+        raise ValueError(f"time went backwards: {t_s} < {state.t}")
+    st = state
+    n = max(1, math.ceil((t_s - st.t) / command_step_s - 1e-9))
+    h = (t_s - st.t) / n
+    quiet = replace(cfg, noise_std_m=0.0, noise_std_m_s=0.0)
+    for i in range(n):
+        cmd = 0.0 if program is None else program.command(st.t)
+        st, reading = step(cfg if i == n - 1 else quiet, st, cmd, h, rng)
+    return st, reading

@@ -58,3 +58,17 @@ def test_run_tracks_pulse_and_is_deterministic():
     assert a[np.argmax(a[:, 1]), 0] == pytest.approx(0.01 + 1 / 60, abs=2e-3)
     assert a[:, 1].max() == pytest.approx(0.0075, rel=0.03)
     assert abs(a[-1, 1]) < 1e-4  # back at rest after the pulse
+
+
+def test_advance_is_independent_of_call_rate():
+    cfg = sh.ShakerConfig(noise_std_m=0.0, noise_std_m_s=0.0)
+    prog = sh.Program(sh.make_waveform(cfg, sh.WaveformRequest("pulse", 0.005, 40.0)), 0.002)
+    rng = np.random.default_rng(0)
+    fine, coarse = sh.init(cfg, rng), sh.init(cfg, rng)
+    for k in range(1, 17):
+        fine, _ = sh.advance(cfg, fine, prog, k * 1e-3, rng)
+        if k % 4 == 0:
+            coarse, _ = sh.advance(cfg, coarse, prog, k * 1e-3, rng)
+    assert coarse.x == pytest.approx(fine.x, abs=1e-7)  # far below the 2 um sensor noise
+    assert fine.x > 0.004  # 16 ms: near the pulse peak at 2 ms + 12.5 ms (+ lag)
+    assert prog.end_s == pytest.approx(0.027)

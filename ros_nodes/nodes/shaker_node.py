@@ -1,0 +1,161 @@
+"""Shaker command node (lifecycle): pulse requests in, commanded waveform and measured motion out.
+
+Interfaces (node name `shaker`):
+- service `~/fire` (metarig_msgs/srv/FirePulse): play a waveform; refused outside the limits
+  or when the node is not active, with the reason in `message`.
+- service `~/stop` (std_srvs/Trigger) and topic `/rig/stop` (std_msgs/Empty): drop the program,
+  the actuator returns to rest at zero.
+- `~/command` (trajectory_msgs/JointTrajectory, latched): the accepted waveform, absolute start.
+- `~/joint_states` (sensor_msgs/JointState): measured displacement and velocity at `rate_hz`.
+- `/diagnostics`: accepted / refused / stopped / finished events.
+Transitions: configure creates the publishers and the device; activate starts the device clock;
+deactivate stops any program; cleanup releases everything.
+"""
+
+import numpy as np
+from rclpy.lifecycle import LifecycleNode, State, TransitionCallbackReturn
+from std_msgs.msg import Empty
+from std_srvs.srv import Trigger
+
+from hardware_sim import shaker as sh
+from metarig_msgs.srv import FirePulse
+from ros_nodes import convert
+from ros_nodes.nodes._common import COMMAND, LATCHED, STREAM, run_node
+from ros_nodes.nodes._params import TypedParams
+from ros_nodes.params import ShakerNodeConfig
+
+NAME = "shaker"
+
+
+class ShakerNode(LifecycleNode):
+    """Thin adapter over `hardware_sim.shaker` (see module docstring)."""
+
+    def __init__(self, **kwargs):
+        super().__init__(NAME, **kwargs)
+        self._params = TypedParams(self, ShakerNodeConfig)
+        self._active = False
+        self._program: sh.Program | None = None
+        self._state: sh.ShakerState | None = None
+        self._timer = None
+        self._pubs: dict = {}
+        self.create_service(FirePulse, "~/fire", self._on_fire)
+        self.create_service(Trigger, "~/stop", self._on_stop)
+        self.create_subscription(Empty, "/rig/stop", lambda _m: self._stop("rig stop"), COMMAND)
+        if self._params.config.autostart:
+            self.trigger_configure()
+            self.trigger_activate()
+
+    # lifecycle -----------------------------------------------------------------------------
+    def on_configure(self, state: State) -> TransitionCallbackReturn:
+        cfg = self._params.config
+        self._rng = np.random.default_rng(cfg.seed)
+        self._pubs = {
+            "js": self.create_publisher(convert.JointState, "~/joint_states", STREAM),
+            "cmd": self.create_publisher(convert.JointTrajectory, "~/command", LATCHED),
+            "diag": self.create_publisher(convert.DiagnosticArray, "/diagnostics", COMMAND),
+        }
+        self._state = sh.init(cfg.device, self._rng)
+        self._report("ok", "configured")
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_activate(self, state: State) -> TransitionCallbackReturn:
+        self._state = sh.ShakerState(t=self._now_s(), x=self._state.x, v=self._state.v)
+        self._timer = self.create_timer(1.0 / self._params.config.rate_hz, self._tick)
+        self._active = True
+        self._report("ok", "active")
+        return super().on_activate(state)
+
+    def on_deactivate(self, state: State) -> TransitionCallbackReturn:
+        self._active = False
+        self._program = None
+        if self._timer is not None:
+            self.destroy_timer(self._timer)
+            self._timer = None
+        self._report("ok", "inactive")
+        return super().on_deactivate(state)
+
+    def on_cleanup(self, state: State) -> TransitionCallbackReturn:
+        for p in self._pubs.values():
+            self.destroy_publisher(p)
+        self._pubs = {}
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_shutdown(self, state: State) -> TransitionCallbackReturn:
+        self._active = False
+        self._program = None
+        return TransitionCallbackReturn.SUCCESS
+
+    # callbacks ------------------------------------------------------------------------------
+    def _now_s(self) -> float:
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    def _tick(self) -> None:
+        t = self._now_s()
+        if t <= self._state.t:
+            return
+        cfg = self._params.config.device
+        self._state, r = sh.advance(cfg, self._state, self._program, t, self._rng)
+        self._pubs["js"].publish(convert.shaker_state(int(round(r.t * 1e9)), r.x_m, r.v_m_s))
+        if self._program is not None and t > self._program.end_s:
+            self._program = None
+            self._report("ok", "waveform finished")
+
+    def _on_fire(self, req, res):
+        if not self._active:
+            res.accepted, res.message = False, "refused: the shaker node is not active"
+            self.get_logger().warning(res.message)
+            return res
+        if self._program is not None:
+            res.accepted, res.message = False, "refused: a waveform is already playing"
+            return res
+        request = sh.WaveformRequest(kind=req.waveform or "pulse", amplitude_m=req.amplitude_m,
+                                     frequency_hz=req.frequency_hz, cycles=req.cycles or 1.0,
+                                     samples_m=tuple(req.samples_m),
+                                     sample_rate_hz=req.sample_rate_hz)
+        cfg = self._params.config
+        try:
+            wf = sh.make_waveform(cfg.device, request)
+            if not 0.0 <= req.delay_s <= 60.0:
+                raise sh.LimitError(f"delay {req.delay_s} s outside [0, 60] s")
+        except sh.LimitError as e:
+            res.accepted, res.message = False, f"refused: {e}"
+            self.get_logger().warning(res.message)
+            self._report("warn", res.message)
+            return res
+        start_ns = self.get_clock().now().nanoseconds + int(round(req.delay_s * 1e9))
+        self._program = sh.Program(wf, start_ns * 1e-9)
+        ts = np.arange(0.0, wf.duration_s + 0.5 / cfg.command_rate_hz, 1.0 / cfg.command_rate_hz)
+        self._pubs["cmd"].publish(convert.command_trajectory(start_ns, ts, wf.displacement(ts),
+                                                             wf.velocity(ts)))
+        res.accepted = True
+        res.message = (f"accepted: {wf.kind} A={wf.amplitude_m:g} m f={wf.frequency_hz:g} Hz, "
+                       f"{wf.duration_s:.4g} s")
+        res.start = convert.stamp(start_ns)
+        res.duration_s = wf.duration_s
+        self.get_logger().info(res.message)
+        self._report("ok", res.message)
+        return res
+
+    def _on_stop(self, req, res):
+        self._stop("stop service")
+        res.success, res.message = True, "stopped: program dropped, actuator returning to rest"
+        return res
+
+    def _stop(self, why: str) -> None:
+        self._program = None
+        self.get_logger().info(f"stop ({why})")
+        self._report("ok", f"stopped ({why})")
+
+    def _report(self, level: str, message: str) -> None:
+        if "diag" in self._pubs:
+            self._pubs["diag"].publish(convert.diagnostics(
+                self.get_clock().now().nanoseconds, NAME, level, message,
+                {"active": self._active, "playing": self._program is not None}))
+
+
+def main(args=None) -> int:
+    return run_node(ShakerNode, args=args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

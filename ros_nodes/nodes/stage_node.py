@@ -1,0 +1,165 @@
+"""Linear stage node (lifecycle): target strain in, stage positions and state out.
+
+Interfaces (node name `stage`):
+- service `~/set_strain` (metarig_msgs/srv/SetStrain): move to a strain and hold; refused
+  outside the limits, in FAULT, or when not active (reason in `message`).
+- services `~/stop` (hold where you are) and `~/reset` (clear a FAULT), std_srvs/Trigger;
+  topic `/rig/stop` (std_msgs/Empty) stops too.
+- `~/joint_states` (sensor_msgs/JointState: stage_bottom, stage_top; m toward the centre).
+- `~/target_strain` (std_msgs/Float64, latched) and `~/state` (std_msgs/String, latched:
+  idle / moving / holding / fault[: reason]); `/diagnostics` on every state change.
+"""
+
+import numpy as np
+from rclpy.lifecycle import LifecycleNode, State, TransitionCallbackReturn
+from std_msgs.msg import Empty, Float64, String
+from std_srvs.srv import Trigger
+
+from hardware_sim import stage as sg
+from hardware_sim.shaker import LimitError
+from metarig_msgs.srv import SetStrain
+from ros_nodes import convert
+from ros_nodes.nodes._common import COMMAND, LATCHED, STREAM, run_node
+from ros_nodes.nodes._params import TypedParams
+from ros_nodes.params import StageNodeConfig
+
+NAME = "stage"
+
+
+class StageNode(LifecycleNode):
+    """Thin adapter over `hardware_sim.stage` (see module docstring)."""
+
+    def __init__(self, **kwargs):
+        super().__init__(NAME, **kwargs)
+        self._params = TypedParams(self, StageNodeConfig)
+        self._active = False
+        self._state: sg.StageState | None = None
+        self._pending = sg.StageCommand()
+        self._timer = None
+        self._pubs: dict = {}
+        self._last_mode = None
+        self.create_service(SetStrain, "~/set_strain", self._on_set_strain)
+        self.create_service(Trigger, "~/stop", self._on_stop)
+        self.create_service(Trigger, "~/reset", self._on_reset)
+        self.create_subscription(Empty, "/rig/stop", lambda _m: self._stop(), COMMAND)
+        if self._params.config.autostart:
+            self.trigger_configure()
+            self.trigger_activate()
+
+    def on_configure(self, state: State) -> TransitionCallbackReturn:
+        cfg = self._params.config
+        self._rng = np.random.default_rng(cfg.seed)
+        self._pubs = {
+            "js": self.create_publisher(convert.JointState, "~/joint_states", STREAM),
+            "target": self.create_publisher(Float64, "~/target_strain", LATCHED),
+            "state": self.create_publisher(String, "~/state", LATCHED),
+            "diag": self.create_publisher(convert.DiagnosticArray, "/diagnostics", COMMAND),
+        }
+        self._state = sg.init(cfg.device, self._rng)
+        self._publish_mode(force=True)
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_activate(self, state: State) -> TransitionCallbackReturn:
+        s = self._state
+        self._state = sg.StageState(t=self._now_s(), closing_m=s.closing_m, setpoint_m=s.setpoint_m,
+                                    target_m=s.target_m, mode=s.mode, fault=s.fault)
+        self._timer = self.create_timer(1.0 / self._params.config.rate_hz, self._tick)
+        self._active = True
+        return super().on_activate(state)
+
+    def on_deactivate(self, state: State) -> TransitionCallbackReturn:
+        self._active = False
+        self._pending = sg.StageCommand(stop=True)
+        self._tick()
+        if self._timer is not None:
+            self.destroy_timer(self._timer)
+            self._timer = None
+        return super().on_deactivate(state)
+
+    def on_cleanup(self, state: State) -> TransitionCallbackReturn:
+        for p in self._pubs.values():
+            self.destroy_publisher(p)
+        self._pubs = {}
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_shutdown(self, state: State) -> TransitionCallbackReturn:
+        self._active = False
+        return TransitionCallbackReturn.SUCCESS
+
+    def _now_s(self) -> float:
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    def _tick(self) -> None:
+        if self._state is None:
+            return
+        t = max(self._now_s(), self._state.t)
+        cmd, self._pending = self._pending, sg.StageCommand()
+        try:
+            self._state, r = sg.step(self._params.config.device, self._state, cmd,
+                                     t - self._state.t, self._rng)
+        except LimitError as e:  # cannot happen for checked commands; never let it kill the node
+            self.get_logger().error(str(e))
+            return
+        if "js" in self._pubs:
+            self._pubs["js"].publish(convert.stage_state(int(round(r.t * 1e9)), r.bottom_m,
+                                                         r.top_m))
+        self._publish_mode()
+
+    def _publish_mode(self, force: bool = False) -> None:
+        s = self._state
+        label = s.mode.value + (f": {s.fault}" if s.fault else "")
+        if not force and label == self._last_mode or "state" not in self._pubs:
+            return
+        self._last_mode = label
+        self._pubs["state"].publish(String(data=label))
+        cfg = self._params.config.device
+        self._pubs["target"].publish(convert.scalar(s.target_m / cfg.sample_height_m))
+        level = "error" if s.mode == sg.StageMode.FAULT else "ok"
+        self._pubs["diag"].publish(convert.diagnostics(
+            self.get_clock().now().nanoseconds, NAME, level, label,
+            {"closing_m": f"{s.closing_m:.6g}", "target_m": f"{s.target_m:.6g}"}))
+        if s.mode == sg.StageMode.FAULT:
+            self.get_logger().error(f"FAULT: {s.fault}")
+
+    def _on_set_strain(self, req, res):
+        cfg = self._params.config.device
+        if not self._active:
+            res.accepted, res.message = False, "refused: the stage node is not active"
+        elif self._state.mode == sg.StageMode.FAULT:
+            res.accepted, res.message = False, f"refused: stages in FAULT ({self._state.fault})"
+        else:
+            try:
+                sg.check_strain(cfg, req.strain)
+                self._pending = sg.StageCommand(target_strain=req.strain)
+                res.accepted, res.eta_s = True, sg.eta_s(cfg, self._state, req.strain)
+                res.message = f"accepted: moving to strain {req.strain:g} (~{res.eta_s:.3g} s)"
+            except LimitError as e:
+                res.accepted, res.message = False, f"refused: {e}"
+        if res.accepted:
+            self.get_logger().info(res.message)
+        else:
+            self.get_logger().warning(res.message)
+        return res
+
+    def _stop(self) -> None:
+        self._pending = sg.StageCommand(stop=True)
+        self.get_logger().info("stop: holding position")
+
+    def _on_stop(self, req, res):
+        self._stop()
+        res.success, res.message = True, "stopped: stages hold their position"
+        return res
+
+    def _on_reset(self, req, res):
+        self._pending = sg.StageCommand(reset=True)
+        res.success = self._state is not None and self._state.mode == sg.StageMode.FAULT
+        res.message = "fault cleared" if res.success else "nothing to reset (no fault)"
+        return res
+
+
+def main(args=None) -> int:
+    return run_node(StageNode, args=args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

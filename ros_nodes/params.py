@@ -1,0 +1,234 @@
+"""Typed node configurations: one frozen dataclass per node, defaults + description + bounds.
+
+Each field carries `metadata={"description", "min", "max", "choices"}`. Nested device configs
+(`hardware_sim` dataclasses) become dotted parameter names (`device.max_amplitude_m`). This
+module is pure (no rclpy): `flat_fields` lists the parameters, `from_flat` rebuilds and
+validates a config from parameter values, `load_yaml` reads a ROS 2 parameter file. The rclpy
+side (descriptors with ranges, the on-set callback) is `ros_nodes.nodes._params`.
+"""
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from hardware_sim.shaker import ShakerConfig
+from hardware_sim.stage import StageConfig
+
+SOURCES = ("sim", "mcap", "folder", "video", "pattern")
+
+
+class ConfigError(ValueError):
+    """A parameter value that is out of range or inconsistent (the message says which)."""
+
+
+def _p(default, desc, lo=None, hi=None, choices=None, **kw):
+    meta = {"description": desc, "min": lo, "max": hi, "choices": choices}
+    if callable(default) and not isinstance(default, (int, float, str)):
+        return field(default_factory=default, metadata=meta, **kw)
+    return field(default=default, metadata=meta, **kw)
+
+
+@dataclass(frozen=True, slots=True)
+class ShakerNodeConfig:
+    """Parameters of the shaker command node."""
+
+    device: ShakerConfig = _p(ShakerConfig, "shaker physics and safety limits")
+    rate_hz: float = _p(1000.0, "device step and joint-state rate (node clock), Hz", 1.0, 20000.0)
+    command_rate_hz: float = _p(2000.0, "sample rate of the published commanded waveform, Hz",
+                                10.0, 100000.0)
+    seed: int = _p(0, "seed of the simulated sensor noise", 0, 2**31 - 1)
+    hardware: str = _p("sim", "device backend (only the simulator exists here)",
+                       choices=("sim",))
+    autostart: bool = _p(True, "configure and activate on start-up (the launcher drives it)")
+
+
+@dataclass(frozen=True, slots=True)
+class StageNodeConfig:
+    """Parameters of the linear stage node."""
+
+    device: StageConfig = _p(StageConfig, "stage physics and safety limits")
+    rate_hz: float = _p(500.0, "device step and joint-state rate (node clock), Hz", 1.0, 10000.0)
+    seed: int = _p(1, "seed of the simulated encoder noise", 0, 2**31 - 1)
+    hardware: str = _p("sim", "device backend (only the simulator exists here)",
+                       choices=("sim",))
+    autostart: bool = _p(True, "configure and activate on start-up (the launcher drives it)")
+
+
+@dataclass(frozen=True, slots=True)
+class CameraNodeConfig:
+    """Parameters of the camera source node."""
+
+    source: str = _p("pattern", "frame source", choices=SOURCES)
+    path: str = _p("", "recording (.mcap), image folder or video file to replay")
+    image_topic: str = _p("/camera/image_raw", "topic of the frames inside an MCAP replay")
+    fps: float = _p(1000.0, "frame rate (pattern, folder, video; sim: capture rate), Hz",
+                    0.1, 100000.0)
+    rate_factor: float = _p(1.0, "publish speed relative to real time (0: as fast as possible)",
+                            0.0, 100.0)
+    width: int = _p(640, "frame width (pattern, sim), px", 8, 8192)
+    height: int = _p(480, "frame height (pattern, sim), px", 8, 8192)
+    m_per_px: float = _p(6.0e-4, "image scale (sim, camera info), m/px", 1e-7, 1.0)
+    n_frames: int = _p(0, "frames to publish then stop (0: all / unlimited)", 0, 10**9)
+    loop: bool = _p(False, "restart a replay at its end")
+    publish_clock: bool = _p(False, "publish /clock from the frame stamps (replay)")
+    frame_id: str = _p("camera", "frame_id of the images")
+    scene: str = _p("precompression-24x18", "sim: design_engine scene name")
+    nx: int = _p(24, "sim: units along x", 2, 200)
+    ny: int = _p(16, "sim: units along y", 2, 200)
+    perturb: float = _p(0.0, "sim: relative spread of the specimen's true stiffnesses", 0.0, 0.5)
+    noise_std: float = _p(0.01, "sim: read noise, fraction of full scale", 0.0, 0.5)
+    lighting_gradient: float = _p(0.15, "sim: left-right lighting gradient", 0.0, 0.9)
+    exposure_samples: int = _p(3, "sim: sub-exposures for motion blur", 1, 16)
+    supersample: int = _p(2, "sim: sub-pixel samples per pixel side", 1, 8)
+    seed: int = _p(0, "seed of noise and speckle", 0, 2**31 - 1)
+
+
+@dataclass(frozen=True, slots=True)
+class RecorderNodeConfig:
+    """Parameters of the MCAP recorder node."""
+
+    path: str = _p("recording.mcap", "output MCAP file")
+    topics: tuple[str, ...] = _p(lambda: ("/clock", "/rig/stop", "/rig/phase", "/rig/design",
+                                          "/shaker/command", "/shaker/joint_states",
+                                          "/stage/joint_states", "/stage/target_strain",
+                                          "/stage/state", "/camera/image_raw",
+                                          "/camera/camera_info", "/camera/ground_truth",
+                                          "/diagnostics", "/dic/poses"),
+                                 "topics to record (those that appear; types discovered)")
+    autostart: bool = _p(False, "start recording immediately instead of on ~/start")
+    chunk_size: int = _p(1 << 20, "MCAP chunk size, bytes (a killed writer loses <= 1 chunk)",
+                         1024, 1 << 28)
+    queue_depth: int = _p(2000, "subscription queue depth (keep-last)", 1, 100000)
+    gap_factor: float = _p(1.5, "a stamp step above this many median periods is a gap",
+                           1.01, 100.0)
+    discovery_period_s: float = _p(0.2, "how often new topics are looked for, s", 0.01, 10.0)
+
+
+@dataclass(frozen=True, slots=True)
+class ParamSpec:
+    """One flat ROS parameter: name, Python type, default, description, bounds, choices."""
+
+    name: str
+    type: type
+    default: Any
+    description: str
+    min: float | None
+    max: float | None
+    choices: tuple | None
+
+
+def _field_type(f: dataclasses.Field, value) -> type:
+    if isinstance(value, bool):
+        return bool
+    if isinstance(value, tuple):
+        return tuple
+    return type(value)
+
+
+def flat_fields(cls, prefix: str = "") -> list[ParamSpec]:
+    """The flat parameter list of a config class (nested dataclasses get dotted names)."""
+    out = []
+    defaults = cls()
+    for f in dataclasses.fields(cls):
+        value = getattr(defaults, f.name)
+        if dataclasses.is_dataclass(value):
+            out += flat_fields(type(value), f"{prefix}{f.name}.")
+            continue
+        m = f.metadata
+        out.append(ParamSpec(prefix + f.name, _field_type(f, value), value,
+                             m.get("description", ""), m.get("min"), m.get("max"),
+                             m.get("choices")))
+    return out
+
+
+def to_flat(cfg, prefix: str = "") -> dict[str, Any]:
+    """Config -> {dotted name: value}."""
+    out = {}
+    for f in dataclasses.fields(cfg):
+        v = getattr(cfg, f.name)
+        if dataclasses.is_dataclass(v):
+            out.update(to_flat(v, f"{prefix}{f.name}."))
+        else:
+            out[prefix + f.name] = v
+    return out
+
+
+def check_value(spec: ParamSpec, value) -> Any:
+    """Coerce and range-check one value; raises `ConfigError` with the reason."""
+    if spec.type is float and isinstance(value, int) and not isinstance(value, bool):
+        value = float(value)
+    if spec.type is tuple:
+        if isinstance(value, str) or not all(isinstance(v, str) for v in value):
+            raise ConfigError(f"{spec.name}: expected a list of strings, got {value!r}")
+        value = tuple(value)
+    elif not isinstance(value, spec.type) or (spec.type is int and isinstance(value, bool)):
+        raise ConfigError(f"{spec.name}: expected {spec.type.__name__}, got {value!r}")
+    if spec.type in (int, float):
+        if spec.type is float and math.isnan(value):
+            raise ConfigError(f"{spec.name}: NaN is not a valid value")
+        if spec.min is not None and value < spec.min:
+            raise ConfigError(f"{spec.name}={value} is below the minimum {spec.min}")
+        if spec.max is not None and value > spec.max:
+            raise ConfigError(f"{spec.name}={value} is above the maximum {spec.max}")
+    if spec.choices is not None and value not in spec.choices:
+        raise ConfigError(f"{spec.name}={value!r}: choose one of {', '.join(spec.choices)}")
+    return value
+
+
+def from_flat(cls, values: dict[str, Any], base=None):
+    """Build a validated config of class `cls` from flat values over `base` (default: defaults).
+
+    Raises `ConfigError` for an unknown name, a bad type, an out-of-range value or a failed
+    cross-field check of a (nested) config.
+    """
+    specs = {s.name: s for s in flat_fields(cls)}
+    flat = to_flat(base if base is not None else cls())
+    for k, v in values.items():
+        if k not in specs:
+            raise ConfigError(f"unknown parameter {k!r}")
+        flat[k] = check_value(specs[k], v)
+
+    def build(c, prefix):
+        kw = {}
+        for f in dataclasses.fields(c):
+            default = getattr(c(), f.name)
+            if dataclasses.is_dataclass(default):
+                kw[f.name] = build(type(default), f"{prefix}{f.name}.")
+            else:
+                kw[f.name] = flat[prefix + f.name]
+        try:
+            return c(**kw)
+        except (ValueError, TypeError) as e:
+            raise ConfigError(f"{prefix or c.__name__}: {e}") from e
+
+    return build(cls, "")
+
+
+def load_yaml(path: str | Path, node_name: str) -> dict[str, Any]:
+    """Flat parameters for `node_name` from a ROS 2 parameter file (`/**` entries apply to all).
+
+    The file layout is the standard one: `node_name: {ros__parameters: {...}}`; nested maps
+    become dotted names.
+    """
+    try:
+        doc = yaml.safe_load(Path(path).read_text()) or {}
+    except (OSError, yaml.YAMLError) as e:
+        raise ConfigError(f"cannot read parameter file {path}: {e}") from e
+    out: dict[str, Any] = {}
+
+    def flatten(d, prefix=""):
+        for k, v in d.items():
+            if isinstance(v, dict):
+                flatten(v, f"{prefix}{k}.")
+            else:
+                out[prefix + k] = tuple(v) if isinstance(v, list) else v
+
+    for key in ("/**", node_name, "/" + node_name.lstrip("/")):
+        entry = doc.get(key)
+        if isinstance(entry, dict):
+            flatten(entry.get("ros__parameters", {}) or {})
+    return out

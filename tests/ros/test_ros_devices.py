@@ -1,0 +1,126 @@
+"""Shaker and stage lifecycle nodes, started for real as console scripts on an isolated domain."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from rostools import call, spin_until, stop_process, wait_matched
+
+BIN = sys.prefix + "/bin/"
+
+
+@pytest.fixture
+def client(ros_context):
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+
+    node = rclpy.create_node("test_client", context=ros_context)
+    ex = SingleThreadedExecutor(context=ros_context)
+    ex.add_node(node)
+    yield node, ex
+    ex.shutdown()
+    node.destroy_node()
+
+
+def _start(script, ros_env, *ros_args):
+    args = [BIN + script]
+    if ros_args:
+        args += ["--ros-args", *ros_args]
+    return subprocess.Popen(args, env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
+
+
+def test_shaker_refuses_out_of_limits_then_plays_a_pulse_and_stops(client, ros_env, tmp_path):
+    from sensor_msgs.msg import JointState
+    from std_srvs.srv import Trigger
+    from trajectory_msgs.msg import JointTrajectory
+
+    from metarig_msgs.srv import FirePulse
+    from ros_nodes.nodes._common import LATCHED, STREAM
+
+    params = tmp_path / "shaker.yaml"
+    params.write_text("shaker:\n  ros__parameters:\n    device:\n      max_amplitude_m: 0.008\n")
+    proc = _start("metarig-shaker", ros_env, "--params-file", str(params))
+    node, ex = client
+    try:
+        states, cmds = [], []
+        node.create_subscription(JointState, "/shaker/joint_states", states.append, STREAM)
+        node.create_subscription(JointTrajectory, "/shaker/command", cmds.append, LATCHED)
+        fire = node.create_client(FirePulse, "/shaker/fire")
+        # the YAML limit (8 mm) is in force: 10 mm is refused with the reason
+        r = call(fire, FirePulse.Request(waveform="pulse", amplitude_m=0.010, frequency_hz=30.0), ex)
+        assert not r.accepted and "amplitude" in r.message and "0.008" in r.message
+        r = call(fire, FirePulse.Request(waveform="pulse", amplitude_m=0.005, frequency_hz=500.0), ex)
+        assert not r.accepted and "frequency" in r.message
+        r = call(fire, FirePulse.Request(waveform="pulse", amplitude_m=0.0075, frequency_hz=30.0,
+                                         delay_s=0.05), ex)
+        assert r.accepted, r.message
+        assert r.duration_s == pytest.approx(1 / 30)
+        spin_until(ex, lambda: cmds, 10.0, "the latched commanded waveform")
+        u = np.array([p.positions[0] for p in cmds[-1].points])
+        assert u.max() == pytest.approx(0.0075, rel=1e-3) and u[0] == 0.0
+        start = r.start.sec + 1e-9 * r.start.nanosec
+        spin_until(ex, lambda: states and states[-1].header.stamp.sec + 1e-9 *
+                   states[-1].header.stamp.nanosec > start + 0.06, 15.0, "the pulse to finish")
+        x = np.array([m.position[0] for m in states])
+        assert x.max() == pytest.approx(0.0075, rel=0.05)  # measured peak follows the command
+        assert abs(x[-1]) < 2e-4
+        # stop during a second pulse: the actuator returns to rest
+        r = call(fire, FirePulse.Request(waveform="burst", amplitude_m=0.002, frequency_hz=20.0,
+                                         cycles=50.0), ex)
+        assert r.accepted, r.message
+        r2 = call(fire, FirePulse.Request(waveform="pulse", amplitude_m=0.002, frequency_hz=20.0), ex)
+        assert not r2.accepted and "already playing" in r2.message
+        assert call(node.create_client(Trigger, "/shaker/stop"), Trigger.Request(), ex).success
+        n0 = len(states)
+        spin_until(ex, lambda: len(states) > n0 + 300, 15.0, "0.3 s of joint states after stop")
+        assert np.abs([m.position[0] for m in states[-50:]]).max() < 1e-4
+    finally:
+        print(stop_process(proc))
+
+
+def test_stage_moves_holds_refuses_and_validates_parameters(client, ros_env):
+    from rcl_interfaces.msg import Parameter as ParamMsg
+    from rcl_interfaces.msg import ParameterType, ParameterValue
+    from rcl_interfaces.srv import SetParameters
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import String
+
+    from metarig_msgs.srv import SetStrain
+    from ros_nodes.nodes._common import LATCHED, STREAM
+
+    proc = _start("metarig-stage", ros_env)
+    node, ex = client
+    try:
+        states, modes = [], []
+        node.create_subscription(JointState, "/stage/joint_states", states.append, STREAM)
+        node.create_subscription(String, "/stage/state", lambda m: modes.append(m.data), LATCHED)
+        setp = node.create_client(SetStrain, "/stage/set_strain")
+        r = call(setp, SetStrain.Request(strain=0.15), ex)
+        assert not r.accepted and "strain 0.15 outside" in r.message
+        r = call(setp, SetStrain.Request(strain=0.02), ex)
+        assert r.accepted and r.eta_s == pytest.approx(0.08)
+        spin_until(ex, lambda: modes and modes[-1] == "holding", 15.0, "stage holding")
+        assert "moving" in modes
+        spin_until(ex, lambda: len(states) > 5, 5.0, "joint states")
+        closing = states[-1].position[0] + states[-1].position[1]
+        assert closing == pytest.approx(0.02 * 0.225, abs=1e-5)
+        # parameters: an out-of-range value and an inconsistent pair are refused with a reason
+        ps = node.create_client(SetParameters, "/stage/set_parameters")
+
+        def set_param(name, value):
+            p = ParamMsg(name=name, value=ParameterValue(type=ParameterType.PARAMETER_DOUBLE,
+                                                         double_value=value))
+            return call(ps, SetParameters.Request(parameters=[p]), ex).results[0]
+
+        bad = set_param("device.max_strain", 0.9)
+        assert not bad.successful and bad.reason
+        bad = set_param("device.closing_speed_m_s", 0.5)  # 2.2/s strain rate > 0.25/s limit
+        assert not bad.successful and "strain rate" in bad.reason
+        assert set_param("device.max_strain", 0.05).successful
+        r = call(setp, SetStrain.Request(strain=0.06), ex)
+        assert not r.accepted and "0.05" in r.message
+    finally:
+        print(stop_process(proc))

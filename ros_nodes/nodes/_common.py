@@ -1,5 +1,7 @@
 """Shared QoS profiles and the uniform `main()` of every node."""
 
+import signal
+import threading
 from collections.abc import Callable
 
 import rclpy
@@ -22,6 +24,9 @@ CLOCK = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
 
 def run_node(make: Callable[..., object], args=None, **node_kwargs) -> int:
     """Init rclpy, build one node, spin it on a multi-threaded executor until Ctrl-C/shutdown."""
+    # SIGTERM stops a node like Ctrl-C does (files are finished, devices brought to rest)
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, signal.default_int_handler)
     # This rclpy (Jazzy 7.1) has no context-manager form of init(); try_shutdown is the `with`.
     try:
         rclpy.init(args=args)

@@ -1,0 +1,158 @@
+"""MCAP recorder node: records rig topics (serialized, never decoded) into a rosbag2-style MCAP.
+
+Interfaces (node name `recorder`):
+- services `~/start` and `~/stop` (std_srvs/Trigger): open `path` and record / finish the file;
+  the stop response carries the loss report (JSON) in `message`; `autostart` records at once.
+- `~/report` (std_msgs/String, latched): the report of the last finished recording (JSON).
+- `~/status` (std_msgs/String, 5 Hz): whether recording, and messages written per topic (JSON).
+Topics in `topics` are subscribed as they appear (types discovered from the graph), with the
+publishers' reliability and durability (latched topics stay latched). The strings on
+`/rig/design` and `/rig/config` are also stored as MCAP metadata records. Ctrl-C or SIGTERM
+finishes the file properly; a SIGKILL leaves all but the last chunk for `metarig recover`.
+"""
+
+import json
+
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+
+from ros_nodes import convert
+from ros_nodes.logic.recorder import McapRecorder, cdr_string
+from ros_nodes.nodes._common import COMMAND, LATCHED, run_node
+from ros_nodes.nodes._params import TypedParams
+from ros_nodes.params import RecorderNodeConfig
+
+NAME = "recorder"
+METADATA_TOPICS = {"/rig/design": "design", "/rig/config": "rig_config"}
+
+
+def _qos_yaml(qos: QoSProfile) -> str:
+    return (f"- history: 3\n  depth: 0\n  reliability: {int(qos.reliability)}\n"
+            f"  durability: {int(qos.durability)}\n  deadline:\n    sec: 0\n    nsec: 0\n"
+            "  lifespan:\n    sec: 0\n    nsec: 0\n  liveliness: 1\n"
+            "  liveliness_lease_duration:\n    sec: 0\n    nsec: 0\n"
+            "  avoid_ros_namespace_conventions: false\n")
+
+
+class RecorderNode(Node):
+    """Thin adapter over `ros_nodes.logic.recorder.McapRecorder`."""
+
+    def __init__(self, **kwargs):
+        super().__init__(NAME, **kwargs)
+        self._params = TypedParams(self, RecorderNodeConfig)
+        self._rec: McapRecorder | None = None
+        self._subs: dict = {}
+        self._report_pub = self.create_publisher(String, "~/report", LATCHED)
+        self._status_pub = self.create_publisher(String, "~/status", COMMAND)
+        self._status_timer = self.create_timer(0.2, self._status)
+        self.create_service(Trigger, "~/start", self._on_start)
+        self.create_service(Trigger, "~/stop", self._on_stop)
+        self._timer = self.create_timer(self._params.config.discovery_period_s, self._discover)
+        if self._params.config.autostart:
+            self.start()
+
+    # pure-ish helpers used by callbacks and by the in-process launcher ----------------------
+    def start(self) -> str:
+        if self._rec is not None:
+            return f"already recording to {self._rec.path}"
+        cfg = self._params.config
+        self._rec = McapRecorder(cfg.path, chunk_size=cfg.chunk_size, gap_factor=cfg.gap_factor)
+        self._rec.add_metadata("recorder", {k: json.dumps(v) for k, v in
+                                            {"topics": list(cfg.topics), "path": cfg.path,
+                                             "chunk_size": cfg.chunk_size}.items()})
+        self._discover()
+        self.get_logger().info(f"recording to {cfg.path}")
+        return f"recording to {cfg.path}"
+
+    def stop(self) -> dict | None:
+        rec, self._rec = self._rec, None
+        if rec is None:
+            return None
+        report = rec.close()
+        self._report_pub.publish(String(data=json.dumps(report)))
+        lost = report["dropped"]
+        msg = (f"recording finished: {report['messages']} messages, {lost} dropped "
+               f"-> {report['path']}")
+        if lost:
+            self.get_logger().warning(msg + " (see the report: gaps per topic)")
+        else:
+            self.get_logger().info(msg)
+        return report
+
+    def close(self) -> None:
+        self.stop()
+
+    def message_counts(self) -> dict[str, int]:
+        return {} if self._rec is None else {t: s.count for t, s in self._rec.stats.items()}
+
+    # callbacks ------------------------------------------------------------------------------
+    def _status(self) -> None:
+        self._status_pub.publish(String(data=json.dumps(
+            {"recording": self._rec is not None, "counts": self.message_counts()})))
+
+    def _discover(self) -> None:
+        wanted = set(self._params.config.topics)
+        for topic, types in self.get_topic_names_and_types():
+            if topic not in wanted or topic in self._subs or not types:
+                continue
+            infos = self.get_publishers_info_by_topic(topic)
+            if not infos:
+                continue
+            offered = [i.qos_profile for i in infos]
+            reliable = all(q.reliability == ReliabilityPolicy.RELIABLE for q in offered)
+            latched = all(q.durability == DurabilityPolicy.TRANSIENT_LOCAL for q in offered)
+            qos = QoSProfile(depth=1 if latched else self._params.config.queue_depth,
+                             reliability=ReliabilityPolicy.RELIABLE if reliable
+                             else ReliabilityPolicy.BEST_EFFORT,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL if latched
+                             else DurabilityPolicy.VOLATILE)
+            try:
+                cls = convert.message_class(types[0])
+            except (ImportError, AttributeError, ValueError) as e:
+                self.get_logger().warning(f"cannot record {topic} ({types[0]}): {e}")
+                self._subs[topic] = None
+                continue
+            self._subs[topic] = (types[0], qos, self.create_subscription(
+                cls, topic, self._callback(topic), qos, raw=True))
+        if self._rec is not None:
+            for topic, entry in self._subs.items():
+                if entry is not None:
+                    self._rec.add_topic(topic, entry[0], _qos_yaml(entry[1]))
+
+    def _callback(self, topic: str):
+        def on_message(data: bytes, info) -> None:
+            rec = self._rec
+            if rec is None:
+                return
+            if topic not in rec.stats:
+                entry = self._subs[topic]
+                rec.add_topic(topic, entry[0], _qos_yaml(entry[1]))
+            rec.write(topic, data, self.get_clock().now().nanoseconds,
+                      info.get("publication_sequence_number"))
+            if topic in METADATA_TOPICS:
+                text = cdr_string(data)
+                if text is not None:
+                    rec.add_metadata(METADATA_TOPICS[topic], {"json": text})
+
+        return on_message
+
+    def _on_start(self, req, res):
+        res.message = self.start()
+        res.success = True
+        return res
+
+    def _on_stop(self, req, res):
+        report = self.stop()
+        res.success = report is not None
+        res.message = json.dumps(report) if report is not None else "not recording"
+        return res
+
+
+def main(args=None) -> int:
+    return run_node(RecorderNode, args=args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,147 @@
+"""Recorder node for real: loss report, rosbags read-back, metadata, kill -9 then recovery."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from rostools import call, spin_until, stop_process, wait_matched
+
+BIN = sys.prefix + "/bin/"
+
+
+@pytest.fixture
+def pub_node(ros_context):
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+
+    node = rclpy.create_node("test_camera", context=ros_context)
+    ex = SingleThreadedExecutor(context=ros_context)
+    ex.add_node(node)
+    yield node, ex
+    ex.shutdown()
+    node.destroy_node()
+
+
+def _recorder(ros_env, path, *extra):
+    args = [BIN + "metarig-recorder", "--ros-args", "-p", f"path:={path}",
+            "-p", "topics:=[/camera/image_raw,/rig/design]", *extra]
+    return subprocess.Popen(args, env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
+
+
+def _frames(pub, ex, ks, shape=(48, 64)):
+    from ros_nodes import convert
+
+    for k in ks:
+        pub.publish(convert.image(1_000_000_000 + k * 1_000_000, np.full(shape, k % 256, np.uint8)))
+        ex.spin_once(timeout_sec=0)
+
+
+def test_recording_reads_back_in_rosbags_and_reports_a_gap(pub_node, ros_env, tmp_path):
+    from rosbags.highlevel import AnyReader
+    from sensor_msgs.msg import Image
+    from std_msgs.msg import String
+    from std_srvs.srv import Trigger
+
+    from ros_nodes.nodes._common import LATCHED, STREAM
+
+    node, ex = pub_node
+    path = tmp_path / "rec.mcap"
+    design = node.create_publisher(String, "/rig/design", LATCHED)
+    design.publish(String(data=json.dumps({"polygons_m": [[[0, 0], [1, 0], [0, 1]]]})))
+    pub = node.create_publisher(Image, "/camera/image_raw", STREAM)
+    proc = _recorder(ros_env, path, "-p", "autostart:=true")
+    try:
+        wait_matched(pub, ex, 20.0)
+        wait_matched(design, ex, 20.0)
+        sent = [k for k in range(120) if k != 60]  # frame 60 never published: a gap
+        _frames(pub, ex, sent)
+        stop = node.create_client(Trigger, "/recorder/stop")
+        # wait until the recorder says it has written every frame, then ask for the report
+        status = []
+        node.create_subscription(String, "/recorder/status", lambda m: status.append(
+            json.loads(m.data)["counts"].get("/camera/image_raw", 0)), 10)
+        spin_until(ex, lambda: status and status[-1] >= len(sent), 20.0, "all frames written")
+        res = call(stop, Trigger.Request(), ex)
+        assert res.success
+        report = json.loads(res.message)
+        t = report["topics"]["/camera/image_raw"]
+        assert t["count"] == len(sent)
+        assert t["gaps"] == 1 and t["missing_by_stamp"] == 1 and t["missing_by_sequence"] == 0
+        assert t["period_s"] == pytest.approx(1e-3)
+    finally:
+        print(stop_process(proc))
+    with AnyReader([path]) as reader:
+        assert {c.topic for c in reader.connections} == {"/camera/image_raw", "/rig/design"}
+        stamps, values = [], []
+        for con, t_ns, raw in reader.messages():
+            msg = reader.deserialize(raw, con.msgtype)
+            if con.topic == "/camera/image_raw":
+                stamps.append(t_ns)
+                values.append(int(msg.data[0]))
+                assert t_ns == msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+            else:
+                assert json.loads(msg.data)["polygons_m"]
+    assert values == [k % 256 for k in sent]
+    assert np.all(np.diff(stamps) > 0)
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        meta = {m.name: m.metadata for m in make_reader(f).iter_metadata()}
+    assert "polygons_m" in meta["design"]["json"] and "recording_report" in meta
+
+
+def test_kill_minus_9_then_recover(pub_node, ros_env, tmp_path):
+    from rosbags.rosbag2 import Reader
+    from sensor_msgs.msg import Image
+
+    from ros_nodes.nodes._common import STREAM
+
+    node, ex = pub_node
+    path = tmp_path / "killed.mcap"
+    pub = node.create_publisher(Image, "/camera/image_raw", STREAM)
+    proc = _recorder(ros_env, path, "-p", "autostart:=true", "-p", "chunk_size:=32768")
+    try:
+        wait_matched(pub, ex, 20.0)
+        n = 400
+        _frames(pub, ex, range(n))
+        from rclpy.duration import Duration
+
+        assert pub.wait_for_all_acked(Duration(seconds=20))
+        per_frame = 48 * 64 + 60
+        # wait (by deadline) until all but the last ~chunk are on disk, then kill hard
+        spin_until(ex, lambda: path.exists() and path.stat().st_size > (n - 15) * per_frame,
+                   20.0, "the recorder to flush its chunks")
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.communicate()
+    with pytest.raises(Exception):
+        with Reader(path) as r:  # the killed file has no summary/footer
+            list(r.messages())
+    out = tmp_path / "recovered.mcap"
+    r = subprocess.run([BIN + "metarig", "recover", str(path), "-o", str(out)], env=ros_env,
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    rep = json.loads(r.stdout.strip().splitlines()[-1])
+    assert not rep["complete"]
+    with Reader(out) as reader:
+        values = [raw[-1] for _, _, raw in reader.messages()]  # last byte: a pixel of frame k
+    assert len(values) == rep["messages"] >= n - 15
+    assert values == [k % 256 for k in range(len(values))]  # contiguous from the start
+
+
+def test_recover_refuses_non_mcap(tmp_path, ros_env):
+    bad = tmp_path / "x.mcap"
+    bad.write_bytes(b"not an mcap")
+    r = subprocess.run([BIN + "metarig", "recover", str(bad)], env=ros_env, capture_output=True,
+                       text=True, timeout=60)
+    assert r.returncode == 2 and "not an MCAP" in r.stderr and "Traceback" not in r.stderr

@@ -93,6 +93,7 @@ class RecorderNodeConfig:
 
     path: str = _p("recording.mcap", "output MCAP file")
     topics: tuple[str, ...] = _p(lambda: ("/clock", "/rig/stop", "/rig/phase", "/rig/design",
+                                          "/rig/config", "/shaker/fire_request",
                                           "/shaker/command", "/shaker/joint_states",
                                           "/stage/joint_states", "/stage/target_strain",
                                           "/stage/state", "/camera/image_raw",

@@ -13,6 +13,7 @@ finishes the file properly; a SIGKILL leaves all but the last chunk for `metarig
 
 import json
 
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
@@ -46,10 +47,13 @@ class RecorderNode(Node):
         self._subs: dict = {}
         self._report_pub = self.create_publisher(String, "~/report", LATCHED)
         self._status_pub = self.create_publisher(String, "~/status", COMMAND)
-        self._status_timer = self.create_timer(0.2, self._status)
+        # wall-clock timers: they must run while simulated time is paused
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self._status_timer = self.create_timer(0.2, self._status, clock=steady)
         self.create_service(Trigger, "~/start", self._on_start)
         self.create_service(Trigger, "~/stop", self._on_stop)
-        self._timer = self.create_timer(self._params.config.discovery_period_s, self._discover)
+        self._timer = self.create_timer(self._params.config.discovery_period_s, self._discover,
+                                        clock=steady)
         if self._params.config.autostart:
             self.start()
 
@@ -59,6 +63,11 @@ class RecorderNode(Node):
             return f"already recording to {self._rec.path}"
         cfg = self._params.config
         self._rec = McapRecorder(cfg.path, chunk_size=cfg.chunk_size, gap_factor=cfg.gap_factor)
+        # fresh subscriptions, so that latched topics (design, config, targets) are re-delivered
+        for entry in self._subs.values():
+            if entry is not None:
+                self.destroy_subscription(entry[2])
+        self._subs = {}
         self._rec.add_metadata("recorder", {k: json.dumps(v) for k, v in
                                             {"topics": list(cfg.topics), "path": cfg.path,
                                              "chunk_size": cfg.chunk_size}.items()})

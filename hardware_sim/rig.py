@@ -1,0 +1,68 @@
+"""Composition of the simulated rig: measured device motion -> specimen -> camera footage.
+
+Order of the batch (see `hardware_sim.specimen`): the shaker and stages are simulated live from
+their commands (their nodes publish what their sensors read); once the capture window is over,
+the specimen is solved under that measured motion, and the frames of the window are rendered at
+the camera rate with the poses at each frame time kept as ground truth.
+"""
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from hardware_sim import camera as cam
+from hardware_sim.specimen import Specimen, simulate
+
+
+@dataclass(frozen=True)
+class MotionRecord:
+    """A measured 1-D signal: t [n] s increasing, value [n] (m)."""
+
+    t: np.ndarray
+    value: np.ndarray
+
+    @classmethod
+    def from_samples(cls, samples: list[tuple[float, float]], t_end: float) -> "MotionRecord":
+        """Sorted, de-duplicated samples, starting at rest at t = 0 and held to `t_end`."""
+        if samples:
+            a = np.array(sorted(samples))
+            t, keep = np.unique(a[:, 0], return_index=True)
+            v = a[keep, 1]
+        else:
+            t, v = np.zeros(0), np.zeros(0)
+        if t.size == 0 or t[0] > 0:
+            t, v = np.r_[0.0, t], np.r_[0.0, v]
+        if t[-1] < t_end:
+            t, v = np.r_[t, t_end], np.r_[v, v[-1]]
+        return cls(t, v)
+
+
+def capture_times(t_start_s: float, t_stop_s: float, fps: float) -> np.ndarray:
+    """Frame times k / fps (absolute multiples of the frame period) inside [t_start, t_stop]."""
+    k0, k1 = int(np.ceil(t_start_s * fps - 1e-9)), int(np.floor(t_stop_s * fps + 1e-9))
+    k0 = max(k0, 1)  # t = 0 is the rest state: the first frame is one period later
+    return np.arange(k0, k1 + 1) / fps
+
+
+def specimen_motion(specimen: Specimen, frame_t_s: np.ndarray, shaker: MotionRecord,
+                    stage: MotionRecord | None, fps: float):
+    """Solve the specimen at the frame times and one period before the first (for blur)."""
+    times = np.r_[frame_t_s[0] - 1.0 / fps, frame_t_s]
+    return simulate(specimen, times, shaker.t, shaker.value,
+                    None if stage is None else stage.t, None if stage is None else stage.value)
+
+
+def film(specimen: Specimen, cfg: cam.CameraConfig, traj, rng: np.random.Generator,
+         shutter: float = 0.5) -> Iterator[tuple[float, np.ndarray, np.ndarray]]:
+    """Render the trajectory's frames (all but its first sample, which starts the first blur).
+
+    The exposure ends at the frame time and lasts `shutter` frame periods (poses interpolated
+    linearly from the previous sample). Yields (t s, uint8 [H, W] frame, [n_units, 3] true pose
+    (u, v, theta) at the frame time, i.e. at the end of the exposure).
+    """
+    textures = cam.make_speckle_textures(specimen.polygons_m, cfg, rng)
+    for k in range(1, len(traj.t)):
+        frame = cam.render_frame(cfg, specimen.polygons_m, traj.q[k], textures, rng,
+                                 motion_from=traj.q[k] - shutter * (traj.q[k] - traj.q[k - 1]))
+        yield float(traj.t[k]), frame, traj.q[k]

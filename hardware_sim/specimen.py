@@ -1,0 +1,106 @@
+"""The specimen on the simulated rig: a design_engine scene driven by the measured rig motion.
+
+The sample is simulated by `design_engine.simulate_rig` under the *actual* (measured) shaker and
+stage motion, from rest at t = 0. This is a batch computation: the whole record of the
+stage closing and of the shaker displacement must be known first, then the trajectory is solved
+once and sampled at the requested times (the simulated rig films the sample afterwards, like a
+high-speed camera downloading its memory). Optionally the specimen's "true" stiffnesses and
+damping are perturbed from nominal (seeded), so that comparing measurement and nominal model
+has something real to find.
+"""
+
+import json
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+
+def _f(default, desc, lo=None, hi=None):
+    return field(default=default, metadata={"description": desc, "min": lo, "max": hi})
+
+
+@dataclass(frozen=True, slots=True)
+class SpecimenConfig:
+    """Which sample is on the rig."""
+
+    scene: str = _f("precompression-24x18", "design_engine scene name")
+    nx: int = _f(24, "units along x", 2, 200)
+    ny: int = _f(16, "units along y", 2, 200)
+    bias_angle_deg: float = _f(25.0, "bias angle of the periodic design, deg", -45.0, 45.0)
+    perturb: float = _f(0.0, "relative (1 sigma) spread of true stiffnesses and damping", 0.0, 0.5)
+    seed: int = _f(0, "seed of the perturbation", 0, 2**31 - 1)
+
+
+@dataclass(frozen=True)
+class Specimen:
+    """A built sample: its scene (with true parameters) and reference unit outlines (m)."""
+
+    config: SpecimenConfig
+    scene: object
+    polygons_m: np.ndarray
+    factors: dict
+
+    @property
+    def n_units(self) -> int:
+        return int(self.polygons_m.shape[0])
+
+    def centroids_m(self) -> np.ndarray:
+        """[n_units, 2] reference area centroids, m."""
+        from hardware_sim.camera import area_centroids
+
+        return area_centroids(self.polygons_m)
+
+    def design_json(self) -> str:
+        """The design as JSON: scene, size, unit outlines (`polygons_m`), inputs and stages."""
+        s = self.scene
+        return json.dumps({
+            "scene": self.config.scene, "nx": self.config.nx, "ny": self.config.ny,
+            "bias_angle_deg": self.config.bias_angle_deg, "n_units": self.n_units,
+            "sample_height_m": float(s.sample_height_m),
+            "input_units": [int(i) for i in s.input_units],
+            "stage_units_bottom": [int(i) for i in s.stage_units_bottom],
+            "stage_units_top": [int(i) for i in s.stage_units_top],
+            "polygons_m": np.round(self.polygons_m, 9).tolist(),
+            "true_parameter_factors": self.factors,
+        })
+
+
+def build(cfg: SpecimenConfig) -> Specimen:
+    """Build the scene (strain 0: the stages apply the measured closing) and perturb it."""
+    import design_engine as de
+    import equinox as eqx
+
+    scene = de.build_scene(cfg.scene, nx=cfg.nx, ny=cfg.ny, bias_angle_deg=cfg.bias_angle_deg,
+                           strain=0.0)
+    factors = {}
+    if cfg.perturb > 0:
+        rng = np.random.default_rng(cfg.seed)
+        m = scene.material
+        names = ("k_stretch", "k_shear", "k_bend", "k_contact", "damping_u", "damping_theta")
+        factors = {n: float(np.exp(cfg.perturb * rng.standard_normal())) for n in names}
+        m = eqx.tree_at(lambda x: tuple(getattr(x, n) for n in names), m,
+                        tuple(getattr(m, n) * factors[n] for n in names))
+        scene = replace(scene, material=m)
+    return Specimen(cfg, scene, np.asarray(scene.reference_polygons_m()), factors)
+
+
+def simulate(specimen: Specimen, times_s, shaker_t_s, shaker_u_m, stage_t_s=None,
+             stage_closing_m=None):
+    """Unit motion at `times_s` (s, increasing, >= 0) under the measured rig motion.
+
+    Args:
+        specimen: the sample.
+        times_s: [n_t] output times, s.
+        shaker_t_s, shaker_u_m: [n] measured shaker displacement (m) at times (s).
+        stage_t_s, stage_closing_m: [m] measured total stage closing (m) at times (s), or None.
+
+    Returns:
+        `design_engine.Trajectory` (t [n_t], q and qdot [n_t, n_units, 3], SI).
+    """
+    import design_engine as de
+
+    has_stages = len(specimen.scene.stage_units_top) > 0
+    return de.simulate_rig(specimen.scene, np.asarray(times_s, np.float64),
+                           np.asarray(shaker_t_s, np.float64), np.asarray(shaker_u_m, np.float64),
+                           stage_t_s if has_stages else None,
+                           stage_closing_m if has_stages else None)

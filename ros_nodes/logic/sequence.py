@@ -1,0 +1,115 @@
+"""The experiment procedure: plan, phases, node parameters and the run-folder summary (pure).
+
+A run: pre-compress to `strain` at the stage rate, settle, start recording and the camera,
+fire the pulse after `pre_trigger_s`, record for `record_s`, stop the devices, finish the
+recording, write the run folder. `ExperimentPlan` holds the numbers; `node_parameters` turns a
+plan into the parameters of every node; `Phase` names the steps (published on `/rig/phase`).
+"""
+
+import json
+import math
+from dataclasses import asdict, dataclass, field
+from enum import Enum
+from pathlib import Path
+
+RECORDING_NAME = "recording.mcap"
+SUMMARY_NAME = "run.json"
+DESIGN_NAME = "design.json"
+
+
+class Phase(str, Enum):
+    STARTING = "starting"
+    PRECOMPRESS = "precompress"
+    SETTLE = "settle"
+    RECORD = "record"
+    PULSE = "pulse"
+    DEVELOP = "develop"
+    STOP = "stop"
+    DONE = "done"
+    ABORTED = "aborted"
+
+
+def _p(default, desc, lo=None, hi=None):
+    return field(default=default, metadata={"description": desc, "min": lo, "max": hi})
+
+
+@dataclass(frozen=True, slots=True)
+class ExperimentPlan:
+    """The numbers of one experiment (SI)."""
+
+    scene: str = _p("precompression-24x18", "design_engine scene of the sample")
+    nx: int = _p(24, "units along x", 2, 200)
+    ny: int = _p(16, "units along y", 2, 200)
+    strain: float = _p(0.02, "pre-compression strain", 0.0, 0.09)
+    settle_s: float = _p(0.02, "hold after pre-compression before recording, s", 0.0, 60.0)
+    pre_trigger_s: float = _p(0.005, "recording before the pulse starts, s", 0.0, 10.0)
+    record_s: float = _p(0.1, "camera capture length from the start of recording, s", 0.001, 60.0)
+    waveform: str = _p("pulse", "shaker waveform (pulse, burst)")
+    amplitude_m: float = _p(0.0075, "shaker amplitude A, m", 0.0, 0.05)
+    frequency_hz: float = _p(30.0, "shaker frequency f, Hz", 0.1, 1000.0)
+    cycles: float = _p(1.0, "burst length, periods", 0.0, 1000.0)
+    fps: float = _p(1000.0, "camera frame rate, Hz", 1.0, 100000.0)
+    width: int = _p(640, "frame width, px", 8, 8192)
+    height: int = _p(480, "frame height, px", 8, 8192)
+    m_per_px: float = _p(6.0e-4, "image scale, m/px", 1e-7, 1.0)
+    perturb: float = _p(0.0, "relative spread of the specimen's true parameters", 0.0, 0.5)
+    seed: int = _p(0, "seed of all simulated noise", 0, 2**31 - 1)
+    clock_step_s: float = _p(0.001, "simulated clock step, s", 1e-5, 0.1)
+    real_time_factor: float = _p(0.5, "simulated seconds per wall second (0: as fast as "
+                                      "possible)", 0.0, 100.0)
+    timeout_s: float = _p(600.0, "wall-time limit of any one wait, s", 1.0, 86400.0)
+
+    def __post_init__(self):
+        for name in ("strain", "settle_s", "pre_trigger_s", "record_s", "amplitude_m",
+                     "frequency_hz", "fps", "m_per_px", "clock_step_s"):
+            v = getattr(self, name)
+            if not math.isfinite(v):
+                raise ValueError(f"{name} must be finite, got {v}")
+        if self.record_s < self.pre_trigger_s:
+            raise ValueError("record_s must cover pre_trigger_s")
+        if self.width < 8 or self.height < 8:
+            raise ValueError("frames must be at least 8x8 px")
+
+    @property
+    def sample_height_m(self) -> float:
+        """Nominal height (ny - 1) x 15 mm pitch that the strain refers to, m."""
+        return (self.ny - 1) * 0.015
+
+    def expected_frames(self, t_start_s: float) -> int:
+        """Frames at multiples of 1/fps inside the capture window starting at t_start_s."""
+        k0 = max(1, math.ceil(t_start_s * self.fps - 1e-9))
+        k1 = math.floor((t_start_s + self.record_s) * self.fps + 1e-9)
+        return max(0, k1 - k0 + 1)
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def node_parameters(plan: ExperimentPlan, out_dir: Path) -> dict[str, dict]:
+    """Parameters of every node for a simulated run of `plan` (all on simulated time)."""
+    common = {"use_sim_time": True}
+    return {
+        "shaker": {**common, "seed": plan.seed},
+        "stage": {**common, "seed": plan.seed + 1,
+                  "device.sample_height_m": plan.sample_height_m,
+                  "device.closing_speed_m_s": 0.25 * plan.sample_height_m},
+        "camera": {**common, "source": "sim", "fps": plan.fps, "width": plan.width,
+                   "height": plan.height, "m_per_px": plan.m_per_px, "scene": plan.scene,
+                   "nx": plan.nx, "ny": plan.ny, "perturb": plan.perturb, "seed": plan.seed,
+                   "rate_factor": 0.0},
+        "recorder": {**common, "path": str(out_dir / RECORDING_NAME)},
+    }
+
+
+def summary(plan: ExperimentPlan, params: dict, report: dict | None, timings: dict,
+            events: list[tuple[str, float]], status: str) -> dict:
+    """The machine-readable run summary (`run.json`)."""
+    return {"status": status, "plan": plan.as_dict(), "node_parameters": params,
+            "recording": report, "timings_s": timings,
+            "phases": [{"phase": p, "sim_time_s": t} for p, t in events]}
+
+
+def write_summary(out_dir: Path, data: dict) -> Path:
+    path = out_dir / SUMMARY_NAME
+    path.write_text(json.dumps(data, indent=2, default=str))
+    return path

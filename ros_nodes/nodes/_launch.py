@@ -1,0 +1,57 @@
+"""In-process launch: every rig node in one process on one MultiThreadedExecutor."""
+
+import threading
+
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.parameter import Parameter
+
+
+def overrides(params: dict) -> list[Parameter]:
+    return [Parameter(k, value=list(v) if isinstance(v, tuple) else v) for k, v in params.items()]
+
+
+class InProcessRig:
+    """Nodes of `node_params` (name -> parameters) spinning in a background thread."""
+
+    def __init__(self, node_params: dict[str, dict], args=None):
+        from ros_nodes.nodes.camera_node import CameraNode
+        from ros_nodes.nodes.recorder_node import RecorderNode
+        from ros_nodes.nodes.shaker_node import ShakerNode
+        from ros_nodes.nodes.stage_node import StageNode
+
+        classes = {"shaker": ShakerNode, "stage": StageNode, "camera": CameraNode,
+                   "recorder": RecorderNode}
+        self.context = Context()
+        rclpy.init(args=args, context=self.context)
+        self.executor = MultiThreadedExecutor(num_threads=4, context=self.context)
+        self.nodes = {}
+        for name, params in node_params.items():
+            node = classes[name](context=self.context, parameter_overrides=overrides(params))
+            self.nodes[name] = node
+            self.executor.add_node(node)
+        self._thread = threading.Thread(target=self._spin, daemon=True)
+
+    def add(self, node) -> None:
+        self.nodes[node.get_name()] = node
+        self.executor.add_node(node)
+
+    def _spin(self) -> None:
+        try:
+            self.executor.spin()
+        except Exception:  # noqa: BLE001 - the context is shut down under the executor
+            pass
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def shutdown(self) -> None:
+        for node in self.nodes.values():
+            close = getattr(node, "close", None)
+            if close is not None:
+                close()
+        self.executor.shutdown(timeout_sec=2.0)
+        for node in self.nodes.values():
+            node.destroy_node()
+        rclpy.try_shutdown(context=self.context)

@@ -1,0 +1,97 @@
+"""`metarig rig` body: start the nodes (in process or as processes), run the sequence, clean up.
+
+Whatever happens (success, refusal, timeout, Ctrl-C, SIGTERM), the devices are stopped and the
+recorder finishes its file before the nodes go down, and `run.json` says how the run ended.
+"""
+
+import json
+import logging
+import signal
+import threading
+import time
+from pathlib import Path
+
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import MultiThreadedExecutor
+
+from ros_nodes.launcher import ProcessGroup, command_line
+from ros_nodes.logic.sequence import DESIGN_NAME, Phase, summary, write_summary
+from ros_nodes.nodes._launch import InProcessRig
+from ros_nodes.nodes.sequencer_node import RigError, SequencerNode
+
+log = logging.getLogger("metarig.rig")
+
+
+def run_rig(plan, node_params: dict[str, dict], out: Path, processes: bool = False) -> int:
+    wall0 = time.monotonic()
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, signal.default_int_handler)
+    config = {"plan": plan.as_dict(), "node_parameters": node_params}
+    group, rig, ctx, ex, spin = None, None, None, None, None
+    status, report, timings, code = "failed", None, {}, 1
+    seq = None
+    try:
+        if processes:
+            group = ProcessGroup(out / "logs")
+            for name, params in node_params.items():
+                group.start(name, command_line(name, params))
+            ctx = Context()
+            rclpy.init(context=ctx)
+            seq = SequencerNode(plan, config, context=ctx,
+                                parameter_overrides=[rclpy.parameter.Parameter("use_sim_time",
+                                                                                value=False)])
+            ex = MultiThreadedExecutor(num_threads=2, context=ctx)
+            ex.add_node(seq)
+            spin = threading.Thread(target=ex.spin, daemon=True)
+            spin.start()
+            group.wait_started(2.0)
+        else:
+            rig = InProcessRig(node_params)
+            seq = SequencerNode(plan, config, context=rig.context)
+            rig.add(seq)
+            rig.start()
+        timings = seq.run()
+        status, code = "completed", 0
+    except KeyboardInterrupt:
+        log.warning("interrupted: stopping the rig and finishing the recording")
+        status, code = "interrupted", 130
+    except (RigError, RuntimeError) as e:
+        log.error("%s", e)
+        status = f"failed: {e}"
+    finally:
+        try:
+            if seq is not None:
+                seq.phase(Phase.STOP)
+                seq.pause_clock()
+                seq.stop_devices()
+                report = seq.stop_recorder()
+                seq.phase(Phase.DONE if code == 0 else Phase.ABORTED)
+                design = seq.latest.get("design")
+                if design is not None:
+                    (out / DESIGN_NAME).write_text(json.dumps(design))
+        except KeyboardInterrupt:
+            log.warning("second interrupt: skipping the orderly stop")
+        finally:
+            if group is not None:
+                group.stop(["shaker", "stage", "camera", "recorder"])
+            if seq is not None:
+                seq.close()
+            if rig is not None:
+                rig.shutdown()
+            if ex is not None:
+                ex.shutdown(timeout_sec=2.0)
+                seq.destroy_node()
+                rclpy.try_shutdown(context=ctx)
+    timings["total_wall"] = time.monotonic() - wall0
+    data = summary(plan, node_params, report, timings, seq.events if seq else [], status)
+    path = write_summary(out, data)
+    if report is not None:
+        lost = report.get("dropped", 0)
+        log.info("%s in %.1f s: %d messages recorded, %d dropped -> %s", status,
+                 timings["total_wall"], report.get("messages", 0), lost, report.get("path"))
+    else:
+        log.warning("%s: no recording report (see %s)", status, path)
+        if code == 0:
+            code = 1
+    return code

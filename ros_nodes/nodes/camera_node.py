@@ -1,0 +1,221 @@
+"""Camera source node: frames from the simulated rig or from a recording (MCAP, images, video).
+
+Interfaces (node name `camera`):
+- services `~/start` / `~/stop` (std_srvs/Trigger): replay sources stream from start; the
+  simulated camera captures between start and stop and then downloads the footage (see below).
+- `/camera/image_raw` (sensor_msgs/Image mono8/mono16) + `/camera/camera_info`, same stamps;
+  `/camera/ground_truth` (metarig_msgs/UnitPose2DArray, simulated only: true unit poses in the
+  sample frame at each frame time); `/rig/design` (std_msgs/String JSON, latched, simulated);
+  `~/status` (std_msgs/String JSON, latched): state, frames published, message;
+  `/clock` when `publish_clock` (replay: the frame stamps drive simulated time).
+Simulated source: like a high-speed camera with on-board memory. While capturing it keeps the
+measured shaker and stage motion (their joint states); at stop the specimen is solved under
+that motion, frames are rendered at `fps` for the capture window and published with their
+capture stamps (as fast as the readers acknowledge them, or `rate_factor` x real time).
+"""
+
+import json
+import threading
+import time
+
+import numpy as np
+from rclpy.duration import Duration
+from rclpy.node import Node
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import CameraInfo, Image, JointState
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+
+from metarig_msgs.msg import UnitPose2DArray
+from ros_nodes import convert
+from ros_nodes.logic.replay import SourceError, open_source
+from ros_nodes.nodes._common import CLOCK, COMMAND, LATCHED, STREAM, run_node
+from ros_nodes.nodes._params import TypedParams
+from ros_nodes.params import CameraNodeConfig
+
+NAME = "camera"
+ACK_EVERY = 20  # frames between flow-control waits when publishing as fast as possible
+
+
+class CameraNode(Node):
+    """Thin adapter over `ros_nodes.logic.replay` and `hardware_sim.rig`."""
+
+    def __init__(self, **kwargs):
+        super().__init__(NAME, **kwargs)
+        self._params = TypedParams(self, CameraNodeConfig)
+        cfg = self._params.config
+        self._img = self.create_publisher(Image, "/camera/image_raw", STREAM)
+        self._info = self.create_publisher(CameraInfo, "/camera/camera_info", STREAM)
+        self._status_pub = self.create_publisher(String, "~/status", LATCHED)
+        self._clock_pub = self.create_publisher(Clock, "/clock", CLOCK) if cfg.publish_clock else None
+        self.create_service(Trigger, "~/start", self._on_start)
+        self.create_service(Trigger, "~/stop", self._on_stop)
+        self._stop_evt = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._published = 0
+        self._window = [None, None]
+        self._shaker: list[tuple[float, float]] = []
+        self._stage: list[tuple[float, float]] = []
+        self._specimen = None
+        if cfg.source == "sim":
+            self._truth = self.create_publisher(UnitPose2DArray, "/camera/ground_truth", STREAM)
+            self._design = self.create_publisher(String, "/rig/design", LATCHED)
+            self.create_subscription(JointState, "/shaker/joint_states", self._on_shaker, STREAM)
+            self._stage_sub = self.create_subscription(JointState, "/stage/joint_states",
+                                                       self._on_stage, STREAM)
+            threading.Thread(target=self._build_specimen, daemon=True).start()
+        self._status("idle", "ready")
+
+    # helpers ---------------------------------------------------------------------------------
+    def _status(self, state: str, message: str = "") -> None:
+        self._state = state
+        self._status_pub.publish(String(data=json.dumps(
+            {"state": state, "frames": self._published, "message": message})))
+
+    def _build_specimen(self) -> None:
+        from hardware_sim.specimen import SpecimenConfig, build
+
+        cfg = self._params.config
+        try:
+            self._specimen = build(SpecimenConfig(scene=cfg.scene, nx=cfg.nx, ny=cfg.ny,
+                                                  perturb=cfg.perturb, seed=cfg.seed))
+            self._design.publish(String(data=self._specimen.design_json()))
+        except Exception as e:  # noqa: BLE001 - reported on the status topic, node stays up
+            self._status("error", f"cannot build the specimen: {e}")
+
+    def _publish(self, ns: int, frame: np.ndarray) -> None:
+        cfg = self._params.config
+        if self._clock_pub is not None:
+            self._clock_pub.publish(convert.clock(ns))
+        self._img.publish(convert.image(ns, frame, cfg.frame_id))
+        self._info.publish(convert.camera_info(ns, frame.shape[1], frame.shape[0], cfg.m_per_px,
+                                               cfg.frame_id))
+        self._published += 1
+
+    def _pace(self, k: int, t_rel_ns: int, wall0: float) -> None:
+        cfg = self._params.config
+        if cfg.rate_factor > 0:
+            delay = wall0 + t_rel_ns * 1e-9 / cfg.rate_factor - time.perf_counter()
+            if delay > 0:
+                self._stop_evt.wait(delay)
+        elif k % ACK_EVERY == ACK_EVERY - 1:
+            self._img.wait_for_all_acked(Duration(seconds=2.0))
+
+    # replay -----------------------------------------------------------------------------------
+    def _replay(self) -> None:
+        cfg = self._params.config
+        try:
+            frames = open_source(cfg.source, cfg.path, cfg.fps, cfg.width, cfg.height,
+                                 cfg.n_frames, cfg.image_topic, cfg.seed)
+            base = self.get_clock().now().nanoseconds if not cfg.publish_clock else 0
+            while True:
+                wall0 = time.perf_counter()
+                for k, (t_rel, frame) in enumerate(frames):
+                    if self._stop_evt.is_set() or (cfg.n_frames and self._published >= cfg.n_frames):
+                        break
+                    self._pace(k, t_rel, wall0)
+                    self._publish(base + t_rel, frame)
+                if not cfg.loop or self._stop_evt.is_set() or cfg.n_frames and \
+                        self._published >= cfg.n_frames:
+                    break
+                frames = open_source(cfg.source, cfg.path, cfg.fps, cfg.width, cfg.height,
+                                     cfg.n_frames, cfg.image_topic, cfg.seed)
+                base += t_rel + int(1e9 / cfg.fps)
+            self._status("done", f"published {self._published} frames")
+        except SourceError as e:
+            self.get_logger().error(str(e))
+            self._status("error", str(e))
+
+    # simulated camera -------------------------------------------------------------------------
+    def _on_shaker(self, msg: JointState) -> None:
+        t, _, pos, _ = convert.joint_state_arrays(msg)
+        self._shaker.append((t * 1e-9, float(pos[0])))
+
+    def _on_stage(self, msg: JointState) -> None:
+        t, _, pos, _ = convert.joint_state_arrays(msg)
+        self._stage.append((t * 1e-9, float(pos.sum())))
+
+    def _develop(self) -> None:
+        from hardware_sim import camera as cam
+        from hardware_sim.rig import MotionRecord, capture_times, film, specimen_motion
+
+        cfg = self._params.config
+        try:
+            while self._specimen is None and self._state != "error":
+                time.sleep(0.05)  # the specimen is still being built (first JAX import)
+            if self._specimen is None:
+                return
+            t0, t1 = self._window
+            times = capture_times(t0, t1, cfg.fps)
+            if times.size < 1:
+                raise ValueError(f"capture window [{t0:.4f}, {t1:.4f}] s holds no frame")
+            self._status("developing", f"solving the specimen for {times.size} frames")
+            shaker = MotionRecord.from_samples(list(self._shaker), t1)
+            stage = MotionRecord.from_samples(list(self._stage), t1)
+            traj = specimen_motion(self._specimen, times, shaker, stage, cfg.fps)
+            ccfg = cam.CameraConfig(width_px=cfg.width, height_px=cfg.height, fps=cfg.fps,
+                                    m_per_px=cfg.m_per_px, supersample=cfg.supersample,
+                                    exposure_samples=cfg.exposure_samples,
+                                    noise_std=cfg.noise_std,
+                                    lighting_gradient=cfg.lighting_gradient, seed=cfg.seed)
+            c0 = self._specimen.centroids_m()
+            ids = np.arange(self._specimen.n_units)
+            self._status("publishing", f"{times.size} frames")
+            wall0 = time.perf_counter()
+            rng = np.random.default_rng(cfg.seed)
+            for k, (t, frame, q) in enumerate(film(self._specimen, ccfg, traj, rng)):
+                if self._stop_evt.is_set():
+                    break
+                ns = int(round(t * 1e9))
+                self._pace(k, int(round((t - times[0]) * 1e9)), wall0)
+                self._truth.publish(convert.unit_poses(ns, ids, c0[:, 0] + q[:, 0],
+                                                       c0[:, 1] + q[:, 1], q[:, 2]))
+                self._publish(ns, frame)
+            self._img.wait_for_all_acked(Duration(seconds=5.0))
+            self._status("done", f"published {self._published} frames")
+        except Exception as e:  # noqa: BLE001 - reported on the status topic, node stays up
+            self.get_logger().error(f"simulated camera failed: {e}")
+            self._status("error", str(e))
+
+    # services ---------------------------------------------------------------------------------
+    def _on_start(self, req, res):
+        cfg = self._params.config
+        if self._thread is not None and self._thread.is_alive() or self._state == "capturing":
+            res.success, res.message = False, f"refused: camera busy ({self._state})"
+            return res
+        self._stop_evt.clear()
+        self._published = 0
+        if cfg.source == "sim":
+            self._window = [self.get_clock().now().nanoseconds * 1e-9, None]
+            self._status("capturing", f"from t={self._window[0]:.4f} s")
+        else:
+            self._thread = threading.Thread(target=self._replay, daemon=True)
+            self._status("streaming", cfg.source)
+            self._thread.start()
+        res.success, res.message = True, self._state
+        return res
+
+    def _on_stop(self, req, res):
+        cfg = self._params.config
+        if cfg.source == "sim" and self._state == "capturing":
+            self._window[1] = self.get_clock().now().nanoseconds * 1e-9
+            self._thread = threading.Thread(target=self._develop, daemon=True)
+            self._thread.start()
+            res.success, res.message = True, "capture ended; developing the footage"
+        else:
+            self._stop_evt.set()
+            res.success, res.message = True, "stopped"
+        return res
+
+    def close(self) -> None:
+        self._stop_evt.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+
+
+def main(args=None) -> int:
+    return run_node(CameraNode, args=args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

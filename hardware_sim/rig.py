@@ -66,3 +66,12 @@ def film(specimen: Specimen, cfg: cam.CameraConfig, traj, rng: np.random.Generat
         frame = cam.render_frame(cfg, specimen.polygons_m, traj.q[k], textures, rng,
                                  motion_from=traj.q[k] - shutter * (traj.q[k] - traj.q[k - 1]))
         yield float(traj.t[k]), frame, traj.q[k]
+
+
+def centred_origin(polygons_m: np.ndarray, width_px: int, height_px: int,
+                   m_per_px: float) -> tuple[float, float]:
+    """Pixel position of the sample-frame origin that centres the sample in the frame (y up)."""
+    lo, hi = polygons_m.reshape(-1, 2).min(axis=0), polygons_m.reshape(-1, 2).max(axis=0)
+    centre = 0.5 * (lo + hi)
+    return ((width_px - 1) / 2.0 - centre[0] / m_per_px,
+            (height_px - 1) / 2.0 + centre[1] / m_per_px)

@@ -14,6 +14,8 @@ Loss detection, per topic (reported, never hidden):
 - stamp steps: a step longer than `gap_factor` x the median period is a gap of
   round(step / period) - 1 missing samples (catches drops upstream of the publisher too);
 - stamps that go backwards are counted.
+`dropped` in the report is the transport loss (sequence numbers); `missing_by_stamp` also
+counts samples that the publisher skipped or that were lost before it (camera frames).
 """
 
 import json
@@ -71,7 +73,9 @@ class TopicStats:
     def public(self) -> dict:
         d = {k: v for k, v in asdict(self).items() if not k.startswith("_")}
         d["period_s"] = None if self.period_ns() is None else self.period_ns() * 1e-9
-        d["dropped"] = max(self.missing_by_stamp, self.missing_by_sequence)
+        # transport loss (exact, from DDS sequence numbers); stamp gaps are reported apart:
+        # they also count samples the publisher itself skipped or lost upstream
+        d["dropped"] = self.missing_by_sequence
         return d
 
 
@@ -177,6 +181,8 @@ class McapRecorder:
         topics = {t: s.public() for t, s in self.stats.items()}
         return {"path": str(self.path), "messages": sum(s.count for s in self.stats.values()),
                 "dropped": sum(t["dropped"] for t in topics.values()),
+                "stamp_gaps": sum(t["gaps"] for t in topics.values()),
+                "missing_by_stamp": sum(t["missing_by_stamp"] for t in topics.values()),
                 "backwards": sum(t["backwards"] for t in topics.values()), "topics": topics}
 
     def close(self) -> dict:

@@ -137,7 +137,8 @@ class CameraNode(Node):
 
     def _develop(self) -> None:
         from hardware_sim import camera as cam
-        from hardware_sim.rig import MotionRecord, capture_times, film, specimen_motion
+        from hardware_sim.rig import (MotionRecord, capture_times, centred_origin, film,
+                                      specimen_motion)
 
         cfg = self._params.config
         try:
@@ -155,6 +156,8 @@ class CameraNode(Node):
             traj = specimen_motion(self._specimen, times, shaker, stage, cfg.fps)
             ccfg = cam.CameraConfig(width_px=cfg.width, height_px=cfg.height, fps=cfg.fps,
                                     m_per_px=cfg.m_per_px, supersample=cfg.supersample,
+                                    origin_px=centred_origin(self._specimen.polygons_m,
+                                                             cfg.width, cfg.height, cfg.m_per_px),
                                     exposure_samples=cfg.exposure_samples,
                                     noise_std=cfg.noise_std,
                                     lighting_gradient=cfg.lighting_gradient, seed=cfg.seed)

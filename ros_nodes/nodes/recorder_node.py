@@ -45,6 +45,7 @@ class RecorderNode(Node):
         self._params = TypedParams(self, RecorderNodeConfig)
         self._rec: McapRecorder | None = None
         self._subs: dict = {}
+        self._latched: dict[str, tuple[bytes, int, int | None]] = {}
         self._report_pub = self.create_publisher(String, "~/report", LATCHED)
         self._status_pub = self.create_publisher(String, "~/status", COMMAND)
         # wall-clock timers: they must run while simulated time is paused
@@ -63,15 +64,13 @@ class RecorderNode(Node):
             return f"already recording to {self._rec.path}"
         cfg = self._params.config
         self._rec = McapRecorder(cfg.path, chunk_size=cfg.chunk_size, gap_factor=cfg.gap_factor)
-        # fresh subscriptions, so that latched topics (design, config, targets) are re-delivered
-        for entry in self._subs.values():
-            if entry is not None:
-                self.destroy_subscription(entry[2])
-        self._subs = {}
         self._rec.add_metadata("recorder", {k: json.dumps(v) for k, v in
                                             {"topics": list(cfg.topics), "path": cfg.path,
                                              "chunk_size": cfg.chunk_size}.items()})
         self._discover()
+        # latched topics (design, config, targets) seen before the start go in first
+        for topic, (data, receive_ns, seq) in list(self._latched.items()):
+            self._write(self._rec, topic, data, receive_ns, seq)
         self.get_logger().info(f"recording to {cfg.path}")
         return f"recording to {cfg.path}"
 
@@ -130,20 +129,26 @@ class RecorderNode(Node):
                 if entry is not None:
                     self._rec.add_topic(topic, entry[0], _qos_yaml(entry[1]))
 
+    def _write(self, rec: McapRecorder, topic: str, data: bytes, receive_ns: int, seq) -> None:
+        if topic not in rec.stats:
+            entry = self._subs[topic]
+            rec.add_topic(topic, entry[0], _qos_yaml(entry[1]))
+        rec.write(topic, data, receive_ns, seq)
+        if topic in METADATA_TOPICS:
+            text = cdr_string(data)
+            if text is not None:
+                rec.add_metadata(METADATA_TOPICS[topic], {"json": text})
+
     def _callback(self, topic: str):
         def on_message(data: bytes, info) -> None:
+            now = self.get_clock().now().nanoseconds
+            seq = info.get("publication_sequence_number")
+            entry = self._subs.get(topic)
+            if entry is not None and entry[1].durability == DurabilityPolicy.TRANSIENT_LOCAL:
+                self._latched[topic] = (data, now, seq)
             rec = self._rec
-            if rec is None:
-                return
-            if topic not in rec.stats:
-                entry = self._subs[topic]
-                rec.add_topic(topic, entry[0], _qos_yaml(entry[1]))
-            rec.write(topic, data, self.get_clock().now().nanoseconds,
-                      info.get("publication_sequence_number"))
-            if topic in METADATA_TOPICS:
-                text = cdr_string(data)
-                if text is not None:
-                    rec.add_metadata(METADATA_TOPICS[topic], {"json": text})
+            if rec is not None:
+                self._write(rec, topic, data, now, seq)
 
         return on_message
 

@@ -41,6 +41,7 @@ class SequencerNode(Node):
         self._stop_pub = self.create_publisher(Empty, "/rig/stop", COMMAND)
         self._config_pub.publish(String(data=json.dumps(config, default=str)))
         self.sim_ns = 0
+        self._limit_ns = 2**62
         self._run_clock = threading.Event()
         self._quit = threading.Event()
         self._clock_thread = threading.Thread(target=self._clock_loop, daemon=True)
@@ -74,6 +75,9 @@ class SequencerNode(Node):
             if not self._run_clock.wait(0.05):
                 continue
             t0 = time.perf_counter()
+            if self.sim_ns + step_ns > self._limit_ns:
+                self._run_clock.clear()  # reached the requested time exactly: hold it
+                continue
             self.sim_ns += step_ns
             self._publish_clock()
             if rtf > 0:
@@ -118,8 +122,12 @@ class SequencerNode(Node):
         log.info("phase %-11s t_sim = %.4f s", p.value, self.sim_s)
 
     def run_clock_until(self, t_s: float) -> None:
+        """Run simulated time up to exactly t_s (rounded to the clock step), then hold it."""
+        step = int(round(self.plan.clock_step_s * 1e9))
+        self._limit_ns = int(round(t_s * 1e9 / step)) * step
         self._run_clock.set()
-        self._until(lambda: self.sim_s >= t_s - 1e-12, f"simulated time {t_s:.4f} s")
+        self._until(lambda: self.sim_ns >= self._limit_ns, f"simulated time {t_s:.4f} s")
+        self._run_clock.clear()
 
     def pause_clock(self) -> None:
         self._run_clock.clear()
@@ -144,6 +152,7 @@ class SequencerNode(Node):
         r = self.call("set_strain", SetStrain.Request(strain=p.strain))
         if not r.accepted:
             raise RigError(f"stage: {r.message}")
+        self._limit_ns = 2**62
         self._run_clock.set()
         self._until(lambda: str(self.latest.get("stage", "")).startswith(("holding", "fault"))
                     or (p.strain == 0 and self.sim_s > 0.005), "the stages to reach the strain")

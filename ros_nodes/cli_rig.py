@@ -46,6 +46,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=d.seed, help="seed of all simulated noise")
     p.add_argument("--rtf", type=float, default=d.real_time_factor,
                    help="simulated seconds per wall second while devices run (0: max speed)")
+    p.add_argument("--compression", choices=("none", "lz4", "zstd"), default="none",
+                   help="MCAP chunk compression")
     p.add_argument("--timeout-s", type=float, default=d.timeout_s,
                    help="wall-time limit of any single wait, s")
     return p
@@ -62,11 +64,13 @@ def _plan(args):
         seed=args.seed, real_time_factor=args.rtf, timeout_s=args.timeout_s)
 
 
-def _node_params(plan, out: Path, params_file: Path | None) -> dict[str, dict]:
+def _node_params(plan, out: Path, params_file: Path | None,
+                 compression: str = "none") -> dict[str, dict]:
     from ros_nodes import params as P
     from ros_nodes.logic.sequence import node_parameters
 
     node_params = node_parameters(plan, out)
+    node_params["recorder"]["compression"] = compression
     classes = {"shaker": P.ShakerNodeConfig, "stage": P.StageNodeConfig,
                "camera": P.CameraNodeConfig, "recorder": P.RecorderNodeConfig}
     for name, cls in classes.items():
@@ -90,7 +94,7 @@ def rig_main(argv: list[str] | None = None) -> int:
 
     try:
         plan = _plan(args)
-        node_params = _node_params(plan, args.out.resolve(), args.params)
+        node_params = _node_params(plan, args.out.resolve(), args.params, args.compression)
     except (ValueError, ConfigError) as e:
         print(f"metarig rig: {e}", file=sys.stderr)
         return 2

@@ -103,6 +103,7 @@ class RecorderNodeConfig:
     autostart: bool = _p(False, "start recording immediately instead of on ~/start")
     chunk_size: int = _p(1 << 20, "MCAP chunk size, bytes (a killed writer loses <= 1 chunk)",
                          1024, 1 << 28)
+    compression: str = _p("none", "MCAP chunk compression", choices=("none", "lz4", "zstd"))
     queue_depth: int = _p(2000, "subscription queue depth (keep-last)", 1, 100000)
     gap_factor: float = _p(1.5, "a stamp step above this many median periods is a gap",
                            1.01, 100.0)

@@ -63,7 +63,8 @@ class RecorderNode(Node):
         if self._rec is not None:
             return f"already recording to {self._rec.path}"
         cfg = self._params.config
-        self._rec = McapRecorder(cfg.path, chunk_size=cfg.chunk_size, gap_factor=cfg.gap_factor)
+        self._rec = McapRecorder(cfg.path, chunk_size=cfg.chunk_size, gap_factor=cfg.gap_factor,
+                                 compression=cfg.compression)
         self._rec.add_metadata("recorder", {k: json.dumps(v) for k, v in
                                             {"topics": list(cfg.topics), "path": cfg.path,
                                              "chunk_size": cfg.chunk_size}.items()})

@@ -1,0 +1,329 @@
+"""DIC tracker: sub-pixel rigid pose of every unit in every frame (pure logic, no ROS).
+
+Per frame: predict each unit's pose (constant velocity), register it by rigid IC-GN with
+ZNSSD against the unit's reference subset, re-acquire units whose correlation dropped by a
+template search around the prediction, flag as lost (pose NaN, never guessed) those still
+poor or whose subset leaves the frame, and refresh the reference of the units that need it
+(rotated far from their reference, or correlation degraded). All units are solved in one
+compiled batch; the offline CLI and the live node call the same `track_frame`.
+
+Poses: the reference configuration is the outline given (frame `reference` shows it). q =
+(u, v, theta): displacement of each unit's area centroid in the sample frame (m) and its
+counter-clockwise rotation about it (rad). Internally poses live in rectified pixel axes:
+alpha (col towards row) and t (px); see `Calibration` for the maps.
+"""
+
+import logging
+from dataclasses import dataclass, field, replace
+
+import cv2
+import numpy as np
+
+from ros_nodes.logic.calibration import Calibration
+from ros_nodes.logic.dic_icgn import icgn
+from ros_nodes.logic.dic_kernels import bspline_coefficients
+from ros_nodes.logic.dic_reference import RefSet, build_refs, replace_refs
+from ros_nodes.logic.dic_search import coarse_search
+from ros_nodes.logic.dic_units import polygon_centroids, validate_polygons
+
+log = logging.getLogger(__name__)
+
+
+class FrameError(ValueError):
+    """A frame cannot be tracked (wrong size, blank, non-finite); its units are flagged lost."""
+
+
+@dataclass(frozen=True, slots=True)
+class DICConfig:
+    """Tracker settings.
+
+    Attributes:
+        margin_px: subset points keep this distance from the unit outline, px.
+        min_points: units with fewer subset points are never tracked (always lost).
+        max_iter: IC-GN iteration cap per frame.
+        tol_px: IC-GN convergence, largest point move of the last update, px.
+        max_move_px: IC-GN gives up when the pose wanders this far from its start, px.
+        zncc_lost: a tracked unit whose ZNCC stays below this is declared lost.
+        zncc_reacquire: below this, a coarse search is tried; a lost unit must reach it again.
+        zncc_update: a unit tracked below this gets a new reference.
+        max_ref_rotation: a unit rotated more than this from its reference gets a new one, rad.
+        search_radius_px: half-width of the re-acquisition window around the prediction, px.
+        lost_search_radius_px: the same for units already lost (around their last pose), px.
+        prefilter_sigma_px: Gaussian smoothing of every frame before tracking, px (0: none).
+        predict: warm-start from a constant-velocity prediction (else the last pose).
+    """
+
+    margin_px: float = 2.5
+    min_points: int = 50
+    max_iter: int = 20
+    tol_px: float = 1e-3
+    max_move_px: float = 8.0
+    zncc_lost: float = 0.8
+    zncc_reacquire: float = 0.9
+    zncc_update: float = 0.9
+    max_ref_rotation: float = 0.2
+    search_radius_px: int = 12
+    lost_search_radius_px: int = 24
+    prefilter_sigma_px: float = 0.0
+    predict: bool = True
+
+    def __post_init__(self):
+        if not (0.0 <= self.zncc_lost <= self.zncc_reacquire <= 1.0):
+            raise ValueError("need 0 <= zncc_lost <= zncc_reacquire <= 1")
+        if self.margin_px < 0 or self.max_iter < 1 or self.tol_px <= 0:
+            raise ValueError("margin_px >= 0, max_iter >= 1 and tol_px > 0 are required")
+
+
+@dataclass(frozen=True, slots=True)
+class DICTracker:
+    """Static tracking problem: outlines, calibration, settings.
+
+    Attributes:
+        polygons_m: [n, nv, 2] reference outlines, sample frame, m.
+        calib: camera calibration.
+        cfg: tracker settings.
+        polys_px: [n, nv, 2] reference outlines in rectified pixels.
+        centroid_px: [n, 2] area centroids in rectified pixels.
+    """
+
+    polygons_m: np.ndarray
+    calib: Calibration
+    cfg: DICConfig = field(default_factory=DICConfig)
+    polys_px: np.ndarray = field(init=False)
+    centroid_px: np.ndarray = field(init=False)
+
+    def __post_init__(self):
+        polys = validate_polygons(self.polygons_m)
+        object.__setattr__(self, "polygons_m", polys)
+        object.__setattr__(self, "polys_px", self.calib.sample_to_px(polys))
+        object.__setattr__(self, "centroid_px", self.calib.sample_to_px(polygon_centroids(polys)))
+
+    @property
+    def n_units(self) -> int:
+        return int(self.polygons_m.shape[0])
+
+
+@dataclass(frozen=True, slots=True)
+class TrackerState:
+    """Tracker memory between frames (rectified pixel axes).
+
+    Attributes:
+        refs: reference subsets of every unit.
+        ref_alpha: [n] rotation of each reference from the outline, rad.
+        ref_t: [n, 2] centroid displacement of each reference from the outline, px.
+        alpha, t: [n], [n, 2] last good pose of each unit.
+        prev_alpha, prev_t: pose one frame before that (NaN: unknown), for the prediction.
+        lost: [n] the unit is currently lost.
+        shape: (rows, cols) of the rectified frames.
+    """
+
+    refs: RefSet
+    ref_alpha: np.ndarray
+    ref_t: np.ndarray
+    alpha: np.ndarray
+    t: np.ndarray
+    prev_alpha: np.ndarray
+    prev_t: np.ndarray
+    lost: np.ndarray
+    shape: tuple[int, int]
+
+
+@dataclass(frozen=True, slots=True)
+class FramePoses:
+    """Tracking result of one frame.
+
+    Attributes:
+        q: [n, 3] (u m, v m, theta rad) from the reference outline; NaN where lost.
+        quality: [n] ZNCC of the registration in [-1, 1] (NaN when not measurable).
+        lost: [n] the unit is lost in this frame.
+    """
+
+    q: np.ndarray
+    quality: np.ndarray
+    lost: np.ndarray
+
+
+@dataclass(frozen=True, slots=True)
+class PreparedFrame:
+    """A frame ready for tracking: float32 pixels and their B-spline coefficients [h, w]."""
+
+    img: np.ndarray
+    coef: np.ndarray
+
+
+def prepare_frame(tracker: DICTracker, frame: np.ndarray) -> PreparedFrame:
+    """Rectify, convert to grey float32, smooth and spline-filter a raw frame.
+
+    Raises:
+        FrameError: the frame is empty, not an image, non-finite or blank (uniform).
+    """
+    a = np.asarray(frame)
+    if a.ndim == 3 and a.shape[2] in (3, 4):
+        a = cv2.cvtColor(a, cv2.COLOR_BGR2GRAY if a.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+    if a.ndim != 2 or a.size == 0:
+        raise FrameError(f"frame has shape {a.shape}, expected a 2-D grey image")
+    img = tracker.calib.rectify(a.astype(np.float32, copy=False))
+    if not np.all(np.isfinite(img)):
+        raise FrameError("frame has non-finite pixels")
+    if float(img.max()) - float(img.min()) <= 0.0:
+        raise FrameError("frame is blank (uniform)")
+    s = tracker.cfg.prefilter_sigma_px
+    if s > 0:
+        img = cv2.GaussianBlur(img, (0, 0), s, borderType=cv2.BORDER_REFLECT)
+    return PreparedFrame(img=np.ascontiguousarray(img), coef=bspline_coefficients(img))
+
+
+def _rot(alpha: np.ndarray) -> np.ndarray:
+    c, s = np.cos(alpha), np.sin(alpha)
+    return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+
+
+def _posed_outlines(tracker: DICTracker, idx, alpha, t) -> tuple[np.ndarray, np.ndarray]:
+    """Outlines [k, nv, 2] and centroids [k, 2] (px) of units idx at poses (alpha, t)."""
+    c = tracker.centroid_px[idx]
+    rel = tracker.polys_px[idx] - c[:, None, :]
+    polys = np.einsum("kij,kvj->kvi", _rot(alpha), rel) + (c + t)[:, None, :]
+    return polys, c + t
+
+
+def init_state(tracker: DICTracker, reference: np.ndarray) -> TrackerState:
+    """Build every unit's reference subset from a frame showing the reference configuration.
+
+    Raises:
+        FrameError: the reference frame is unusable.
+    """
+    prep = prepare_frame(tracker, reference)
+    n = tracker.n_units
+    refs = build_refs(prep.img, prep.coef, tracker.polys_px, tracker.centroid_px,
+                      tracker.cfg.margin_px, tracker.cfg.min_points)
+    unusable = refs.count == 0
+    if unusable.any():
+        log.warning("%d of %d units cannot be tracked (outside the frame or too small): %s",
+                    int(unusable.sum()), n, np.flatnonzero(unusable)[:20].tolist())
+    nan2 = np.full((n, 2), np.nan)
+    return TrackerState(
+        refs=refs, ref_alpha=np.zeros(n), ref_t=np.zeros((n, 2)), alpha=np.zeros(n),
+        t=np.zeros((n, 2)), prev_alpha=np.full(n, np.nan), prev_t=nan2, lost=unusable,
+        shape=prep.img.shape,
+    )
+
+
+def _to_sample(tracker: DICTracker, alpha: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Pixel-axis poses -> q [k, 3] (u m, v m, theta rad)."""
+    cal = tracker.calib
+    sy = -1.0 if cal.y_up else 1.0
+    return np.stack([t[:, 0] * cal.m_per_px, sy * t[:, 1] * cal.m_per_px,
+                     cal.image_rotation_sign * alpha], axis=-1)
+
+
+def all_lost(state: TrackerState) -> tuple[TrackerState, FramePoses]:
+    """Flag every unit lost for a frame that could not be used (keeps the last poses)."""
+    n = state.lost.size
+    st = replace(state, lost=np.ones(n, bool), prev_alpha=np.full(n, np.nan),
+                 prev_t=np.full((n, 2), np.nan))
+    return st, FramePoses(np.full((n, 3), np.nan), np.full(n, np.nan), np.ones(n, bool))
+
+
+def track_frame(
+    tracker: DICTracker, state: TrackerState, frame: np.ndarray | PreparedFrame
+) -> tuple[TrackerState, FramePoses]:
+    """Track all units in one frame.
+
+    Args:
+        tracker: the static problem.
+        state: memory from the previous frame (or `init_state`).
+        frame: raw [h, w] frame (any grey dtype) or an already prepared one.
+
+    Returns:
+        The new state and this frame's poses. A frame that cannot be used (blank, wrong
+        size, non-finite) flags every unit lost instead of raising.
+    """
+    cfg = tracker.cfg
+    try:
+        prep = frame if isinstance(frame, PreparedFrame) else prepare_frame(tracker, frame)
+        if prep.img.shape != state.shape:
+            raise FrameError(f"frame size {prep.img.shape} differs from the reference "
+                             f"{state.shape}")
+    except FrameError as exc:
+        log.warning("frame skipped, all units flagged lost: %s", exc)
+        return all_lost(state)
+    refs = state.refs
+    n = tracker.n_units
+    usable = refs.count > 0
+    # constant-velocity prediction (global pixel-axis poses)
+    have_prev = np.isfinite(state.prev_alpha) & ~state.lost & cfg.predict
+    pa = np.where(have_prev, 2.0 * state.alpha - np.nan_to_num(state.prev_alpha), state.alpha)
+    pt = np.where(have_prev[:, None], 2.0 * state.t - np.nan_to_num(state.prev_t), state.t)
+    a0, w0 = pa - state.ref_alpha, pt - state.ref_t  # relative to each unit's reference
+
+    alpha, w = np.full(n, np.nan), np.full((n, 2), np.nan)
+    zncc, ok = np.full(n, np.nan), np.zeros(n, bool)
+    inside = np.zeros(n, bool)
+    tracked = np.flatnonzero(usable & ~state.lost)
+    if tracked.size:
+        r = icgn(prep.coef, refs, tracked, a0[tracked], w0[tracked], cfg.max_iter, cfg.tol_px,
+                 cfg.max_move_px)
+        alpha[tracked], w[tracked], zncc[tracked] = r.alpha, r.w, r.zncc
+        inside[tracked] = r.inside
+        ok[tracked] = r.inside & (r.zncc >= cfg.zncc_reacquire)
+    # re-acquire: tracked units that came out poor (but still in the frame) and lost units
+    retry_tracked = tracked[~ok[tracked] & inside[tracked]]
+    retry_lost = np.flatnonzero(usable & state.lost)
+    for retry, radius, accept in (
+        (retry_tracked, cfg.search_radius_px, cfg.zncc_lost),
+        (retry_lost, cfg.lost_search_radius_px, cfg.zncc_reacquire),
+    ):
+        if retry.size == 0:
+            continue
+        ws, score = coarse_search(prep.img, refs, retry, a0[retry], w0[retry], radius)
+        found = np.isfinite(score)
+        cand = retry[found]
+        if cand.size:
+            r = icgn(prep.coef, refs, cand, a0[cand], ws[found], cfg.max_iter, cfg.tol_px,
+                     cfg.max_move_px)
+            better = r.inside & (r.zncc > np.nan_to_num(zncc[cand], nan=-np.inf))
+            sel = cand[better]
+            alpha[sel], w[sel], zncc[sel] = r.alpha[better], r.w[better], r.zncc[better]
+            inside[sel] = True
+        ok[retry] = inside[retry] & (zncc[retry] >= accept)
+    ok &= np.isfinite(alpha) & np.all(np.isfinite(w), axis=1)
+
+    # new poses: good units move on, the others keep their last good pose and are lost
+    new_alpha = np.where(ok, state.ref_alpha + np.nan_to_num(alpha), state.alpha)
+    new_t = np.where(ok[:, None], state.ref_t + np.nan_to_num(w), state.t)
+    prev_alpha = np.where(ok & ~state.lost, state.alpha, np.nan)
+    prev_t = np.where((ok & ~state.lost)[:, None], state.t, np.nan)
+    state = replace(state, alpha=new_alpha, t=new_t, prev_alpha=prev_alpha, prev_t=prev_t,
+                    lost=~ok)
+    state = _update_references(tracker, state, prep, ok, alpha, zncc)
+
+    q = np.full((n, 3), np.nan)
+    q[ok] = _to_sample(tracker, new_alpha[ok], new_t[ok])
+    return state, FramePoses(q=q, quality=zncc, lost=~ok)
+
+
+def _update_references(
+    tracker: DICTracker, state: TrackerState, prep: PreparedFrame, ok: np.ndarray,
+    alpha_rel: np.ndarray, zncc: np.ndarray,
+) -> TrackerState:
+    """Re-extract the reference of good units that rotated far or whose correlation sagged."""
+    cfg = tracker.cfg
+    need = ok & ((np.abs(alpha_rel) > cfg.max_ref_rotation) | (zncc < cfg.zncc_update))
+    idx = np.flatnonzero(need)
+    if idx.size == 0:
+        return state
+    polys, centres = _posed_outlines(tracker, idx, state.alpha[idx], state.t[idx])
+    ph = state.refs.patch.shape[1] // 2
+    new = build_refs(prep.img, prep.coef, polys, centres, cfg.margin_px, cfg.min_points,
+                     patch_half=ph)
+    good = new.count > 0
+    if not good.any():
+        return state
+    take = np.flatnonzero(good)
+    sub = RefSet(**{k: getattr(new, k)[take] for k in RefSet.__slots__})
+    idx = idx[take]
+    ref_alpha, ref_t = state.ref_alpha.copy(), state.ref_t.copy()
+    ref_alpha[idx], ref_t[idx] = state.alpha[idx], state.t[idx]
+    log.debug("reference updated for %d units", idx.size)
+    return replace(state, refs=replace_refs(state.refs, idx, sub), ref_alpha=ref_alpha,
+                   ref_t=ref_t)

@@ -1,0 +1,87 @@
+"""Coarse re-acquisition: integer-pixel template search for units that IC-GN lost.
+
+The template is the square inscribed in the unit's subset, cut from its reference patch after
+rotating the patch by the unit's predicted rotation (so the square stays inside the speckled
+interior at any angle). It is matched by normalised cross-correlation (`cv2.matchTemplate`)
+over a window around the predicted position, and the peak refined to sub-pixel by a parabola;
+IC-GN then polishes the result.
+"""
+
+import cv2
+import numpy as np
+
+from ros_nodes.logic.dic_reference import RefSet
+
+
+def _rotation(alpha: float) -> np.ndarray:
+    c, s = np.cos(alpha), np.sin(alpha)
+    return np.array([[c, -s], [s, c]])
+
+
+def _parabola_peak(left: float, mid: float, right: float) -> float:
+    """Sub-sample offset of the vertex of a parabola through three equally spaced values."""
+    den = left - 2.0 * mid + right
+    if not np.isfinite(den) or den >= 0.0:
+        return 0.0
+    return float(np.clip(0.5 * (left - right) / den, -0.5, 0.5))
+
+
+def coarse_search(
+    img: np.ndarray,
+    refs: RefSet,
+    idx: np.ndarray,
+    alpha: np.ndarray,
+    w_pred: np.ndarray,
+    radius_px: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Find units `idx` near their predicted displacement by template matching.
+
+    Args:
+        img: [h, w] float32 current frame (pre-filtered like the references).
+        refs: reference subsets (their patches and template sizes are used).
+        idx: [k] unit indices.
+        alpha: [k] predicted rotations from the reference, rad (image axes).
+        w_pred: [k, 2] predicted centroid displacements from the reference, px.
+        radius_px: half-width of the search window around the prediction, px.
+
+    Returns:
+        w: [k, 2] displacements at the best match (NaN where no search was possible) and
+        score: [k] its normalised correlation (NaN likewise).
+    """
+    h, wd = img.shape
+    k = len(idx)
+    w_out = np.full((k, 2), np.nan)
+    score = np.full(k, np.nan)
+    ph = refs.patch.shape[1] // 2
+    for i, b in enumerate(np.asarray(idx)):
+        hs = int(refs.tpl_half[b])
+        if refs.count[b] == 0 or hs < 3 or not np.all(np.isfinite(w_pred[i])):
+            continue
+        rot = _rotation(float(alpha[i]))
+        pc = np.array([ph, ph], dtype=np.float64)
+        m = np.hstack([rot, (pc - rot @ pc)[:, None]])
+        patch = cv2.warpAffine(refs.patch[b], m, (2 * ph + 1, 2 * ph + 1), flags=cv2.INTER_LINEAR)
+        tpl = patch[ph - hs : ph + hs + 1, ph - hs : ph + hs + 1]
+        if float(tpl.std()) < 1e-6:
+            continue
+        c_r = refs.centre_px[b]
+        rc = (refs.patch_corner[b] + ph).astype(np.float64)  # patch centre pixel, ref frame
+        offset = rot @ (rc - c_r) + c_r  # where rc lands, less the displacement
+        q = np.rint(offset + w_pred[i]).astype(np.int64)
+        c0, r0 = q[0] - hs - radius_px, q[1] - hs - radius_px
+        c1, r1 = q[0] + hs + radius_px + 1, q[1] + hs + radius_px + 1
+        c0c, r0c, c1c, r1c = max(c0, 0), max(r0, 0), min(c1, wd), min(r1, h)
+        if c1c - c0c < 2 * hs + 1 or r1c - r0c < 2 * hs + 1:
+            continue
+        res = cv2.matchTemplate(img[r0c:r1c, c0c:c1c], tpl, cv2.TM_CCOEFF_NORMED)
+        ly, lx = np.unravel_index(int(np.nanargmax(res)), res.shape)
+        best = float(res[ly, lx])
+        sx = sy = 0.0
+        if 0 < lx < res.shape[1] - 1:
+            sx = _parabola_peak(res[ly, lx - 1], best, res[ly, lx + 1])
+        if 0 < ly < res.shape[0] - 1:
+            sy = _parabola_peak(res[ly - 1, lx], best, res[ly + 1, lx])
+        found = np.array([c0c + lx + hs + sx, r0c + ly + hs + sy])
+        w_out[i] = found - offset
+        score[i] = best
+    return w_out, score

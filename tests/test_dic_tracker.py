@@ -1,0 +1,170 @@
+"""DIC tracker on synthetic speckle frames with exact ground truth (small scenes)."""
+
+import numpy as np
+import pytest
+from dic_synth import errors_px, make_scene
+
+from ros_nodes.logic.dic import (
+    DICConfig,
+    DICTracker,
+    FramePoses,
+    init_state,
+    prepare_frame,
+    track_frame,
+)
+from ros_nodes.logic.dic_icgn import icgn
+from ros_nodes.logic.dic_kernels import bspline_coefficients, bspline_sample
+
+
+def _run(scene, frames, cfg=None, reference=None):
+    tr = DICTracker(scene.polygons_m, scene.calib, cfg or DICConfig())
+    st = init_state(tr, frames[0] if reference is None else reference)
+    out = []
+    for f in frames:
+        st, fp = track_frame(tr, st, f)
+        out.append(fp)
+    q = np.array([o.q for o in out])
+    lost = np.array([o.lost for o in out])
+    qual = np.array([o.quality for o in out])
+    return q, lost, qual, st
+
+
+def test_bspline_interpolant_is_exact_at_pixels_and_matches_scipy():
+    from scipy import ndimage
+
+    rng = np.random.default_rng(0)
+    img = rng.random((40, 50)).astype(np.float32) * 200
+    coef = bspline_coefficients(img)
+    np.testing.assert_allclose(coef, ndimage.spline_filter(img.astype(float), 3, mode="mirror"),
+                               atol=2e-4)
+    r, c = np.mgrid[1:37, 1:47]
+    np.testing.assert_allclose(bspline_sample(coef, c.ravel() * 1.0, r.ravel() * 1.0),
+                               img[1:37, 1:47].ravel(), atol=2e-4)
+    x, y = rng.uniform(2, 45, 200), rng.uniform(2, 35, 200)
+    ref = ndimage.map_coordinates(ndimage.spline_filter(img.astype(float), 3, mode="mirror"),
+                                  [y, x], order=3, prefilter=False)
+    np.testing.assert_allclose(bspline_sample(coef, x, y), ref, atol=2e-4)
+    assert np.isnan(bspline_sample(coef, np.array([0.5]), np.array([10.0])))[0]
+
+
+@pytest.mark.parametrize("shift", [(0.0, 0.0), (0.5, 0.0), (0.25, -0.75), (2.3, 1.6)])
+def test_subpixel_translation(shift):
+    scene = make_scene(3, 2)
+    rng = np.random.default_rng(1)
+    truth = np.tile(scene.px([shift[0], shift[1], 0.0]), (scene.n, 1))
+    frames = [scene.render(np.zeros((scene.n, 3)), rng), scene.render(truth, rng)]
+    q, lost, qual, _ = _run(scene, frames)
+    assert not lost.any()
+    pos, rot = errors_px(scene, q[1], truth)
+    assert pos < 0.01 and rot < 0.5
+    assert np.all(qual[1] > 0.99)
+
+
+def test_rotation_ramp_to_0p3_rad_with_reference_updates():
+    scene = make_scene(2, 2)
+    rng = np.random.default_rng(2)
+    n_t = 16
+    theta = np.linspace(0, 0.3, n_t)
+    truth = np.zeros((n_t, scene.n, 3))
+    truth[:, :, 2] = theta[:, None] * np.array([1, -1, 1, -1])
+    truth[:, :, 0] = np.linspace(0, 2.5, n_t)[:, None] * scene.cfg.m_per_px
+    frames = [scene.render(p, rng) for p in truth]
+    q, lost, _, st = _run(scene, frames)
+    assert not lost.any()
+    pos, rot = errors_px(scene, q, truth)
+    assert pos < 0.01 and rot < 0.5
+    assert np.all(np.abs(st.ref_alpha) > 0.15)  # references were refreshed on the way
+
+
+def test_noise_blur_shot_and_uneven_lighting():
+    scene = make_scene(3, 2, noise_std=0.02, full_well=4000.0, blur_sigma_px=0.7,
+                       lighting_gradient=0.3, vignetting=0.2)
+    rng = np.random.default_rng(3)
+    n_t = 8
+    truth = np.zeros((n_t, scene.n, 3))
+    k = np.arange(n_t)[:, None]
+    truth[..., 0] = 0.4 * k * scene.cfg.m_per_px  # moves through the lighting gradient
+    truth[..., 1] = -0.3 * k * scene.cfg.m_per_px
+    truth[..., 2] = 0.01 * k
+    frames = [scene.render(p, rng) for p in truth]
+    q, lost, qual, _ = _run(scene, frames)
+    assert not lost.any()
+    pos, rot = errors_px(scene, q[1:], truth[1:])
+    assert pos < 0.03 and rot < 1.5
+    assert np.all(qual[1:] > 0.9)
+
+
+def test_occluded_unit_is_flagged_lost_then_recovers():
+    scene = make_scene(3, 2)
+    rng = np.random.default_rng(4)
+    n_t = 10
+    truth = np.zeros((n_t, scene.n, 3))
+    truth[..., 0] = 0.3 * np.arange(n_t)[:, None] * scene.cfg.m_per_px
+    c = scene.calib.sample_to_px(scene.polygons_m[4].mean(axis=0))
+    occ = np.zeros((scene.cfg.height_px, scene.cfg.width_px), bool)
+    occ[int(c[1]) - 25 : int(c[1]) + 25, int(c[0]) - 25 : int(c[0]) + 25] = True
+    frames = [scene.render(p, rng, occlusion=occ if 4 <= k < 7 else None)
+              for k, p in enumerate(truth)]
+    q, lost, _, _ = _run(scene, frames)
+    assert lost[4:7, 4].all() and np.isnan(q[4:7, 4]).all()
+    others = np.delete(np.arange(scene.n), 4)
+    assert not lost[:, others].any()
+    assert not lost[7:, 4].any()  # re-acquired once visible again
+    pos, rot = errors_px(scene, q[7:, 4], truth[7:, 4])
+    assert pos < 0.01 and rot < 0.5
+
+
+def test_unit_leaving_the_field_is_lost_not_guessed():
+    scene = make_scene(3, 1)
+    rng = np.random.default_rng(5)
+    n_t = 12
+    truth = np.zeros((n_t, scene.n, 3))
+    truth[:, 0, 0] = -np.linspace(0, 35, n_t) * scene.cfg.m_per_px  # unit 0 slides out left
+    frames = [scene.render(p, rng) for p in truth]
+    q, lost, _, _ = _run(scene, frames)
+    assert lost[-1, 0] and np.isnan(q[-1, 0]).all()
+    visible = ~lost[:, 0]
+    assert visible[:3].all()
+    pos, _ = errors_px(scene, q[visible, 0], truth[visible, 0])
+    assert pos < 0.01
+    assert not lost[:, 1:].any()
+
+
+def test_blank_and_corrupt_frames_are_flagged_not_fatal():
+    scene = make_scene(2, 2)
+    rng = np.random.default_rng(6)
+    truth = [np.tile(scene.px([0.2 * k, 0.1 * k, 0.0]), (scene.n, 1)) for k in range(6)]
+    frames = [scene.render(p, rng) for p in truth]
+    frames[2] = np.zeros_like(frames[2])  # blank
+    frames[3] = frames[3][:-5]  # truncated
+    frames[4] = np.full(frames[4].shape, np.nan)  # garbage
+    q, lost, _, _ = _run(scene, frames)
+    assert lost[2:5].all() and np.isnan(q[2:5]).all()
+    assert not lost[[0, 1, 5]].any()
+    pos, _ = errors_px(scene, q[5], truth[5])
+    assert pos < 0.01
+
+
+def test_units_outside_the_reference_frame_are_always_lost():
+    scene = make_scene(3, 1)
+    polys = scene.polygons_m.copy()
+    polys[2] += [0.05, 0.0]  # far right of the image
+    tr = DICTracker(polys, scene.calib)
+    f = scene.render(np.zeros((3, 3)), np.random.default_rng(0))
+    st = init_state(tr, f)
+    st, fp = track_frame(tr, st, f)
+    assert isinstance(fp, FramePoses)
+    np.testing.assert_array_equal(fp.lost, [False, False, True])
+    assert np.isnan(fp.q[2]).all()
+
+
+def test_icgn_recovers_large_rotation_from_a_nearby_start():
+    scene = make_scene(2, 1)
+    rng = np.random.default_rng(7)
+    tr = DICTracker(scene.polygons_m, scene.calib)
+    st = init_state(tr, scene.render(np.zeros((2, 3)), rng))
+    truth = np.array([[0, 0, 0.3], [0, 0, -0.3]])
+    prep = prepare_frame(tr, scene.render(truth, rng))
+    r = icgn(prep.coef, st.refs, np.arange(2), -truth[:, 2] * 0.9, np.zeros((2, 2)))
+    assert r.converged.all() and r.inside.all()
+    np.testing.assert_allclose(r.alpha, -truth[:, 2], atol=5e-4)

@@ -1,0 +1,96 @@
+"""Benchmark of the physics core: forward solve and value-and-gradient of the focusing objective.
+
+Sizes 8x6, 16x12, 24x16, 48x32 of the focusing scene (paper pulse, targets kept at the same
+relative position). Compile time (first call) is reported separately from the steady-state
+median of `--repeats` calls. Writes JSON after every case (interrupt-safe) and prints a table.
+
+    .venv/bin/python benchmarks/bench_core.py --out runs/bench
+"""
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import time
+from pathlib import Path
+
+from tqdm import tqdm
+
+
+def _time(fn, repeats: int) -> tuple[float, list[float], object]:
+    t0 = time.perf_counter()
+    out = fn()
+    first = time.perf_counter() - t0
+    runs = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = fn()
+        runs.append(time.perf_counter() - t0)
+    return first, runs, out
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--out", type=Path, default=Path("runs/bench"))
+    p.add_argument("--sizes", default="8x6,16x12,24x16,48x32")
+    p.add_argument("--repeats", type=int, default=2)
+    p.add_argument("--no-grad", action="store_true", help="forward solves only")
+    args = p.parse_args(argv)
+
+    import jax
+    import jax.numpy as jnp
+
+    import design_engine  # noqa: F401
+    from design_engine.run import checked, compiled_simulator, make_objective
+    from design_engine.scenes import build_scene
+    from design_engine.simulate import SolverConfig, check_solution
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    path = args.out / "bench_core.json"
+    config = SolverConfig()
+    report = {"machine": {"platform": platform.platform(), "cpus": os.cpu_count(),
+                          "jax": jax.__version__, "device": str(jax.devices()[0])},
+              "config": {"solver": type(config.solver).__name__, "rtol": config.rtol,
+                         "atol": config.atol, "adjoint": type(config.adjoint).__name__},
+              "cases": []}
+    sizes = [tuple(int(v) for v in s.split("x")) for s in args.sizes.split(",")]
+    try:
+        for nx, ny in tqdm(sizes, desc="sizes"):
+            scene = build_scene("focusing-24x16", nx=nx, ny=ny)
+            x = jnp.asarray(scene.design)
+            ts = jnp.asarray(scene.sample_times)
+            sim = compiled_simulator(scene, config)
+            fwd = lambda: jax.block_until_ready(sim(x, scene.material, scene.loading, ts))  # noqa: E731
+            first, runs, sol = _time(fwd, args.repeats)
+            check_solution(sol, config)
+            case = {"size": f"{nx}x{ny}", "n_units": scene.n_units,
+                    "n_free_dofs": int(scene.supports.free.size),
+                    "forward_first_call_s": first, "forward_s": statistics.median(runs),
+                    "forward_compile_s": first - statistics.median(runs),
+                    "accepted_steps": int(sol.num_accepted), "rejected_steps": int(sol.num_rejected)}
+            if not args.no_grad:
+                vg, _ = make_objective(scene, config)
+                g_first, g_runs, out = _time(lambda: jax.block_until_ready(vg(x)), args.repeats)
+                checked(out, config)
+                case.update({"value_and_grad_first_call_s": g_first,
+                             "value_and_grad_s": statistics.median(g_runs),
+                             "value_and_grad_compile_s": g_first - statistics.median(g_runs),
+                             "J_mean_mJ": float(out[0][0]) / scene.n_samples})
+            report["cases"].append(case)
+            path.write_text(json.dumps(report, indent=2))
+    except KeyboardInterrupt:
+        print(f"interrupted: {len(report['cases'])} cases kept in {path}")
+    path.write_text(json.dumps(report, indent=2))
+    print(f"\n{'size':>7} {'units':>6} {'steps':>6} {'fwd [s]':>8} {'fwd compile':>11} "
+          f"{'v+g [s]':>8} {'v+g compile':>11}")
+    for c in report["cases"]:
+        print(f"{c['size']:>7} {c['n_units']:>6} {c['accepted_steps']:>6} {c['forward_s']:>8.2f} "
+              f"{c['forward_compile_s']:>11.1f} {c.get('value_and_grad_s', float('nan')):>8.2f} "
+              f"{c.get('value_and_grad_compile_s', float('nan')):>11.1f}")
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -13,6 +13,7 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     "modes": ("design_engine.cli", "modes_main", "linear modal analysis of a scene"),
     "rig": ("ros_nodes.cli_rig", "rig_main", "run an experiment on the simulated (or real) rig"),
     "recover": ("ros_nodes.cli_rig", "recover_main", "salvage an MCAP recording whose writer was killed"),
+    "track": ("ros_nodes.cli_track", "track_main", "track unit poses in frames by DIC"),
 }
 
 

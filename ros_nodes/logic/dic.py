@@ -136,11 +136,13 @@ class FramePoses:
         q: [n, 3] (u m, v m, theta rad) from the reference outline; NaN where lost.
         quality: [n] ZNCC of the registration in [-1, 1] (NaN when not measurable).
         lost: [n] the unit is lost in this frame.
+        error: why the whole frame was unusable ("" when it was tracked).
     """
 
     q: np.ndarray
     quality: np.ndarray
     lost: np.ndarray
+    error: str = ""
 
 
 @dataclass(frozen=True, slots=True)
@@ -216,12 +218,13 @@ def _to_sample(tracker: DICTracker, alpha: np.ndarray, t: np.ndarray) -> np.ndar
                      cal.image_rotation_sign * alpha], axis=-1)
 
 
-def all_lost(state: TrackerState) -> tuple[TrackerState, FramePoses]:
+def all_lost(state: TrackerState, reason: str) -> tuple[TrackerState, FramePoses]:
     """Flag every unit lost for a frame that could not be used (keeps the last poses)."""
     n = state.lost.size
     st = replace(state, lost=np.ones(n, bool), prev_alpha=np.full(n, np.nan),
                  prev_t=np.full((n, 2), np.nan))
-    return st, FramePoses(np.full((n, 3), np.nan), np.full(n, np.nan), np.ones(n, bool))
+    return st, FramePoses(np.full((n, 3), np.nan), np.full(n, np.nan), np.ones(n, bool),
+                          reason or "unusable frame")
 
 
 def track_frame(
@@ -236,7 +239,8 @@ def track_frame(
 
     Returns:
         The new state and this frame's poses. A frame that cannot be used (blank, wrong
-        size, non-finite) flags every unit lost instead of raising.
+        size, non-finite) flags every unit lost instead of raising (`FramePoses.error` says
+        why).
     """
     cfg = tracker.cfg
     try:
@@ -245,8 +249,8 @@ def track_frame(
             raise FrameError(f"frame size {prep.img.shape} differs from the reference "
                              f"{state.shape}")
     except FrameError as exc:
-        log.warning("frame skipped, all units flagged lost: %s", exc)
-        return all_lost(state)
+        log.debug("frame skipped, all units flagged lost: %s", exc)
+        return all_lost(state, str(exc))
     refs = state.refs
     n = tracker.n_units
     usable = refs.count > 0

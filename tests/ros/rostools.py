@@ -13,12 +13,12 @@ def spin_until(executor, predicate, timeout_s: float, what: str) -> None:
         executor.spin_once(timeout_sec=0.05)
 
 
-def wait_for_service(client, executor, timeout_s: float = 20.0) -> None:
+def wait_for_service(client, executor, timeout_s: float = 45.0) -> None:
     spin_until(executor, lambda: client.service_is_ready(), timeout_s,
                f"service {client.srv_name}")
 
 
-def call(client, request, executor, timeout_s: float = 20.0):
+def call(client, request, executor, timeout_s: float = 45.0):
     """Call a service and spin until the response arrives."""
     wait_for_service(client, executor, timeout_s)
     fut = client.call_async(request)

@@ -7,7 +7,6 @@ SI where they leave the engine (`Trajectory`, summaries); internal units stay in
 import time
 from dataclasses import dataclass
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -204,4 +203,4 @@ def checked(value_aux, config: SolverConfig):
 
 
 __all__ = ["SceneRun", "simulate_scene", "simulate_rig", "make_objective", "checked", "to_trajectory",
-           "scene_metrics", "compiled_simulator", "eqx"]
+           "scene_metrics", "compiled_simulator"]

@@ -138,7 +138,7 @@ def _plots(out: Path, scene, run, config, ke_j: np.ndarray) -> None:
 
 
 def modes_main(argv: list[str] | None = None) -> int:
-    """Natural frequencies of a scene about its reference state; writes modes.json to --out."""
+    """Natural frequencies of a scene about its reference (or pre-compressed) state."""
     p = argparse.ArgumentParser(prog="metarig modes", description=modes_main.__doc__,
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     _scene_args(p)
@@ -147,12 +147,14 @@ def modes_main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     import design_engine  # noqa: F401
     from design_engine.geometry import InvalidDesignError
-    from design_engine.modal import modal_analysis
+    from design_engine.modal import modal_analysis, prestressed_state
+    from design_engine.simulate import SimulationError
 
     try:
         scene = _build(args)
-        modes = modal_analysis(scene)
-    except (ValueError, InvalidDesignError, OSError) as exc:
+        # stage scenes are analysed about their pre-compressed state (end of the ramp)
+        modes = modal_analysis(scene, prestressed_state(scene))
+    except (ValueError, InvalidDesignError, SimulationError, OSError) as exc:
         print(f"metarig modes: error: {exc}", file=sys.stderr)
         return 2
     f = modes.frequencies_hz

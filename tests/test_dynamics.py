@@ -91,3 +91,17 @@ def test_step_budget_exhaustion_is_reported_not_returned():
     sol = sim(jnp.asarray(scene.design), scene.material, scene.loading, jnp.asarray(scene.sample_times))
     with pytest.raises(SimulationError, match="step budget"):
         check_solution(sol, config)
+
+
+def test_modes_about_a_precompressed_state_are_stable_and_shifted():
+    from design_engine.modal import prestressed_state
+
+    scene = build_scene("protection-24x18", nx=8, ny=8, strain=0.03)
+    q = prestressed_state(scene)
+    top = scene.stage_units_top
+    # stage rows sit at -delta/2 = -(N_y - 1) s eps / 2 at the end of the ramp
+    np.testing.assert_allclose(q[top, 1], -0.5 * 7 * 15.0 * 0.03, rtol=1e-9)
+    ref = modal_analysis(scene).frequencies_hz
+    pre = modal_analysis(scene, q).frequencies_hz
+    assert np.all(pre > 0)
+    assert abs(pre[0] - ref[0]) / ref[0] > 1e-2  # pre-stress changes the spectrum

@@ -51,18 +51,20 @@ class Specimen:
         return area_centroids(self.polygons_m)
 
     def design_json(self) -> str:
-        """The design as JSON: scene, size, unit outlines (`polygons_m`), inputs and stages."""
+        """The sample as a `metarig-design/1` design file (loadable by `metarig simulate --design`)
+        plus the rig context: scene, inputs, stage rows and the true-parameter factors."""
+        from design_engine.design_io import design_document
+
         s = self.scene
-        return json.dumps({
-            "scene": self.config.scene, "nx": self.config.nx, "ny": self.config.ny,
-            "bias_angle_deg": self.config.bias_angle_deg, "n_units": self.n_units,
-            "sample_height_m": float(s.sample_height_m),
-            "input_units": [int(i) for i in s.input_units],
-            "stage_units_bottom": [int(i) for i in s.stage_units_bottom],
-            "stage_units_top": [int(i) for i in s.stage_units_top],
-            "polygons_m": np.round(self.polygons_m, 9).tolist(),
-            "true_parameter_factors": self.factors,
-        })
+        return json.dumps(design_document(
+            s.lattice, s.design,
+            scene=self.config.scene, bias_angle_deg=self.config.bias_angle_deg,
+            n_units=self.n_units, sample_height_m=float(s.sample_height_m),
+            input_units=[int(i) for i in s.input_units],
+            stage_units_bottom=[int(i) for i in s.stage_units_bottom],
+            stage_units_top=[int(i) for i in s.stage_units_top],
+            true_parameter_factors=self.factors,
+        ))
 
 
 def build(cfg: SpecimenConfig) -> Specimen:

@@ -1,9 +1,11 @@
 """`metarig track`: DIC-track every unit in a folder of images, a video or an MCAP recording.
 
-Parallel over units: each worker process owns a contiguous block of unit ids, reads the frames
-itself and runs the same tracker (`ros_nodes.logic.dic`) as the live node; units are
-independent, so the result does not depend on the number of workers. Results stream back in
-blocks of frames; Ctrl-C stops the workers and writes what every worker has finished.
+Parallel over units on all cores: within a process the units of a frame are solved on numba
+threads while a reader thread decodes and prepares the next frame; with `--workers N` the unit
+ids are also split into N contiguous blocks, one per process, each reading the frames itself.
+Every path runs the same tracker (`ros_nodes.logic.dic`) as the live node and units are
+independent, so results do not depend on the split. Results stream back in blocks of frames;
+Ctrl-C stops the workers and writes what every worker has finished.
 
 Output (.npz, the trajectory layout of `metarig simulate`): `t` [n_t] s (k / fps); `q`
 [n_t, n_units, 3] (u m, v m, theta rad) from the reference outline, NaN where lost; `qdot`
@@ -19,12 +21,14 @@ import os
 import queue as queue_mod
 import signal
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
+import numba
 import numpy as np
 
 from ros_nodes.logic.calibration import Calibration, CalibrationError, load_calibration
@@ -32,8 +36,10 @@ from ros_nodes.logic.dic import (
     DICConfig,
     DICTracker,
     FrameError,
+    PreparedFrame,
     all_lost,
     init_state,
+    prepare_frame,
     track_frame,
 )
 from ros_nodes.logic.dic_units import UnitsError, load_unit_polygons
@@ -59,6 +65,7 @@ class TrackJob:
         calib: calibration. cfg: tracker settings.
         reference: image file showing the reference configuration (None: the first frame).
         block: frames per result block. max_frames: stop after this many (0: all).
+        threads: numba threads for this job's units (0: leave the process default).
     """
 
     spec: SourceSpec
@@ -68,6 +75,7 @@ class TrackJob:
     reference: str | None
     block: int
     max_frames: int
+    threads: int = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -100,8 +108,56 @@ def _reference_image(job: TrackJob) -> np.ndarray:
     raise SourceError(f"{job.spec.path}: holds no frames")
 
 
+def _prepared_frames(
+    tracker: DICTracker, spec: SourceSpec, max_frames: int
+) -> Iterator[tuple[int, PreparedFrame | str]]:
+    """Frames read and prepared (rectified, spline-filtered) by a background thread.
+
+    Decoding and the B-spline prefilter release the GIL, so they overlap with tracking of the
+    previous frame. Yields (k, prepared frame) or (k, reason the frame is unusable).
+    """
+    out: queue_mod.Queue = queue_mod.Queue(maxsize=2)
+    halt = threading.Event()
+    end = object()
+
+    def produce():
+        try:
+            for k, item in iter_frames(spec):
+                if halt.is_set() or (max_frames and k >= max_frames):
+                    break
+                if isinstance(item, BadFrame):
+                    out.put((k, item.reason))
+                    continue
+                try:
+                    out.put((k, prepare_frame(tracker, item)))
+                except FrameError as exc:
+                    out.put((k, str(exc)))
+        except Exception as exc:  # noqa: BLE001 - handed to the consuming thread
+            out.put((None, exc))
+        finally:
+            out.put(end)
+
+    reader = threading.Thread(target=produce, name="frame-reader", daemon=True)
+    reader.start()
+    try:
+        while (item := out.get()) is not end:
+            k, x = item
+            if k is None:
+                raise x
+            yield k, x
+    finally:
+        halt.set()
+        while reader.is_alive():  # unblock a reader waiting on a full queue
+            try:
+                out.get_nowait()
+            except queue_mod.Empty:
+                reader.join(0.05)
+
+
 def track_blocks(job: TrackJob, stop: Callable[[], bool] = lambda: False) -> Iterator[Block]:
     """Track the job's units through the source, yielding results every `job.block` frames."""
+    if job.threads > 0:
+        numba.set_num_threads(min(job.threads, numba.config.NUMBA_NUM_THREADS))
     tracker = DICTracker(job.polygons_m, job.calib, job.cfg)
     try:
         state = init_state(tracker, _reference_image(job))
@@ -109,11 +165,9 @@ def track_blocks(job: TrackJob, stop: Callable[[], bool] = lambda: False) -> Ite
         raise SourceError(f"reference frame unusable: {exc}") from None
     buf: list[tuple] = []
     k0 = 0
-    for k, item in iter_frames(job.spec):
-        if job.max_frames and k >= job.max_frames:
-            break
-        if isinstance(item, BadFrame):
-            state, poses = all_lost(state, item.reason)
+    for k, item in _prepared_frames(tracker, job.spec, job.max_frames):
+        if isinstance(item, str):
+            state, poses = all_lost(state, item)
         else:
             state, poses = track_frame(tracker, state, item)
         if poses.error:
@@ -178,9 +232,12 @@ def _assemble(parts: list[list[Block]], splits: list[np.ndarray], n_units: int,
 def run_tracking(
     spec: SourceSpec, polygons_m: np.ndarray, calib: Calibration, cfg: DICConfig,
     workers: int = 1, reference: str | None = None, block: int = 8, max_frames: int = 0,
-    progress: bool = False,
+    progress: bool = False, threads: int = 0,
 ) -> TrackResult:
     """Track all units, in this process (workers = 1) or split over worker processes.
+
+    Within a process, units are solved on `threads` numba threads (0: all cores shared out
+    between the workers) while a reader thread decodes and prepares the next frame.
 
     Ctrl-C (KeyboardInterrupt) returns what every worker finished, with complete = False.
 
@@ -192,7 +249,8 @@ def run_tracking(
     n = polygons_m.shape[0]
     workers = max(1, min(int(workers), n))
     splits = np.array_split(np.arange(n), workers)
-    jobs = [TrackJob(spec, polygons_m[ids], calib, cfg, reference, block, max_frames)
+    threads = threads or max(1, (os.cpu_count() or 1) // workers)
+    jobs = [TrackJob(spec, polygons_m[ids], calib, cfg, reference, block, max_frames, threads)
             for ids in splits]
     total = count_frames(spec)
     if total is not None and max_frames:
@@ -225,7 +283,9 @@ def run_tracking(
 
 def _run_pool(jobs: list[TrackJob], parts: list[list[Block]], advance: Callable) -> bool:
     """Run jobs in worker processes; True when all finished. Raises on a worker error."""
-    ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
+    # spawn, not fork: a forked child of a process whose OpenMP (numba) threads are running
+    # can deadlock in its first parallel region
+    ctx = mp.get_context("spawn")
     out = ctx.Queue(maxsize=4 * len(jobs))
     stop = ctx.Event()
     procs = [ctx.Process(target=_worker, args=(i, j, out, stop), daemon=True)
@@ -323,8 +383,11 @@ def build_parser() -> argparse.ArgumentParser:
                    "the one ending in image_raw)")
     p.add_argument("--reference", default=None, help="image of the reference configuration "
                    "(default: the first frame)")
-    p.add_argument("--workers", type=int, default=os.cpu_count() or 1,
-                   help="worker processes (units are split between them)")
+    p.add_argument("--workers", type=int, default=1,
+                   help="worker processes; units are split between them (each decodes every "
+                   "frame, so this pays off on many cores or slow-to-track scenes)")
+    p.add_argument("--threads", type=int, default=0,
+                   help="numba threads per worker (0: all cores shared out between workers)")
     p.add_argument("--max-frames", type=int, default=0, help="stop after this many (0: all)")
     p.add_argument("--block", type=int, default=8, help="frames per result block")
     p.add_argument("--margin-px", type=float, default=_DEFAULTS.margin_px,
@@ -356,12 +419,13 @@ def track_main(argv: list[str] | None = None) -> int:
     except (CalibrationError, UnitsError, SourceError, ValueError) as exc:
         print(f"metarig track: error: {exc}", file=sys.stderr)
         return 2
-    log.info("tracking %d units in %s (%s) with %d worker(s)", polys.shape[0], spec.path,
-             spec.kind, args.workers)
+    log.info("tracking %d units in %s (%s) with %d worker process(es)", polys.shape[0],
+             spec.path, spec.kind, args.workers)
     t0 = time.perf_counter()
     try:
         res = run_tracking(spec, polys, calib, cfg, args.workers, args.reference, args.block,
-                           args.max_frames, progress=not args.quiet and sys.stderr.isatty())
+                           args.max_frames, progress=not args.quiet and sys.stderr.isatty(),
+                           threads=args.threads)
     except SourceError as exc:
         print(f"metarig track: error: {exc}", file=sys.stderr)
         return 2

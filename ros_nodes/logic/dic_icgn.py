@@ -41,7 +41,7 @@ def icgn(
     alpha0: np.ndarray,
     w0: np.ndarray,
     max_iter: int = 20,
-    tol_px: float = 1e-3,
+    tol_px: float = 2e-3,
     max_move_px: float = 8.0,
 ) -> IcgnResult:
     """Register units `idx` of `refs` in the current frame from start poses (alpha0, w0).
@@ -52,7 +52,8 @@ def icgn(
         idx: [k] unit indices into `refs`.
         alpha0: [k] start rotations, rad; w0: [k, 2] start displacements, px.
         max_iter: Gauss-Newton iteration cap.
-        tol_px: converged when the update moves every subset point by less than this, px.
+        tol_px: converged when the estimated remaining error of every subset point is below
+            this, px (from the contraction of successive Gauss-Newton steps).
         max_move_px: give up on a unit whose pose wanders further than this from its start.
 
     Returns:

@@ -13,7 +13,7 @@ Conventions: images are [rows, cols]; positions are (col, row) with pixel centre
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 _POLE = math.sqrt(3.0) - 2.0  # pole of the cubic B-spline interpolation filter
 
@@ -43,50 +43,55 @@ def _filter_line(s: np.ndarray) -> None:
 
 
 @njit(cache=True)
-def _filter_columns(a: np.ndarray) -> None:
-    """In-place cubic B-spline prefilter along axis 0 of a [h, w] float64 array.
+def _filter_columns(a: np.ndarray, j0: int, j1: int) -> None:
+    """In-place cubic B-spline prefilter along axis 0 of columns j0:j1 of a [h, w] array.
 
-    The same recursion as `_filter_line`, run on whole rows at a time so that memory is
-    walked contiguously.
+    The same recursion as `_filter_line`, run on row segments so that memory is walked
+    contiguously.
     """
-    h, w = a.shape
+    h = a.shape[0]
     z = _POLE
     if h == 1:
         return
     horizon = min(h, 28)
     zk = z
     for k in range(1, horizon):
-        for j in range(w):
+        for j in range(j0, j1):
             a[0, j] += zk * a[k, j]
         zk *= z
     for i in range(1, h):
-        for j in range(w):
+        for j in range(j0, j1):
             a[i, j] += z * a[i - 1, j]
     g = z / (z * z - 1.0)
-    for j in range(w):
+    for j in range(j0, j1):
         a[h - 1, j] = g * (a[h - 1, j] + z * a[h - 2, j])
     for i in range(h - 2, -1, -1):
-        for j in range(w):
+        for j in range(j0, j1):
             a[i, j] = z * (a[i + 1, j] - a[i, j])
     for i in range(h):
-        for j in range(w):
+        for j in range(j0, j1):
             a[i, j] *= 6.0
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def bspline_coefficients(img: np.ndarray) -> np.ndarray:
     """Cubic B-spline coefficients [h, w] float32 of an image [h, w] (any real dtype).
 
     The spline sum_ij c_ij beta3(col - j) beta3(row - i) passes through every pixel value.
+    Both passes run down columns of a (transposed, then original) float32 copy: a recursion
+    along rows would be latency-bound, one across many columns at once is not. Serial and
+    GIL-free, so a reader thread can prepare the next frame while units are being tracked.
     """
     h, w = img.shape
-    tmp = np.empty((h, w), dtype=np.float64)
+    # float32 work arrays halve memory traffic; the recursion's rounding stays ~1e-4 grey
+    tr = np.empty((w, h), dtype=np.float32)
     for i in range(h):
         for j in range(w):
-            tmp[i, j] = img[i, j]
-        _filter_line(tmp[i])
-    _filter_columns(tmp)
-    return tmp.astype(np.float32)
+            tr[j, i] = img[i, j]
+    _filter_columns(tr, 0, h)
+    out = np.ascontiguousarray(tr.T)
+    _filter_columns(out, 0, w)
+    return out
 
 
 @njit(cache=True)
@@ -105,41 +110,43 @@ def bspline_sample(coef: np.ndarray, px: np.ndarray, py: np.ndarray) -> np.ndarr
 
 
 @njit(cache=True, inline="always")
+def _row(coef, r, ix, wx0, wx1, wx2, wx3):
+    return (wx0 * coef[r, ix - 1] + wx1 * coef[r, ix] + wx2 * coef[r, ix + 1]
+            + wx3 * coef[r, ix + 2])
+
+
+@njit(cache=True, inline="always")
 def _interp(coef, ix, iy, tx, ty):
     """Cubic B-spline value at (ix + tx, iy + ty), 0 <= t < 1, support inside the image."""
     sx = 1.0 - tx
     tx2 = tx * tx
     tx3 = tx2 * tx
-    wx0 = sx * sx * sx / 6.0
-    wx1 = (3.0 * tx3 - 6.0 * tx2 + 4.0) / 6.0
-    wx2 = (-3.0 * tx3 + 3.0 * tx2 + 3.0 * tx + 1.0) / 6.0
-    wx3 = tx3 / 6.0
+    wx0 = sx * sx * sx * (1.0 / 6.0)
+    wx3 = tx3 * (1.0 / 6.0)
+    wx1 = 0.5 * tx3 - tx2 + (2.0 / 3.0)
+    wx2 = 1.0 - wx0 - wx1 - wx3  # the weights sum to 1
     sy = 1.0 - ty
     ty2 = ty * ty
     ty3 = ty2 * ty
-    wy = (
-        sy * sy * sy / 6.0,
-        (3.0 * ty3 - 6.0 * ty2 + 4.0) / 6.0,
-        (-3.0 * ty3 + 3.0 * ty2 + 3.0 * ty + 1.0) / 6.0,
-        ty3 / 6.0,
-    )
-    acc = 0.0
-    for r in range(4):
-        rr = iy - 1 + r
-        line = (
-            wx0 * coef[rr, ix - 1] + wx1 * coef[rr, ix]
-            + wx2 * coef[rr, ix + 1] + wx3 * coef[rr, ix + 2]
-        )
-        acc += wy[r] * line
-    return acc
+    wy0 = sy * sy * sy * (1.0 / 6.0)
+    wy3 = ty3 * (1.0 / 6.0)
+    wy1 = 0.5 * ty3 - ty2 + (2.0 / 3.0)
+    wy2 = 1.0 - wy0 - wy1 - wy3
+    return (wy0 * _row(coef, iy - 1, ix, wx0, wx1, wx2, wx3)
+            + wy1 * _row(coef, iy, ix, wx0, wx1, wx2, wx3)
+            + wy2 * _row(coef, iy + 1, ix, wx0, wx1, wx2, wx3)
+            + wy3 * _row(coef, iy + 2, ix, wx0, wx1, wx2, wx3))
 
 
-@njit(cache=True, fastmath=True)
+@njit(cache=True, fastmath=True, parallel=True, nogil=True)
 def icgn_batch(
     coef, cx, cy, dx, dy, ft, jac, count, hinv, sumj, sumjf, df, rmax,
     idx, alpha, wx, wy, max_iter, tol_px, max_move_px, zncc, conv, inside,
 ):
     """Rigid IC-GN with ZNSSD for units `idx`, in place on (alpha, wx, wy) and the outputs.
+
+    Units run in parallel on numba threads (`numba.set_num_threads`); call it from one thread
+    at a time.
 
     Warp of a reference point: W(x) = R(alpha) (x - c) + c + w, c = (cx, cy)[b]. With
     e = ft - (df / dg) (g - mean g), the step is dp = -H^-1 sum(J e), expanded into sums that
@@ -152,12 +159,13 @@ def icgn_batch(
         count: [n] points per unit. hinv: [n, 3, 3]. sumj: [n, 3] sum of jac.
         sumjf: [n, 3] sum of jac * ft. df: [n] norm of ft. rmax: [n] subset radius, px.
         idx: [k] units to solve. alpha, wx, wy: [k] start poses, overwritten by solutions.
-        max_iter: iteration cap. tol_px: convergence when no point moves more than this.
+        max_iter: iteration cap. tol_px: converged when the estimated remaining error (largest
+            point displacement, px) is below this.
         max_move_px: give up when the pose moves further than this from its start, px.
         zncc, conv, inside: [k] outputs (ZNCC, converged, subset support inside the image).
     """
     h, w = coef.shape
-    for ii in range(idx.size):
+    for ii in prange(idx.size):  # units are independent: one numba thread each
         b = idx[ii]
         n = count[b]
         zncc[ii] = np.nan
@@ -167,6 +175,9 @@ def icgn_batch(
             continue
         a, tx, ty = alpha[ii], wx[ii], wy[ii]
         a0, tx0, ty0 = a, tx, ty
+        prev_step = np.inf
+        dxb, dyb, ftb = dx[b], dy[b], ft[b]  # 1-D views: simpler indexing in the hot loop
+        j0b, j1b, j2b = jac[b, 0], jac[b, 1], jac[b, 2]
         for _ in range(max_iter):
             ca, sa = math.cos(a), math.sin(a)
             ox, oy = cx[b] + tx, cy[b] + ty
@@ -176,21 +187,26 @@ def icgn_batch(
             s0 = 0.0
             s1 = 0.0
             s2 = 0.0
+            # the whole subset lies within rmax of the centre: check the frame once per unit
+            reach = rmax[b] + 1e-6
+            safe = (ox - reach >= 1.0) and (oy - reach >= 1.0) and (ox + reach < w - 2.0) \
+                and (oy + reach < h - 2.0)
             for m in range(n):
-                px = ca * dx[b, m] - sa * dy[b, m] + ox
-                py = sa * dx[b, m] + ca * dy[b, m] + oy
+                ddx, ddy = dxb[m], dyb[m]
+                px = ca * ddx - sa * ddy + ox
+                py = sa * ddx + ca * ddy + oy
                 ix = math.floor(px)
                 iy = math.floor(py)
-                if ix < 1 or iy < 1 or ix > w - 3 or iy > h - 3:
+                if not safe and (ix < 1 or iy < 1 or ix > w - 3 or iy > h - 3):
                     inside[ii] = False
                     break
                 g = _interp(coef, ix, iy, px - ix, py - iy)
                 sg += g
                 sgg += g * g
-                sfg += ft[b, m] * g
-                s0 += jac[b, 0, m] * g
-                s1 += jac[b, 1, m] * g
-                s2 += jac[b, 2, m] * g
+                sfg += ftb[m] * g
+                s0 += j0b[m] * g
+                s1 += j1b[m] * g
+                s2 += j2b[m] * g
             if not inside[ii]:
                 break
             gm = sg / n
@@ -215,7 +231,13 @@ def icgn_batch(
             moved = math.hypot(tx - tx0, ty - ty0) + abs(a - a0) * rmax[b]
             if not moved <= max_move_px:
                 break
-            if math.hypot(d0, d1) + abs(d2) * rmax[b] < tol_px:
+            # stop when the error left after this step, estimated from the contraction of
+            # successive steps (linear convergence: left = step * rho / (1 - rho)), is below
+            # tolerance; saves the confirming iteration a plain step test needs
+            step = math.hypot(d0, d1) + abs(d2) * rmax[b]
+            rho = step / prev_step
+            if step < tol_px * 0.1 or (0.0 < rho < 0.5 and step * rho / (1.0 - rho) < tol_px):
                 conv[ii] = True
                 break
+            prev_step = step
         alpha[ii], wx[ii], wy[ii] = a, tx, ty

@@ -1,6 +1,7 @@
 """`metarig track` end to end: image folders, video, MCAP, bad frames, errors, Ctrl-C."""
 
 import json
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -218,3 +219,41 @@ def test_ctrl_c_keeps_finished_frames(recording, tmp_path, monkeypatch, workers)
     assert pos < 0.01
     out = cli_track.save_tracks(tmp_path / "partial.npz", res, sc.calib.fps)
     assert not bool(np.load(out)["complete"])
+
+
+RECORDING = Path(__file__).resolve().parents[1] / "recordings" / "focusing-12x8"
+
+
+@pytest.mark.skipif(not (RECORDING / "recording.mcap").exists(), reason="no sample recording")
+def test_track_sample_recording_against_its_ground_truth(tmp_path):
+    """The simulated rig's recording (96 units of ~10 px, motion blur, noise) vs its truth."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    out = tmp_path / "t.npz"
+    args = [str(RECORDING / "recording.mcap"), "--units", str(RECORDING / "design.json"),
+            "--calibration", str(RECORDING / "calibration.json"), "--out", str(out), "-q",
+            "--margin-px", "1.5", "--min-points", "16"]
+    assert cli_track.track_main(args) == 0
+    d = np.load(out)
+    polys = np.array(json.loads((RECORDING / "design.json").read_text())["polygons_m"])
+    from ros_nodes.logic.dic_units import polygon_centroids
+
+    c0 = polygon_centroids(polys)
+    truth = []
+    with open(RECORDING / "recording.mcap", "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        for *_, m in reader.iter_decoded_messages(topics=["/camera/ground_truth"],
+                                                  log_time_order=True):
+            truth.append(np.stack([np.array(m.x) - c0[:, 0], np.array(m.y) - c0[:, 1],
+                                   np.array(m.theta)], axis=1))
+    truth = np.array(truth)
+    assert d["q"].shape == truth.shape and not d["lost"].any()
+    # the truth is the pose at the end of a half-frame exposure: compare mid-exposure poses,
+    # relative to the first frame (which the tracker takes as its reference)
+    mid = truth.copy()
+    mid[1:] = truth[1:] - 0.25 * (truth[1:] - truth[:-1])
+    e = (d["q"] - (mid - truth[0]))[1:]
+    pos = np.sqrt(np.mean((e[..., :2] ** 2).sum(-1))) / 1.2e-3
+    assert pos < 0.1
+    assert np.sqrt(np.mean(e[..., 2] ** 2)) < 0.03

@@ -1,0 +1,193 @@
+"""Live DIC preview (pure, no ROS): newest-frame slot + a tracking thread at a capped rate.
+
+The camera callback hands frames to `LivePreview.offer`, which only swaps a reference under a
+lock and returns: it never waits for tracking, so the camera is never blocked. A worker thread
+takes the newest frame at most `rate_hz` times per second, tracks it with the same
+`ros_nodes.logic.dic` code as `metarig track`, and hands the poses to a publish callback.
+Frames that arrive while the worker is busy are replaced (counted as skipped), which is the
+decimation. The first frame tracked after `start` or `reset_reference` becomes the reference
+configuration.
+"""
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ros_nodes.logic.calibration import Calibration, calibration_from_dict, load_calibration
+from ros_nodes.logic.dic import DICConfig, DICTracker, FrameError, FramePoses, init_state
+from ros_nodes.logic.dic import track_frame as _track_frame
+
+log = logging.getLogger(__name__)
+
+
+def _p(default, desc, lo=None, hi=None):
+    return field(default=default, metadata={"description": desc, "min": lo, "max": hi})
+
+
+@dataclass(frozen=True, slots=True)
+class DICNodeConfig:
+    """Parameters of the live DIC tracker node (ROS parameters of the same names)."""
+
+    image_topic: str = _p("/camera/image_raw", "camera frames (sensor_msgs/Image mono8/16)")
+    poses_topic: str = _p("/dic/poses", "per-unit poses out (metarig_msgs/UnitPose2DArray)")
+    units_path: str = _p("", "JSON with polygons_m; empty: the latched /rig/design topic")
+    calibration_path: str = _p("", "calibration JSON; empty: fps, m_per_px, origin_* below")
+    fps: float = _p(1000.0, "camera frame rate (without calibration_path), Hz", 0.1, 1e6)
+    m_per_px: float = _p(6.0e-4, "image scale (without calibration_path), m/px", 1e-7, 1.0)
+    origin_col: float = _p(0.0, "pixel column of the sample origin (without calibration_path)")
+    origin_row: float = _p(0.0, "pixel row of the sample origin (without calibration_path)")
+    y_up: bool = _p(True, "sample y points up the image (without calibration_path)")
+    preview_rate_hz: float = _p(20.0, "most pose messages per second (decimated preview)",
+                                0.1, 10000.0)
+    threads: int = _p(1, "numba threads for tracking (leave cores to the camera)", 1, 256)
+    margin_px: float = _p(2.5, "subset distance from the unit outline, px", 0.0, 50.0)
+    min_points: int = _p(50, "units with fewer subset pixels are not tracked", 4, 100000)
+    zncc_lost: float = _p(0.8, "correlation below which a unit is lost", 0.0, 1.0)
+    search_radius_px: int = _p(24, "re-acquisition window half-width, px", 1, 1000)
+
+    def calibration(self) -> Calibration:
+        """The calibration from `calibration_path`, or from the inline parameters."""
+        if self.calibration_path:
+            return load_calibration(self.calibration_path)
+        return calibration_from_dict(
+            {"fps": self.fps, "m_per_px": self.m_per_px,
+             "origin_px": [self.origin_col, self.origin_row], "y_up": self.y_up},
+            where="node parameters")
+
+    def dic_config(self) -> DICConfig:
+        return DICConfig(margin_px=self.margin_px, min_points=self.min_points,
+                         zncc_lost=self.zncc_lost, zncc_reacquire=max(self.zncc_lost, 0.9),
+                         search_radius_px=self.search_radius_px,
+                         lost_search_radius_px=2 * self.search_radius_px)
+
+
+@dataclass(frozen=True, slots=True)
+class PreviewStats:
+    """Counters: frames offered by the camera, tracked, and skipped (replaced unseen)."""
+
+    offered: int
+    tracked: int
+    skipped: int
+
+
+PublishFn = Callable[[int, FramePoses], None]
+
+
+class LivePreview:
+    """Tracks the newest offered frame at most `rate_hz` times per second on its own thread."""
+
+    def __init__(self, tracker: DICTracker, rate_hz: float, publish: PublishFn,
+                 threads: int = 1):
+        if not rate_hz > 0:
+            raise ValueError(f"rate_hz must be > 0, got {rate_hz}")
+        self._tracker = tracker
+        self._period = 1.0 / rate_hz
+        self._publish = publish
+        self._threads = threads
+        self._cond = threading.Condition()
+        self._slot: tuple[int, np.ndarray] | None = None
+        self._state = None
+        self._generation = 0  # bumped by reset_reference; stale results are not kept
+        self._closed = False
+        self._offered = self._tracked = self._skipped = 0
+        self._thread = threading.Thread(target=self._run, name="dic-preview", daemon=True)
+
+    @property
+    def tracker(self) -> DICTracker:
+        return self._tracker
+
+    def start(self) -> "LivePreview":
+        self._thread.start()
+        return self
+
+    def offer(self, stamp_ns: int, frame: np.ndarray) -> None:
+        """Hand over a frame (kept by reference); O(1), never waits for tracking."""
+        with self._cond:
+            if self._slot is not None:
+                self._skipped += 1
+            self._slot = (int(stamp_ns), frame)
+            self._offered += 1
+            self._cond.notify()
+
+    def reset_reference(self) -> None:
+        """Make the next tracked frame the reference configuration."""
+        with self._cond:
+            self._state = None
+            self._generation += 1
+
+    def stats(self) -> PreviewStats:
+        with self._cond:
+            return PreviewStats(self._offered, self._tracked, self._skipped)
+
+    def close(self, timeout_s: float = 5.0) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify()
+        if self._thread.is_alive():
+            self._thread.join(timeout_s)
+
+    def _take(self) -> tuple[int, np.ndarray] | None:
+        with self._cond:
+            while self._slot is None and not self._closed:
+                self._cond.wait(0.5)
+            if self._closed:
+                return None
+            item, self._slot = self._slot, None
+            return item
+
+    def _run(self) -> None:
+        if self._threads > 0:
+            import numba
+
+            numba.set_num_threads(min(self._threads, numba.config.NUMBA_NUM_THREADS))
+        next_t = time.monotonic()
+        while True:
+            # wait out the preview period first, then take whatever frame is newest
+            delay = next_t - time.monotonic()
+            if delay > 0:
+                with self._cond:
+                    if self._cond.wait_for(lambda: self._closed, delay):
+                        return
+            item = self._take()
+            if item is None:
+                return
+            next_t = time.monotonic() + self._period
+            stamp_ns, frame = item
+            try:
+                poses = self._track(frame)
+            except Exception:
+                log.exception("tracking failed on the frame stamped %d ns", stamp_ns)
+                continue
+            if poses is not None:
+                with self._cond:
+                    self._tracked += 1
+                self._publish(stamp_ns, poses)
+
+    def _track(self, frame: np.ndarray) -> FramePoses | None:
+        with self._cond:
+            state, generation = self._state, self._generation
+        if state is None:
+            try:
+                state = init_state(self._tracker, frame)
+            except FrameError as exc:
+                log.warning("frame unusable as the reference: %s", exc)
+                return None
+            log.info("reference frame taken (%d units)", self._tracker.n_units)
+        state, poses = _track_frame(self._tracker, state, frame)
+        with self._cond:
+            if generation == self._generation:
+                self._state = state
+        if poses.error:
+            log.warning("frame unusable, all units flagged lost: %s", poses.error)
+        return poses
+
+
+def absolute_poses(centroids_m: np.ndarray, poses: FramePoses) -> tuple[np.ndarray, ...]:
+    """Pose message fields, as the camera's ground truth: x, y [n] (m) = reference centroid
+    [n, 2] + displacement, theta [n] (rad); NaN where lost."""
+    return (centroids_m[:, 0] + poses.q[:, 0], centroids_m[:, 1] + poses.q[:, 1],
+            poses.q[:, 2])

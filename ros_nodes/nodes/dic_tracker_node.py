@@ -1,0 +1,118 @@
+"""Live DIC tracker node: per-unit poses from the camera at a decimated preview rate.
+
+Interfaces (node name `dic_tracker`):
+- subscribes `image_topic` (sensor_msgs/Image mono8/mono16, default `/camera/image_raw`);
+  the callback only hands the frame to `LivePreview` (newest-frame slot), so it never waits
+  for tracking and the camera is never blocked;
+- subscribes `/rig/design` (std_msgs/String JSON with `polygons_m`, latched) when
+  `units_path` is empty;
+- publishes `poses_topic` (metarig_msgs/UnitPose2DArray, default `/dic/poses`) at most
+  `preview_rate_hz`: ids, x, y (reference centroid + displacement, m, sample frame), theta
+  (rad, CCW), quality (ZNCC), lost (x, y, theta NaN); the stamp is the frame's;
+- service `~/reset_reference` (std_srvs/Trigger): the next frame becomes the reference.
+The first frame tracked is the reference configuration. Parameters: `DICNodeConfig`.
+"""
+
+import json
+
+import numpy as np
+from metarig_msgs.msg import UnitPose2DArray
+from rclpy.node import Node
+from sensor_msgs.msg import Image
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+
+from ros_nodes import convert
+from ros_nodes.logic.calibration import CalibrationError
+from ros_nodes.logic.dic import DICTracker
+from ros_nodes.logic.dic_live import DICNodeConfig, LivePreview, absolute_poses
+from ros_nodes.logic.dic_units import UnitsError, load_unit_polygons, polygon_centroids
+from ros_nodes.logic.dic_units import validate_polygons as _validate
+from ros_nodes.nodes._common import LATCHED, STREAM, run_node
+from ros_nodes.nodes._params import TypedParams
+
+NAME = "dic_tracker"
+
+
+class DICTrackerNode(Node):
+    """Adapter: camera frames -> `LivePreview` -> pose messages."""
+
+    def __init__(self):
+        super().__init__(NAME)
+        self._params = TypedParams(self, DICNodeConfig)
+        cfg = self._params.config
+        try:
+            self._calib = cfg.calibration()
+        except CalibrationError as e:
+            raise SystemExit(f"{NAME}: {e}") from None
+        self._preview: LivePreview | None = None
+        self._centroids = None
+        self._warned_no_units = False
+        self._pub = self.create_publisher(UnitPose2DArray, cfg.poses_topic, STREAM)
+        self.create_subscription(Image, cfg.image_topic, self._on_image, STREAM)
+        self.create_service(Trigger, "~/reset_reference", self._on_reset)
+        if cfg.units_path:
+            try:
+                self._start(load_unit_polygons(cfg.units_path))
+            except UnitsError as e:
+                raise SystemExit(f"{NAME}: {e}") from None
+        else:
+            self.create_subscription(String, "/rig/design", self._on_design, LATCHED)
+            self.get_logger().info("waiting for the unit outlines on /rig/design")
+
+    def _start(self, polygons: np.ndarray) -> None:
+        cfg = self._params.config
+        if self._preview is not None:
+            self._preview.close()
+        tracker = DICTracker(polygons, self._calib, cfg.dic_config())
+        self._centroids = polygon_centroids(tracker.polygons_m)
+        self._preview = LivePreview(tracker, cfg.preview_rate_hz, self._publish,
+                                    cfg.threads).start()
+        self.get_logger().info(f"tracking {tracker.n_units} units at <= "
+                               f"{cfg.preview_rate_hz:g} Hz on {cfg.poses_topic}")
+
+    def _on_design(self, msg: String) -> None:
+        try:
+            self._start(_validate(json.loads(msg.data)["polygons_m"], where="/rig/design"))
+        except (ValueError, KeyError, TypeError) as e:
+            self.get_logger().error(f"/rig/design has no usable polygons_m: {e}")
+
+    def _on_image(self, msg) -> None:
+        if self._preview is None:
+            if not self._warned_no_units:
+                self.get_logger().warning("frames arrive but no unit outlines yet: dropped")
+                self._warned_no_units = True
+            return
+        try:
+            frame = np.array(convert.image_array(msg))  # own copy: the message may be reused
+        except ValueError as e:
+            self.get_logger().warning(f"frame skipped: {e}", throttle_duration_sec=5.0)
+            return
+        self._preview.offer(convert.to_ns(msg.header.stamp), frame)
+
+    def _publish(self, stamp_ns: int, poses) -> None:
+        x, y, theta = absolute_poses(self._centroids, poses)
+        n = x.size
+        self._pub.publish(convert.unit_poses(stamp_ns, np.arange(n), x, y, theta,
+                                             poses.quality, poses.lost))
+
+    def _on_reset(self, _req, res):
+        if self._preview is None:
+            res.success, res.message = False, "no unit outlines yet"
+        else:
+            self._preview.reset_reference()
+            res.success, res.message = True, "the next frame becomes the reference"
+        return res
+
+    def close(self) -> None:
+        if self._preview is not None:
+            self._preview.close()
+
+
+def main(args=None) -> int:
+    """Console entry point (`metarig-dic`)."""
+    return run_node(DICTrackerNode, args=args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

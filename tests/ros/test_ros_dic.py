@@ -8,13 +8,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from rostools import call, spin_until, stop_process, wait_matched
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from dic_synth import make_scene  # noqa: E402
+from dic_synth import make_scene
 
-from ros_nodes.logic.dic_units import polygon_centroids  # noqa: E402
+from ros_nodes.logic.dic_units import polygon_centroids
 
 NODE = [sys.executable, "-m", "ros_nodes.nodes.dic_tracker_node"]
 
@@ -109,7 +108,7 @@ def test_node_waits_for_the_design_topic_and_refuses_bad_files(client, ros_env, 
     scene = _scene_files(tmp_path)
     (tmp_path / "bad.json").write_text("{}")
     bad = subprocess.run([*NODE, "--ros-args", "-p", f"units_path:={tmp_path / 'bad.json'}"],
-                         env=ros_env, capture_output=True, text=True, timeout=60)
+                         env=ros_env, capture_output=True, text=True, timeout=60, check=False)
     assert bad.returncode == 2 and "polygons_m" in bad.stdout + bad.stderr
     design = node.create_publisher(String, "/rig/design", LATCHED)
     design.publish(String(data=json.dumps({"scene": "x",

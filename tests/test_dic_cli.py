@@ -257,3 +257,19 @@ def test_track_sample_recording_against_its_ground_truth(tmp_path):
     pos = np.sqrt(np.mean((e[..., :2] ** 2).sum(-1))) / 1.2e-3
     assert pos < 0.1
     assert np.sqrt(np.mean(e[..., 2] ** 2)) < 0.03
+
+
+def test_separate_reference_image(recording, tmp_path):
+    """--reference: poses are measured from that image; the source may start displaced."""
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for i, f in enumerate(recording["frames"][3:]):
+        cv2.imwrite(str(folder / f"f{i:03d}.png"), f)
+    ref = tmp_path / "ref.png"
+    cv2.imwrite(str(ref), recording["frames"][0])
+    out = tmp_path / "t.npz"
+    assert cli_track.track_main(_args(recording, folder, out, "--reference", str(ref))) == 0
+    d = np.load(out)
+    assert d["q"].shape[0] == N_T - 3 and not d["lost"].any()
+    pos, rot = errors_px(recording["scene"], d["q"], recording["truth"][3:])
+    assert pos < 0.01 and rot < 0.5

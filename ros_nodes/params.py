@@ -105,6 +105,8 @@ class RecorderNodeConfig:
                          1024, 1 << 28)
     compression: str = _p("none", "MCAP chunk compression", choices=("none", "lz4", "zstd"))
     queue_depth: int = _p(2000, "subscription queue depth (keep-last)", 1, 100000)
+    write_queue: int = _p(4000, "messages waiting for the writer thread at most (more: dropped "
+                          "and counted as queue_overflow)", 1, 1000000)
     gap_factor: float = _p(1.5, "a stamp step above this many median periods is a gap",
                            1.01, 100.0)
     discovery_period_s: float = _p(0.2, "how often new topics are looked for, s", 0.01, 10.0)

@@ -21,7 +21,9 @@ counts samples that the publisher skipped or that were lost before it (camera fr
 import json
 import logging
 import struct
+import threading
 import time
+from collections import deque
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -62,20 +64,27 @@ class TopicStats:
     gaps: int = 0
     missing_by_stamp: int = 0
     missing_by_sequence: int = 0
+    queue_overflow: int = 0
     max_latency_ms: float = 0.0
     _deltas: list = field(default_factory=list, repr=False)
     _last_seq: int | None = field(default=None, repr=False)
+    _period: float | None = field(default=None, repr=False)
+    _period_n: int = field(default=-1, repr=False)
 
     def period_ns(self) -> float | None:
-        d = [x for x in self._deltas if x > 0]
-        return float(np.median(d)) if len(d) >= 5 else None
+        if self._period_n != len(self._deltas):  # cached: the median only changes on append
+            d = [x for x in self._deltas if x > 0]
+            self._period = float(np.median(d)) if len(d) >= 5 else None
+            self._period_n = len(self._deltas)
+        return self._period
 
     def public(self) -> dict:
         d = {k: v for k, v in asdict(self).items() if not k.startswith("_")}
         d["period_s"] = None if self.period_ns() is None else self.period_ns() * 1e-9
         # transport loss (exact, from DDS sequence numbers); stamp gaps are reported apart:
         # they also count samples the publisher itself skipped or lost upstream
-        d["dropped"] = self.missing_by_sequence
+        # plus messages the recorder itself refused because its write queue was full
+        d["dropped"] = self.missing_by_sequence + self.queue_overflow
         return d
 
 
@@ -181,6 +190,7 @@ class McapRecorder:
         topics = {t: s.public() for t, s in self.stats.items()}
         return {"path": str(self.path), "messages": sum(s.count for s in self.stats.values()),
                 "dropped": sum(t["dropped"] for t in topics.values()),
+                "queue_overflow": sum(t["queue_overflow"] for t in topics.values()),
                 "stamp_gaps": sum(t["gaps"] for t in topics.values()),
                 "missing_by_stamp": sum(t["missing_by_stamp"] for t in topics.values()),
                 "backwards": sum(t["backwards"] for t in topics.values()), "topics": topics}
@@ -194,6 +204,109 @@ class McapRecorder:
             self._writer.finish()
             self._file.close()
         return self.report()
+
+
+class QueuedRecorder:
+    """A writer thread in front of a `McapRecorder`: `put` never blocks and never loses silently.
+
+    Receive callbacks hand over (topic, bytes, receive ns, sequence) and return at once; the
+    thread stamps, tracks and writes. The queue holds at most `max_queue` messages: a message
+    that finds it full is counted in its topic's `queue_overflow` (part of `dropped` in the
+    report), never dropped unseen. `close()` writes everything queued, then finishes the file.
+    Other calls (`add_topic`, `add_metadata`, ...) go through the queue too, so they keep
+    their order relative to the messages and the MCAP writer is only touched by one thread.
+    """
+
+    def __init__(self, recorder: McapRecorder, max_queue: int = 2000):
+        self.rec = recorder
+        self.max_queue = max(1, int(max_queue))
+        self._q: deque = deque()
+        self._wake = threading.Event()
+        self._overflow: dict[str, int] = {}
+        self._closing = False
+        self._lock = threading.Lock()  # serialises close() against itself
+        self._report: dict | None = None
+        self.error: str = ""
+        self.high_water = 0
+        self._thread = threading.Thread(target=self._run, name="mcap-writer", daemon=True)
+        self._thread.start()
+
+    @property
+    def path(self) -> Path:
+        return self.rec.path
+
+    @property
+    def stats(self) -> dict[str, TopicStats]:
+        return self.rec.stats
+
+    @property
+    def closed(self) -> bool:
+        return self._closing
+
+    def queued(self) -> int:
+        return len(self._q)
+
+    def put(self, topic: str, cdr: bytes, receive_ns: int, pub_seq: int | None = None) -> bool:
+        """Queue one message; False (and counted) if the queue is full or closing."""
+        if self._closing:  # stopped: a message still in flight is simply not part of this file
+            return False
+        if len(self._q) >= self.max_queue:
+            self._overflow[topic] = self._overflow.get(topic, 0) + 1
+            return False
+        self._q.append((0, topic, cdr, receive_ns, pub_seq))
+        if len(self._q) > self.high_water:
+            self.high_water = len(self._q)
+        self._wake.set()
+        return True
+
+    def call(self, method: str, *args) -> None:
+        """Run `McapRecorder.<method>(*args)` on the writer thread, in queue order."""
+        if not self._closing:
+            self._q.append((1, method, args, None, None))
+            self._wake.set()
+
+    def _run(self) -> None:
+        q, rec = self._q, self.rec
+        while True:
+            try:
+                item = q.popleft()
+            except IndexError:
+                if self._closing:
+                    return
+                self._wake.wait(0.05)
+                self._wake.clear()
+                continue
+            try:
+                if item[0] == 0:
+                    rec.write(item[1], item[2], item[3], item[4])
+                else:
+                    getattr(rec, item[1])(*item[2])
+            except Exception as e:  # noqa: BLE001 - kept and reported; the thread goes on
+                self.error = f"{type(e).__name__}: {e}"
+                log.error("recorder writer: %s", self.error)
+
+    def report(self) -> dict:
+        return self.rec.report()
+
+    def close(self, timeout_s: float = 60.0) -> dict:
+        """Write what is queued, finish the file, return the report (idempotent)."""
+        with self._lock:
+            if self._report is not None:
+                return self._report
+            self._closing = True
+            self._wake.set()
+            self._thread.join(timeout_s)
+            left = len(self._q)
+            for topic, n in self._overflow.items():
+                if topic in self.rec.stats:
+                    self.rec.stats[topic].queue_overflow += n
+            if self._thread.is_alive():  # writer stuck (disk): count what it never wrote
+                log.error("recorder writer did not drain in %.0f s (%d queued)", timeout_s, left)
+            self._report = self.rec.close()
+            self._report["writer_queue_high_water"] = self.high_water
+            if self.error:
+                self._report["writer_error"] = self.error
+            return self._report
 
 
 @dataclass(frozen=True)

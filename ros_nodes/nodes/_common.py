@@ -5,7 +5,8 @@ import threading
 from collections.abc import Callable
 
 import rclpy
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import (ExternalShutdownException, MultiThreadedExecutor,
+                              SingleThreadedExecutor)
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 # commands and set-points: reliable, a short queue
@@ -22,8 +23,9 @@ CLOCK = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
                    history=HistoryPolicy.KEEP_LAST)
 
 
-def run_node(make: Callable[..., object], args=None, **node_kwargs) -> int:
-    """Init rclpy, build one node, spin it on a multi-threaded executor until Ctrl-C/shutdown."""
+def run_node(make: Callable[..., object], args=None, threads: int = 2, **node_kwargs) -> int:
+    """Init rclpy, build one node, spin it until Ctrl-C/shutdown (multi-threaded executor with
+    `threads` threads; 1: the cheaper single-threaded executor)."""
     # SIGTERM stops a node like Ctrl-C does (files are finished, devices brought to rest)
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, signal.default_int_handler)
@@ -32,7 +34,8 @@ def run_node(make: Callable[..., object], args=None, **node_kwargs) -> int:
         rclpy.init(args=args)
         try:
             node = make(**node_kwargs)
-            executor = MultiThreadedExecutor(num_threads=2)
+            executor = (SingleThreadedExecutor() if threads <= 1
+                        else MultiThreadedExecutor(num_threads=threads))
             executor.add_node(node)
             try:
                 executor.spin()

@@ -20,7 +20,7 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from ros_nodes import convert
-from ros_nodes.logic.recorder import McapRecorder, cdr_string
+from ros_nodes.logic.recorder import McapRecorder, QueuedRecorder, cdr_string
 from ros_nodes.nodes._common import COMMAND, LATCHED, run_node
 from ros_nodes.nodes._params import TypedParams
 from ros_nodes.params import RecorderNodeConfig
@@ -43,9 +43,11 @@ class RecorderNode(Node):
     def __init__(self, **kwargs):
         super().__init__(NAME, **kwargs)
         self._params = TypedParams(self, RecorderNodeConfig)
-        self._rec: McapRecorder | None = None
+        self._rec: QueuedRecorder | None = None
         self._subs: dict = {}
         self._latched: dict[str, tuple[bytes, int, int | None]] = {}
+        self._qos: dict[str, QoSProfile] = {}
+        self._registered: set[str] = set()  # topics whose channel is (being) registered
         self._report_pub = self.create_publisher(String, "~/report", LATCHED)
         self._status_pub = self.create_publisher(String, "~/status", COMMAND)
         # wall-clock timers: they must run while simulated time is paused
@@ -59,15 +61,24 @@ class RecorderNode(Node):
             self.start()
 
     # pure-ish helpers used by callbacks and by the in-process launcher ----------------------
+    def _subs_latched(self, topic: str) -> bool:
+        qos = self._qos.get(topic)
+        return qos is not None and qos.durability == DurabilityPolicy.TRANSIENT_LOCAL
+
     def start(self) -> str:
         if self._rec is not None:
             return f"already recording to {self._rec.path}"
         cfg = self._params.config
-        self._rec = McapRecorder(cfg.path, chunk_size=cfg.chunk_size, gap_factor=cfg.gap_factor,
-                                 compression=cfg.compression)
-        self._rec.add_metadata("recorder", {k: json.dumps(v) for k, v in
-                                            {"topics": list(cfg.topics), "path": cfg.path,
-                                             "chunk_size": cfg.chunk_size}.items()})
+        rec = McapRecorder(cfg.path, chunk_size=cfg.chunk_size, gap_factor=cfg.gap_factor,
+                           compression=cfg.compression)
+        rec.add_metadata("recorder", {k: json.dumps(v) for k, v in
+                                      {"topics": list(cfg.topics), "path": cfg.path,
+                                       "chunk_size": cfg.chunk_size,
+                                       "compression": cfg.compression,
+                                       "write_queue": cfg.write_queue}.items()})
+        # receive callbacks only enqueue bytes; a writer thread owns the MCAP writer
+        self._rec = QueuedRecorder(rec, cfg.write_queue)
+        self._registered = set()
         self._discover()
         # latched topics (design, config, targets) seen before the start go in first
         for topic, (data, receive_ns, seq) in list(self._latched.items()):
@@ -94,7 +105,8 @@ class RecorderNode(Node):
         self.stop()
 
     def message_counts(self) -> dict[str, int]:
-        return {} if self._rec is None else {t: s.count for t, s in self._rec.stats.items()}
+        rec = self._rec
+        return {} if rec is None else {t: s.count for t, s in list(rec.stats.items())}
 
     # callbacks ------------------------------------------------------------------------------
     def _status(self) -> None:
@@ -123,33 +135,45 @@ class RecorderNode(Node):
                 self.get_logger().warning(f"cannot record {topic} ({types[0]}): {e}")
                 self._subs[topic] = None
                 continue
+            self._qos[topic] = qos
             self._subs[topic] = (types[0], qos, self.create_subscription(
                 cls, topic, self._callback(topic), qos, raw=True))
-        if self._rec is not None:
+        rec = self._rec
+        if rec is not None:
             for topic, entry in self._subs.items():
-                if entry is not None:
-                    self._rec.add_topic(topic, entry[0], _qos_yaml(entry[1]))
+                if entry is not None and topic not in self._registered:
+                    self._registered.add(topic)
+                    rec.call("add_topic", topic, entry[0], _qos_yaml(entry[1]))
 
-    def _write(self, rec: McapRecorder, topic: str, data: bytes, receive_ns: int, seq) -> None:
-        if topic not in rec.stats:
+    def _write(self, rec: QueuedRecorder, topic: str, data: bytes, receive_ns: int, seq) -> None:
+        if topic not in self._registered:
+            self._registered.add(topic)
             entry = self._subs[topic]
-            rec.add_topic(topic, entry[0], _qos_yaml(entry[1]))
-        rec.write(topic, data, receive_ns, seq)
+            rec.call("add_topic", topic, entry[0], _qos_yaml(entry[1]))
+        rec.put(topic, data, receive_ns, seq)
         if topic in METADATA_TOPICS:
             text = cdr_string(data)
             if text is not None:
-                rec.add_metadata(METADATA_TOPICS[topic], {"json": text})
+                rec.call("add_metadata", METADATA_TOPICS[topic], {"json": text})
 
     def _callback(self, topic: str):
+        clock = self.get_clock()
+        latched = self._subs_latched(topic)
+        metadata = topic in METADATA_TOPICS
+
         def on_message(data: bytes, info) -> None:
-            now = self.get_clock().now().nanoseconds
+            # hot path (up to ~1000 frames/s): stamp, enqueue, return; no decoding
+            now = clock.now().nanoseconds
             seq = info.get("publication_sequence_number")
-            entry = self._subs.get(topic)
-            if entry is not None and entry[1].durability == DurabilityPolicy.TRANSIENT_LOCAL:
+            if latched:
                 self._latched[topic] = (data, now, seq)
             rec = self._rec
-            if rec is not None:
+            if rec is None:
+                return
+            if metadata or topic not in self._registered:
                 self._write(rec, topic, data, now, seq)
+            else:
+                rec.put(topic, data, now, seq)
 
         return on_message
 
@@ -166,7 +190,9 @@ class RecorderNode(Node):
 
 
 def main(args=None) -> int:
-    return run_node(RecorderNode, args=args)
+    # one executor thread: the receive callbacks are tiny and the writer has its own thread
+    # (the multi-threaded executor's per-callback overhead capped the frame rate)
+    return run_node(RecorderNode, args=args, threads=1)
 
 
 if __name__ == "__main__":

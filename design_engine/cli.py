@@ -49,12 +49,29 @@ def _build(args):
                        strain=args.precompression, design=design, n_samples=args.samples)
 
 
+SOLVERS = ("auto", "dopri5", "tsit5", "dopri8", "verlet")
+
+
 def _config(args):
+    """SolverConfig from the flags, or None for the automatic per-scene choice."""
+    import diffrax
+
+    from design_engine.fixed_step import FixedStepVerlet
     from design_engine.simulate import SolverConfig
 
-    return SolverConfig(rtol=args.rtol, atol=args.atol, linearized=args.linearized,
-                        use_contact=not args.no_contact,
-                        progress=not args.quiet and sys.stderr.isatty())
+    model = dict(linearized=args.linearized, use_contact=not args.no_contact,
+                 dtype="float32" if args.float32 else "float64",
+                 progress=not args.quiet and sys.stderr.isatty())
+    if args.full_model:
+        return SolverConfig(progress=model["progress"])
+    if args.solver == "auto":
+        if args.linearized or args.no_contact or args.float32:
+            raise ValueError("--linearized/--no-contact/--float32 need an explicit --solver")
+        return None
+    if args.solver == "verlet":
+        return SolverConfig(solver=FixedStepVerlet(max_dt=args.max_dt * 1e3), **model)
+    solver = {"dopri5": diffrax.Dopri5(), "tsit5": diffrax.Tsit5(), "dopri8": diffrax.Dopri8()}
+    return SolverConfig(solver=solver[args.solver], rtol=args.rtol, atol=args.atol, **model)
 
 
 def simulate_main(argv: list[str] | None = None) -> int:
@@ -63,10 +80,18 @@ def simulate_main(argv: list[str] | None = None) -> int:
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     _scene_args(p)
     p.add_argument("--out", type=Path, default=None, help="output folder (default runs/<preset>)")
-    p.add_argument("--rtol", type=float, default=1e-8, help="solver relative tolerance")
-    p.add_argument("--atol", type=float, default=1e-4, help="solver absolute tolerance (mm, mm/s)")
+    p.add_argument("--solver", choices=SOLVERS, default="auto",
+                   help="auto: fixed-step Verlet at a step set from the measured highest natural "
+                   "frequency, falling back to adaptive Dopri5 on failure")
+    p.add_argument("--full-model", action="store_true", help="force the reference configuration "
+                   "(Dopri5, rtol 1e-8, atol 1e-4, float64, nonlinear strains, contact)")
+    p.add_argument("--rtol", type=float, default=1e-8, help="relative tolerance (adaptive solvers)")
+    p.add_argument("--atol", type=float, default=1e-4, help="absolute tolerance on mm and mm/s "
+                   "(adaptive solvers)")
+    p.add_argument("--max-dt", type=float, default=4e-5, help="step of --solver verlet, s")
     p.add_argument("--linearized", action="store_true", help="linearised strain measures")
     p.add_argument("--no-contact", action="store_true", help="switch the contact barrier off")
+    p.add_argument("--float32", action="store_true", help="single precision")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
@@ -96,15 +121,14 @@ def simulate_main(argv: list[str] | None = None) -> int:
                "amplitude_m": float(scene.loading.amplitude) / 1e3,
                "frequency_hz": float(scene.loading.frequency) * 1e3,
                "wall_s": time.perf_counter() - t0, **run.metrics}
-    summary["solver"].update({"solver": type(config.solver).__name__, "rtol": config.rtol,
-                              "atol": config.atol, "linearized": config.linearized,
-                              "use_contact": config.use_contact})
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     ke = _block_ke_si(run)
     run.trajectory.save_npz(out / "trajectory.npz")
     save_design(out / "design.json", scene.lattice, scene.design)
     if not args.no_plots:
-        _plots(out, scene, run, config, ke)
+        _plots(out, scene, run, ke)
+    for line in summary["solver"]["choice"]:
+        log.info("solver: %s", line)
     log.info("target kinetic energy, mean over the window: %.6g J (%.6g mJ)",
              summary["target_ke_mean_J"], 1e3 * summary["target_ke_mean_J"])
     log.info("wrote %s", ", ".join(sorted(f.name for f in out.iterdir())))
@@ -117,7 +141,7 @@ def _block_ke_si(run) -> np.ndarray:
     return np.asarray(block_kinetic_energy(run.solution)) * 1e-3  # mJ -> J
 
 
-def _plots(out: Path, scene, run, config, ke_j: np.ndarray) -> None:
+def _plots(out: Path, scene, run, ke_j: np.ndarray) -> None:
     from design_engine.objectives import energy_components
     from design_engine.plots import plot_energy_components, plot_ke_map, plot_line_peaks
     from design_engine.regions import row_units
@@ -127,7 +151,9 @@ def _plots(out: Path, scene, run, config, ke_j: np.ndarray) -> None:
     plot_ke_map(out / "ke_map.png", scene.reference_polygons_m(), traj.q[k_peak], ke_j.mean(axis=0),
                 scene.targets, f"{scene.name}: time-averaged KE, lattice at t = "
                 f"{traj.t[k_peak] * 1e3:.1f} ms (peak total KE)")
-    comps = {k: v * 1e-3 for k, v in energy_components(scene, run.solution, config).items()}
+    s = run.metrics["solver"]
+    comps = {k: v * 1e-3 for k, v in energy_components(scene, run.solution, s["linearized"],
+                                                       s["use_contact"]).items()}
     first = next(iter(scene.targets.values()))
     plot_energy_components(out / "energy_components.png", traj.t, comps, ke_j[:, first].sum(axis=1),
                            f"{scene.name}: energy components")

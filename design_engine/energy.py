@@ -81,10 +81,10 @@ def make_bond_terms(lattice: Lattice, *, linearized: bool = False, use_contact: 
     """
     b1 = np.asarray(lattice.bond_blocks[:, 0])
     b2 = np.asarray(lattice.bond_blocks[:, 1])
-    r0 = jnp.asarray(lattice.bond_r0)
     l0 = lattice.ligament_length
 
     def terms(q: BlockState, bonds: BondGeometry, mat: Material) -> dict:
+        r0 = jnp.asarray(lattice.bond_r0, q.dtype)
         q1, q2 = q[b1], q[b2]
         th1, th2 = q1[:, 2], q2[:, 2]
         w1 = q1[:, :2] + _rotate_minus_identity(th1, bonds.arm1)

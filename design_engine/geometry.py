@@ -55,7 +55,7 @@ def block_geometry(lattice: Lattice, x: DesignVector) -> BlockGeometry:
     r = vertex_offsets(lattice, x)
     area, g, polar = jax.vmap(polygon_properties)(r)
     return BlockGeometry(
-        centroids=jnp.asarray(lattice.grid_points) + g,
+        centroids=jnp.asarray(lattice.grid_points, g.dtype) + g,
         arms=r - g[:, None, :],
         areas=area,
         polar_moments=polar,

@@ -97,7 +97,7 @@ class Lattice:
 def vertex_offsets(lattice: Lattice, x: DesignVector) -> Vertices:
     """Vertices of every block relative to its grid point, [n_blocks, n_vertices, 2] mm."""
     shifts = jnp.reshape(x, (-1, 2))
-    return jnp.asarray(lattice.base_offsets) + shifts[lattice.shift_index]
+    return jnp.asarray(lattice.base_offsets, x.dtype) + shifts[lattice.shift_index]
 
 
 def quads(nx: int, ny: int, spacing: float = 15.0, ligament_length: float | None = None) -> Lattice:

@@ -139,10 +139,10 @@ class Supports:
 def make_prescribed(supports: Supports):
     """Factory: `prescribed(t, loading) -> (q_c [n_c], qdot_c [n_c])`, velocities exact by AD."""
     channel = np.asarray(supports.channel)
-    gain = jnp.asarray(supports.gain)
+    gain = np.asarray(supports.gain)
 
     def values(t, ld):
-        return gain * signals(t, ld)[channel]
+        return jnp.asarray(gain, t.dtype) * signals(t, ld)[channel]
 
     def prescribed(t, ld):
         return jax.jvp(lambda tt: values(tt, ld), (t,), (jnp.ones_like(t),))

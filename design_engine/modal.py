@@ -71,7 +71,8 @@ def prestressed_state(scene: Scene, config=None) -> np.ndarray:
     if scene.loading.strain <= 0.0:
         return np.zeros((scene.n_units, 3))
     config = config or SolverConfig()
-    sim = compiled_simulator(scene, config)
-    ts = jnp.asarray([0.5 * scene.window_start, scene.window_start])
-    sol = check_solution(sim(jnp.asarray(scene.design), scene.material, scene.loading, ts), config)
+    ts = np.asarray([0.5 * scene.window_start, scene.window_start])
+    sim = compiled_simulator(scene, config, ts)
+    sol = check_solution(sim(jnp.asarray(scene.design), scene.material, scene.loading,
+                             jnp.asarray(ts)), config)
     return np.asarray(sol.q[-1])

@@ -48,13 +48,13 @@ def peak_energy_along_units(sol: Solution, ids) -> Float[Array, " n"]:
     return jnp.max(block_kinetic_energy(sol)[:, np.asarray(ids)], axis=0)
 
 
-def energy_components(scene, sol: Solution, config) -> dict[str, np.ndarray]:
+def energy_components(scene, sol: Solution, linearized: bool = False,
+                      use_contact: bool = True) -> dict[str, np.ndarray]:
     """Kinetic and potential energy components summed over the lattice at every sample, mJ.
 
     Returns dict with [n_t] arrays: kinetic, stretch, shear, bend, contact.
     """
-    terms_fn = make_bond_terms(scene.lattice, linearized=config.linearized,
-                               use_contact=config.use_contact)
+    terms_fn = make_bond_terms(scene.lattice, linearized=linearized, use_contact=use_contact)
     bonds = bond_geometry(scene.lattice, block_geometry(scene.lattice, jnp.asarray(scene.design)))
     per_t = jax.jit(jax.vmap(lambda q: {k: jnp.sum(v) for k, v in
                                         terms_fn(q, bonds, scene.material).items()}))(sol.q)

@@ -11,6 +11,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from design_engine.auto import Choice, choose_config, fallback_config
+from design_engine.fixed_step import FixedStepVerlet
 from design_engine.loading import Loading
 from design_engine.objectives import (angular_momentum, block_kinetic_energy,
                                       peak_energy_along_units, region_energy, region_energy_ratio)
@@ -24,18 +26,24 @@ from design_engine import units
 _COMPILED: dict[tuple, object] = {}
 
 
-def _key(scene: Scene, config: SolverConfig, tag: str) -> tuple:
+def _key(scene: Scene, config: SolverConfig, tag: str, ts_ms) -> tuple:
     s = scene.supports
+    grid = np.asarray(ts_ms).tobytes() if isinstance(config.solver, FixedStepVerlet) else b""
     return (tag, scene.lattice.kind, scene.lattice.shape, scene.lattice.spacing,
             scene.lattice.ligament_length, s.constrained.tobytes(), s.channel.tobytes(),
-            s.gain.tobytes(), repr(config))
+            s.gain.tobytes(), repr(config), grid)
 
 
-def compiled_simulator(scene: Scene, config: SolverConfig):
-    """jit-compiled `simulate(x, material, loading, ts)` for this scene's topology (cached)."""
-    key = _key(scene, config, "sim")
+def compiled_simulator(scene: Scene, config: SolverConfig, ts_ms=None):
+    """jit-compiled `simulate(x, material, loading, ts)` for this scene's topology (cached).
+
+    `ts_ms` (default the scene's sample times) fixes the step count of the fixed-step solver;
+    the compiled function must then be called with those sample times.
+    """
+    ts_ms = scene.sample_times if ts_ms is None else np.asarray(ts_ms)
+    key = _key(scene, config, "sim", ts_ms)
     if key not in _COMPILED:
-        _COMPILED[key] = jax.jit(make_simulator(scene.lattice, scene.supports, config))
+        _COMPILED[key] = jax.jit(make_simulator(scene.lattice, scene.supports, config, ts_ms))
     return _COMPILED[key]
 
 
@@ -105,23 +113,71 @@ def solver_stats(sol: Solution) -> dict:
             "num_rejected_steps": int(sol.num_rejected)}
 
 
-def simulate_scene(scene: Scene, config: SolverConfig = SolverConfig()) -> SceneRun:
-    """Forward-simulate a scene on its dynamic window; raises `SimulationError` on failure."""
-    sim = compiled_simulator(scene, config)
-    ts = jnp.asarray(scene.sample_times)
+def _simulate(scene: Scene, config: SolverConfig, ts_ms=None, loading=None):
+    ts_ms = scene.sample_times if ts_ms is None else ts_ms
+    sim = compiled_simulator(scene, config, ts_ms)
     start = time.perf_counter()
-    sol = sim(jnp.asarray(scene.design), scene.material, scene.loading, ts)
+    sol = sim(jnp.asarray(scene.design), scene.material, loading or scene.loading,
+              jnp.asarray(ts_ms))
     sol = jax.block_until_ready(sol)
-    wall = time.perf_counter() - start
-    check_solution(sol, config)
+    return check_solution(sol, config), time.perf_counter() - start
+
+
+_CHOICES: dict[tuple, Choice] = {}
+
+
+def default_choice(scene: Scene) -> Choice:
+    """The automatic configuration for this scene and design (cached per process)."""
+    key = _key(scene, SolverConfig(), "choice", np.zeros(0)) + (
+        scene.design.tobytes(), float(scene.loading.strain), repr(scene.material))
+    if key not in _CHOICES:
+        _CHOICES[key] = choose_config(scene)
+    return _CHOICES[key]
+
+
+def _run_with_policy(scene: Scene, config: SolverConfig | None, ts_ms=None, loading=None):
+    """Solve with `config`, or with the automatic choice and its fallback when None."""
+    if config is not None:
+        sol, wall = _simulate(scene, config, ts_ms, loading)
+        return sol, wall, config, ("configuration given by the caller",)
+    choice = default_choice(scene)
+    try:
+        sol, wall = _simulate(scene, choice.config, ts_ms, loading)
+        return sol, wall, choice.config, choice.reasons
+    except SimulationError as exc:
+        cfg, why = fallback_config()
+        sol, wall = _simulate(scene, cfg, ts_ms, loading)
+        return sol, wall, cfg, choice.reasons + (f"{why} ({exc})",)
+
+
+def simulate_scene(scene: Scene, config: SolverConfig | None = None) -> SceneRun:
+    """Forward-simulate a scene on its dynamic window; raises `SimulationError` on failure.
+
+    `config=None` uses the automatic per-scene choice (`auto.choose_config`, with fallback to
+    the adaptive solver); `SolverConfig()` is the full reference model.
+    """
+    sol, wall, config, reasons = _run_with_policy(scene, config)
     metrics = scene_metrics(scene, sol)
     metrics["solver"] = solver_stats(sol)
+    metrics["solver"].update(config_summary(config))
+    metrics["solver"]["choice"] = list(reasons)
     return SceneRun(trajectory=to_trajectory(sol, scene.window_start), solution=sol,
                     metrics=metrics, wall_s=wall)
 
 
+def config_summary(config: SolverConfig) -> dict:
+    """JSON-ready description of a solver configuration."""
+    out = {"solver": type(config.solver).__name__, "linearized": config.linearized,
+           "use_contact": config.use_contact, "dtype": config.dtype}
+    if isinstance(config.solver, FixedStepVerlet):
+        out["max_dt_s"] = config.solver.max_dt * 1e-3
+    else:
+        out.update(rtol=config.rtol, atol=config.atol, adjoint=type(config.adjoint).__name__)
+    return out
+
+
 def simulate_rig(scene: Scene, times_s, input_t_s, input_u_m, stage_t_s=None, stage_closing_m=None,
-                 config: SolverConfig = SolverConfig()) -> Trajectory:
+                 config: SolverConfig | None = None) -> Trajectory:
     """Simulate the specimen under measured shaker and stage motion, from rest at t = 0.
 
     Args:
@@ -131,6 +187,7 @@ def simulate_rig(scene: Scene, times_s, input_t_s, input_u_m, stage_t_s=None, st
             linearly interpolated, held constant outside the record.
         stage_t_s, stage_closing_m: [m] measured total closing of the two stage rows (m), half per
             row; None holds the stages at zero (or is ignored in a scene without stages).
+        config: solver configuration; None for the automatic choice (with fallback).
 
     Returns:
         SI `Trajectory` at `times_s` (time axis unchanged).
@@ -154,21 +211,22 @@ def simulate_rig(scene: Scene, times_s, input_t_s, input_u_m, stage_t_s=None, st
         measured_t=jnp.asarray(units.time_from_si(it)), measured_u=jnp.asarray(units.length_from_si(iu)),
         stage_t=jnp.asarray(st), stage_closing=jnp.asarray(sc),
     )
-    sim = compiled_simulator(scene, config)
-    sol = sim(jnp.asarray(scene.design), scene.material, loading, jnp.asarray(times_ms))
-    check_solution(jax.block_until_ready(sol), config)
+    sol, _, _, _ = _run_with_policy(scene, config, times_ms, loading)
     return to_trajectory(sol, 0.0)
 
 
-def make_objective(scene: Scene, config: SolverConfig = SolverConfig(), weights=None):
+def make_objective(scene: Scene, config: SolverConfig | None = None, weights=None):
     """Factory: jitted `value_and_grad(x) -> ((J, aux), dJ/dx)` of the scene's objective.
 
     J (mJ, or g mm^2/ms for spin) is the weighted sum of the target-region energies J_Omega
     (spec 8; default weights 1 for a single target, (0.5, 0.5) for two), or the angular
     momentum J_L for spin scenes. `aux` holds the solver result code and step counts, so that
-    failures can be reported after the jitted call (see `checked_value_and_grad`).
+    failures can be reported after the jitted call (see `checked`). `config=None` uses the
+    automatic per-scene choice; on a reported failure, retry with `auto.fallback_config()`.
     """
-    sim = make_simulator(scene.lattice, scene.supports, config)
+    if config is None:
+        config = default_choice(scene).config
+    sim = make_simulator(scene.lattice, scene.supports, config, scene.sample_times)
     names = list(scene.targets)
     if weights is None:
         weights = [1.0 / len(names)] * len(names) if len(names) > 1 else [1.0]
@@ -183,20 +241,23 @@ def make_objective(scene: Scene, config: SolverConfig = SolverConfig(), weights=
         else:
             value = sum(w * region_energy(sol, scene.targets[n]) for w, n in zip(weights, names))
         aux = {"result": sol.result, "num_steps": sol.num_steps,
-               "finite": jnp.all(jnp.isfinite(sol.qdot))}
+               "finite": jnp.all(jnp.isfinite(sol.qdot)), "void_margin": sol.min_void_margin}
         return value, aux
 
     return jax.jit(jax.value_and_grad(objective, has_aux=True)), jax.jit(objective)
 
 
-def checked(value_aux, config: SolverConfig):
+def checked(value_aux, config: SolverConfig | None = None):
     """Raise `SimulationError` if an objective evaluation's aux reports a failure."""
     (value, aux) = value_aux[0] if isinstance(value_aux[0], tuple) else value_aux
+    config = config or SolverConfig()
     msg = failure_message(int(aux["result"]), config)
     if msg is None and not bool(aux["finite"]):
         msg = "non-finite state during the solve"
     if msg is None and not np.isfinite(float(value)):
         msg = "non-finite objective value"
+    if msg is None and config.use_contact and float(aux["void_margin"]) < 0.0:
+        msg = "a unit passed through the contact barrier: the step was too large"
     if msg is not None:
         raise SimulationError(msg)
     return value_aux

@@ -15,6 +15,7 @@ import numpy as np
 from design_engine._types import Array, DesignVector, Float, Int
 from design_engine.dynamics import VELOCITY_SCALE, make_dynamics_args, make_full_state, make_rhs
 from design_engine.energy import make_energy
+from design_engine.fixed_step import FixedStepVerlet, integrate, substeps
 from design_engine.geometry import block_geometry
 from design_engine.lattice import Lattice
 from design_engine.loading import Loading, Supports, make_prescribed
@@ -25,7 +26,8 @@ class SolverConfig(eqx.Module):
     """Integrator settings.
 
     Attributes:
-        solver: a diffrax explicit RK solver object (default Dormand-Prince 5(4), as the reference).
+        solver: a diffrax solver object (default Dormand-Prince 5(4), as the reference), or
+            `FixedStepVerlet` (one force evaluation per step; needs the time grid up front).
         rtol, atol: tolerances on the state (positions mm, velocities mm/s; spec 6.5).
         max_steps: step budget; exceeding it is reported as an error.
         adjoint: gradient method (default: discretise-then-optimise with recursive checkpointing).
@@ -33,9 +35,11 @@ class SolverConfig(eqx.Module):
         linearized: use the linearised strain measures (spec 5.2).
         use_contact: include the contact barrier (spec 5.3).
         progress: show a tqdm progress bar (forward runs only).
+        dtype: floating type of the solve, "float64" (default) or "float32" (inputs are cast;
+            outputs come back in that type).
     """
 
-    solver: diffrax.AbstractSolver = diffrax.Dopri5()
+    solver: diffrax.AbstractSolver | FixedStepVerlet = diffrax.Dopri5()
     rtol: float = eqx.field(static=True, default=1e-8)
     atol: float = eqx.field(static=True, default=1e-4)
     max_steps: int = eqx.field(static=True, default=200_000)
@@ -44,6 +48,7 @@ class SolverConfig(eqx.Module):
     linearized: bool = eqx.field(static=True, default=False)
     use_contact: bool = eqx.field(static=True, default=True)
     progress: bool = eqx.field(static=True, default=False)
+    dtype: str = eqx.field(static=True, default="float64")
 
 
 class Solution(eqx.Module):
@@ -58,6 +63,8 @@ class Solution(eqx.Module):
         centroids: [n_blocks, 2] reference area centroids, mm.
         result: diffrax result code (0 = success).
         num_steps, num_accepted, num_rejected: solver statistics.
+        min_void_margin: smallest unwrapped void angle minus the contact asymptote over the samples,
+            rad; negative means a unit passed through the contact barrier (a failed step).
     """
 
     ts: Float[Array, " n_t"]
@@ -70,14 +77,21 @@ class Solution(eqx.Module):
     num_steps: Int[Array, ""]
     num_accepted: Int[Array, ""]
     num_rejected: Int[Array, ""]
+    min_void_margin: Float[Array, ""]
 
 
 class SimulationError(RuntimeError):
     """The solver failed (step budget, non-finite state); the message names the cause."""
 
 
-def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = SolverConfig()):
-    """Factory: `simulate(x, material, loading, ts) -> Solution` (pure; jit/grad/vmap-able).
+def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = SolverConfig(),
+                   time_grid: np.ndarray | None = None):
+    """Factory: `simulate(x, material, loading, ts, initial=None) -> Solution` (pure; jit/grad/vmap).
+
+    Args:
+        lattice, supports, config: static set-up.
+        time_grid: [n_t] the sample times (ms) the fixed-step solver will be called with; it fixes
+            the (static) number of steps. Not needed by the adaptive solvers.
 
     Args of the returned function:
         x: [n_design] design vector, mm.
@@ -93,49 +107,80 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
     free = np.asarray(supports.free)
     constrained = np.asarray(supports.constrained)
     n_free, nb = free.size, lattice.n_blocks
-    term = diffrax.ODETerm(rhs)
-    controller = diffrax.PIDController(rtol=config.rtol, atol=config.atol)
-    meter = diffrax.TqdmProgressMeter() if config.progress else diffrax.NoProgressMeter()
+    bb = np.asarray(lattice.bond_blocks)
+    fixed = isinstance(config.solver, FixedStepVerlet)
+    if fixed:
+        if time_grid is None:
+            raise ValueError("the fixed-step solver needs the time grid (time_grid=) up front")
+        grid = np.asarray(time_grid, np.float64)
+        n_pre = substeps(grid[0], config.solver.max_dt) if grid[0] > 0 else 0
+        n_sub = substeps(float(np.max(np.diff(grid))), config.solver.max_dt)
+        n_steps = n_pre + n_sub * (grid.size - 1)
+    else:
+        term = diffrax.ODETerm(rhs)
+        controller = diffrax.PIDController(rtol=config.rtol, atol=config.atol)
+        meter = diffrax.TqdmProgressMeter() if config.progress else diffrax.NoProgressMeter()
+
+    def solve_adaptive(args, y0, ts):
+        sol = diffrax.diffeqsolve(
+            term, config.solver, t0=jnp.zeros((), ts.dtype), t1=ts[-1], dt0=config.dt0, y0=y0,
+            args=args, saveat=diffrax.SaveAt(ts=ts), stepsize_controller=controller,
+            adjoint=config.adjoint, max_steps=config.max_steps, throw=False, progress_meter=meter,
+        )
+        ys = sol.ys
+        stats = (jnp.asarray(sol.result._value, jnp.int32), sol.stats["num_steps"],
+                 sol.stats["num_accepted_steps"], sol.stats["num_rejected_steps"])
+        return ys[:, :n_free], ys[:, n_free:] / VELOCITY_SCALE, stats
+
+    def solve_fixed(args, y0, ts):
+        def force(qf, t):
+            return -jax.grad(lambda z: energy_fn(full(z, t, args.loading), args.bonds,
+                                                 args.material))(qf)
+
+        q0, v0 = y0[:n_free], y0[n_free:] / VELOCITY_SCALE
+        qs, vs = integrate(config.solver, force, args.inv_mass, args.damping, (q0, v0), ts, 0.0,
+                           n_pre, n_sub)
+        n = jnp.asarray(n_steps)
+        return qs, vs, (jnp.asarray(0, jnp.int32), n, n, jnp.asarray(0))
+
+    dtype = jnp.dtype(config.dtype)
+
+    def cast_leaf(a):
+        if isinstance(a, float) or (hasattr(a, "dtype") and jnp.issubdtype(a.dtype, jnp.floating)):
+            return jnp.asarray(a, dtype)
+        return a
+
+    def cast(tree):
+        return jax.tree_util.tree_map(cast_leaf, tree)
 
     def simulate(x: DesignVector, material: Material, loading: Loading, ts, initial=None) -> Solution:
+        x, material, loading, ts, initial = cast((x, material, loading, ts, initial))
         geom = block_geometry(lattice, x)
         args = make_dynamics_args(lattice, supports, geom, material, loading)
         if initial is None:  # every task starts at rest in the reference configuration
             y0 = jnp.zeros(2 * n_free, dtype=ts.dtype)
         else:  # (q_f [n_free] mm/rad, qdot_f [n_free] mm/ms, rad/ms)
             y0 = jnp.concatenate([initial[0], VELOCITY_SCALE * initial[1]])
-        sol = diffrax.diffeqsolve(
-            term,
-            config.solver,
-            t0=jnp.zeros((), ts.dtype),
-            t1=ts[-1],
-            dt0=config.dt0,
-            y0=y0,
-            args=args,
-            saveat=diffrax.SaveAt(ts=ts),
-            stepsize_controller=controller,
-            adjoint=config.adjoint,
-            max_steps=config.max_steps,
-            throw=False,
-            progress_meter=meter,
-        )
-        ys = sol.ys
-        q = jax.vmap(lambda qf, t: full(qf, t, loading))(ys[:, :n_free], ts)
+        qf, vf, (result, steps, accepted, rejected) = (solve_fixed if fixed else solve_adaptive)(
+            args, y0, ts)
+        q = jax.vmap(lambda qq, t: full(qq, t, loading))(qf, ts)
         qc_dot = jax.vmap(lambda t: prescribed(t, loading)[1])(ts)
-        v_all = jnp.zeros((ts.shape[0], 3 * nb), ys.dtype)
-        v_all = v_all.at[:, free].set(ys[:, n_free:] / VELOCITY_SCALE).at[:, constrained].set(qc_dot)
-        mass = material.density * geom.areas
+        v_all = jnp.zeros((ts.shape[0], 3 * nb), vf.dtype)
+        v_all = v_all.at[:, free].set(vf).at[:, constrained].set(qc_dot)
+        bend = q[:, bb[:, 1], 2] - q[:, bb[:, 0], 2]
+        voids = jnp.stack([args.bonds.void_ref[:, 0] - bend, args.bonds.void_ref[:, 1] + bend])
         return Solution(
             ts=ts,
             q=q,
             qdot=v_all.reshape(ts.shape[0], nb, 3),
-            mass=mass,
+            mass=material.density * geom.areas,
             inertia=material.density * geom.polar_moments,
             centroids=geom.centroids,
-            result=jnp.asarray(sol.result._value, jnp.int32),
-            num_steps=sol.stats["num_steps"],
-            num_accepted=sol.stats["num_accepted_steps"],
-            num_rejected=sol.stats["num_rejected_steps"],
+            result=result,
+            num_steps=steps,
+            num_accepted=accepted,
+            num_rejected=rejected,
+            min_void_margin=jax.lax.stop_gradient(jnp.min(voids) - material.contact_min),
         )
 
     return simulate
@@ -164,5 +209,16 @@ def check_solution(sol: Solution, config: SolverConfig) -> Solution:
     bad = ~np.isfinite(np.asarray(sol.q)) | ~np.isfinite(np.asarray(sol.qdot))
     if bad.any():
         k = int(np.argmax(bad.reshape(bad.shape[0], -1).any(axis=1)))
-        raise SimulationError(f"non-finite state from t = {float(sol.ts[k]):.4g} ms on")
+        hint = (" (the fixed step is above the stability limit 2/omega_max, or contact stiffened "
+                "the scene beyond it)") if isinstance(config.solver, FixedStepVerlet) else ""
+        raise SimulationError(f"non-finite state from t = {float(sol.ts[k]):.4g} ms on{hint}")
+    q = np.asarray(sol.q)
+    if np.max(np.abs(q[..., :2])) > 1e4 or np.max(np.abs(q[..., 2])) > 1e2:
+        raise SimulationError("the state diverged (displacements above 10 m or rotations above "
+                              "100 rad): the step is above the stability limit")
+    if config.use_contact and float(sol.min_void_margin) < 0.0:
+        raise SimulationError(
+            "a unit passed through the contact barrier (void angle below the asymptote by "
+            f"{np.degrees(-float(sol.min_void_margin)):.2g} deg): the step was too large for "
+            "the contact stiffness; use the adaptive solver or a smaller step")
     return sol

@@ -1,0 +1,53 @@
+"""`metarig bench work-precision | speedup`: the speed-accuracy studies of the engine."""
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+
+def bench_main(argv: list[str] | None = None) -> int:
+    """Speed against accuracy: work-precision charts and the side-by-side speed-up."""
+    p = argparse.ArgumentParser(prog="metarig bench", description=bench_main.__doc__)
+    sub = p.add_subparsers(dest="study", required=True)
+    wp = sub.add_parser("work-precision", help="error vs wall time for every method, both scenes")
+    wp.add_argument("--out", type=Path, default=Path("runs/bench"))
+    wp.add_argument("--quick", action="store_true", help="three methods only (smoke run)")
+    wp.add_argument("--scene", action="append", help="limit to these study scenes")
+    sp = sub.add_parser("speedup", help="default vs baseline value-and-gradient, 24x16 focusing")
+    sp.add_argument("--out", type=Path, default=Path("runs/bench"))
+    sp.add_argument("--repeats", type=int, default=3)
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    import design_engine  # noqa: F401
+
+    if args.study == "work-precision":
+        from design_engine.studies.work_precision import (SCENES, fastest_acceptable, plot_study,
+                                                          run_study)
+
+        unknown = set(args.scene or []) - set(SCENES)
+        if unknown:
+            print(f"metarig bench: unknown scene(s) {sorted(unknown)}; choose from {list(SCENES)}",
+                  file=sys.stderr)
+            return 2
+        try:
+            results = run_study(args.out, quick=args.quick, scenes=args.scene)
+        except KeyboardInterrupt:
+            print("interrupted: finished methods are kept in work_precision.json; rerun to resume")
+            return 130
+        charts = plot_study(results, args.out)
+        best = fastest_acceptable(results)
+        summary = {"charts": [c.name for c in charts],
+                   "fastest_acceptable": best[0] if best else None}
+        (args.out / "work_precision_summary.json").write_text(json.dumps(summary, indent=2))
+        print(json.dumps(summary, indent=2))
+        return 0
+    from design_engine.studies.speedup import run_speedup
+
+    r = run_speedup(args.out, repeats=args.repeats)
+    print(f"value-and-gradient, focusing-24x16: baseline {r['baseline_s']:.2f} s, default "
+          f"{r['default_s']:.2f} s, ratio {r['ratio']:.1f}x; default vs reference: J "
+          f"{r['J_rel_err']:.2e}, gradient {r['grad_rel_err']:.2e} (cosine {r['grad_cosine']:.6f})")
+    print(f"wrote {args.out / 'speedup.json'}")
+    return 0

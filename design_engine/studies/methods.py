@@ -1,0 +1,83 @@
+"""The solver/model configurations compared by the speed-accuracy studies, by name.
+
+A method is a `SolverConfig` plus the family it is charted in. Tolerances are on positions (mm)
+and velocities (mm/s), as the reference's (spec 6.5).
+"""
+
+from dataclasses import dataclass
+
+import diffrax
+
+from design_engine.fixed_step import FixedStepVerlet
+from design_engine.simulate import SolverConfig
+
+SPEC_TOL = (1e-8, 1e-4)
+
+
+@dataclass(frozen=True)
+class Method:
+    """One point (or curve member) of a work-precision chart."""
+
+    name: str
+    family: str
+    config: SolverConfig
+
+
+def _adaptive(solver, tag, rtol, atol, **kw) -> Method:
+    return Method(f"{tag} rtol={rtol:g} atol={atol:g}", tag, SolverConfig(solver=solver, rtol=rtol,
+                                                                          atol=atol, **kw))
+
+
+def reference_method() -> Method:
+    """Tight-tolerance 8th-order solution every other method is measured against."""
+    return _adaptive(diffrax.Dopri8(), "Dopri8", 1e-11, 1e-9, max_steps=400_000)
+
+
+def baseline_method() -> Method:
+    """Our engine configured as the published reference code: Dopri5, spec tolerances,
+    continuous (backsolve) adjoint, float64, full model."""
+    return Method("baseline Dopri5 spec-tol backsolve", "baseline",
+                  SolverConfig(solver=diffrax.Dopri5(), rtol=SPEC_TOL[0], atol=SPEC_TOL[1],
+                               adjoint=diffrax.BacksolveAdjoint()))
+
+
+def verlet(max_dt: float, **kw) -> Method:
+    tag = "Verlet" + ("-f32" if kw.get("dtype") == "float32" else "")
+    for k in ("linearized", "use_contact"):
+        if k in kw:
+            tag += {"linearized": "-linear", "use_contact": "-nocontact"}[k]
+    return Method(f"{tag} dt={max_dt:g}ms", tag, SolverConfig(solver=FixedStepVerlet(max_dt=max_dt),
+                                                               **kw))
+
+
+def study_methods(quick: bool = False) -> list[Method]:
+    """Methods of the work-precision study (`quick`: a reduced set for smoke runs)."""
+    tols = [SPEC_TOL, (1e-6, 1e-3), (1e-5, 1e-2)]
+    if quick:
+        return [_adaptive(diffrax.Dopri5(), "Dopri5", *SPEC_TOL), verlet(0.05), verlet(0.025)]
+    out = []
+    for solver, tag in ((diffrax.Tsit5(), "Tsit5"), (diffrax.Dopri5(), "Dopri5"),
+                        (diffrax.Dopri8(), "Dopri8")):
+        out += [_adaptive(solver, tag, *t) for t in tols]
+    out.append(baseline_method())
+    out += [Method(f"Dopri5 spec-tol checkpoints={n}", "Dopri5-checkpoints",
+                   SolverConfig(adjoint=diffrax.RecursiveCheckpointAdjoint(checkpoints=n)))
+            for n in (64, 512)]
+    out += [_adaptive(diffrax.Kvaerno5(), "Kvaerno5 (implicit)", 1e-6, 1e-3)]
+    out += [_adaptive(diffrax.Dopri5(), "Dopri5-f32", 1e-6, 1e-2, dtype="float32")]
+    out += [verlet(dt) for dt in (0.05, 0.035, 0.02, 0.01)]
+    out += [verlet(dt, dtype="float32") for dt in (0.05, 0.02)]
+    out += [verlet(0.05, use_contact=False), verlet(0.05, linearized=True)]
+    return out
+
+
+def rhs_evaluations(config: SolverConfig, num_steps: int) -> int:
+    """Right-hand-side (force) evaluations of a solve with `num_steps` steps (attempted)."""
+    solver = config.solver
+    if isinstance(solver, FixedStepVerlet):
+        return num_steps + 1
+    tableau = getattr(solver, "tableau", None)
+    if tableau is None:  # implicit solvers: stages (Newton iterations not counted)
+        return -1
+    stages = len(tableau.c) + 1
+    return num_steps * (stages - (1 if tableau.fsal else 0)) + 1

@@ -1,0 +1,124 @@
+"""Work-precision study: error against a tight reference vs wall time, per method (issue 3).
+
+For each scene, every method of `methods.study_methods` (plus the automatic choice) is measured
+for the forward objective J and for its gradient; results go to JSON after every method (an
+interrupted study resumes where it stopped) and to log-log charts, one curve per method family
+(the convention of DiffEqDevTools work-precision diagrams).
+"""
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from design_engine.auto import choose_config
+from design_engine.scenes import build_scene
+from design_engine.studies.measure import errors, measure
+from design_engine.studies.methods import Method, reference_method, study_methods
+
+log = logging.getLogger("metarig.bench")
+
+# name -> build_scene kwargs. The pre-compressed scene is reduced (12x10) to keep the study
+# affordable; at 5 % strain its voids close to within 1.1 deg of the contact asymptote.
+SCENES = {
+    "focusing-24x16": dict(name="focusing-24x16"),
+    "precompressed-contact-12x10": dict(name="protection-24x18", nx=12, ny=10, strain=0.05),
+}
+J_TOL, GRAD_TOL, COS_TOL = 5e-3, 1e-2, 0.999
+
+
+def _reference(scene, key: str, out: Path):
+    path = out / f"reference_{key}.npz"
+    if path.exists():
+        with np.load(path) as f:
+            return float(f["J"]), f["grad"]
+    log.info("reference solution for %s (Dopri8, rtol 1e-11, atol 1e-9) ...", key)
+    m = measure(scene, reference_method().config, repeats=0)
+    if "error" in m:
+        raise RuntimeError(f"reference solve failed on {key}: {m['error']}")
+    np.savez(path, J=m["J"], grad=m["_grad"])
+    return m["J"], m["_grad"]
+
+
+def run_study(out: Path, *, quick: bool = False, scenes: list[str] | None = None) -> dict:
+    """Run (or resume) the study; returns the results dict written to out/work_precision.json."""
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "work_precision.json"
+    results = json.loads(path.read_text()) if path.exists() else {"scenes": {}}
+    for key in scenes or list(SCENES):
+        kw = dict(SCENES[key])
+        scene = build_scene(kw.pop("name"), **kw)
+        j_ref, g_ref = _reference(scene, key, out)
+        rows = results["scenes"].setdefault(key, {"J_ref": j_ref, "methods": {}})["methods"]
+        choice = choose_config(scene)
+        methods = study_methods(quick) + [Method("auto (default)", "auto", choice.config)]
+        for m in tqdm(methods, desc=key):
+            if m.name in rows:
+                continue
+            r = measure(scene, m.config)
+            if "error" not in r:
+                r.update(errors(r["J"], r.pop("_grad"), j_ref, g_ref))
+            rows[m.name] = {"family": m.family, **r}
+            path.write_text(json.dumps(results, indent=2))
+        rows["auto (default)"]["reasons"] = list(choice.reasons)
+        path.write_text(json.dumps(results, indent=2))
+    return results
+
+
+def acceptable(row: dict) -> bool:
+    """Within the accuracy budget of the defaults (J 0.5 %, gradient 1 %, cosine 0.999)."""
+    return ("error" not in row and row["J_rel_err"] <= J_TOL and row["grad_rel_err"] <= GRAD_TOL
+            and row["grad_cosine"] >= COS_TOL)
+
+
+def fastest_acceptable(results: dict) -> tuple[str, dict] | None:
+    """The method acceptable on every scene with the smallest summed value-and-gradient time."""
+    scenes = list(results["scenes"].values())
+    names = set.intersection(*(set(s["methods"]) for s in scenes))
+    ok = [n for n in names if all(acceptable(s["methods"][n]) for s in scenes)]
+    if not ok:
+        return None
+    best = min(ok, key=lambda n: sum(s["methods"][n]["value_and_grad_s"] for s in scenes))
+    return best, {k: s["methods"][best] for k, s in results["scenes"].items()}
+
+
+def plot_study(results: dict, out: Path) -> list[Path]:
+    """One PNG per scene: J error vs forward time, gradient error vs value-and-gradient time."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    paths = []
+    for key, sc in results["scenes"].items():
+        fig, axes = plt.subplots(1, 2, figsize=(13, 5.2))
+        fams: dict[str, list] = {}
+        for name, row in sc["methods"].items():
+            if "error" not in row:
+                fams.setdefault(row["family"], []).append((name, row))
+        for fam, rows in sorted(fams.items()):
+            rows.sort(key=lambda r: r[1]["forward_s"])
+            style = "*" if fam == "auto" else "o-"
+            for ax, tkey, ekey in ((axes[0], "forward_s", "J_rel_err"),
+                                   (axes[1], "value_and_grad_s", "grad_rel_err")):
+                ax.loglog([r[1][tkey] for r in rows], [max(r[1][ekey], 1e-12) for r in rows],
+                          style, label=fam, ms=12 if fam == "auto" else 5)
+        for ax, tol, title in ((axes[0], J_TOL, "forward objective J"),
+                               (axes[1], GRAD_TOL, "gradient dJ/dx")):
+            ax.axhline(tol, color="k", ls="--", lw=0.8)
+            ax.set_xlabel("wall time per evaluation [s] (compile excluded)")
+            ax.set_ylabel("relative error vs Dopri8 rtol 1e-11")
+            ax.set_title(f"{key}: {title}")
+            ax.grid(alpha=0.3, which="both")
+        axes[1].legend(fontsize=7, loc="best")
+        failed = [n for n, r in sc["methods"].items() if "error" in r]
+        if failed:
+            fig.text(0.01, 0.01, "failed (detected and reported): " + "; ".join(failed), fontsize=7)
+        fig.tight_layout(rect=(0, 0.03, 1, 1))
+        p = out / f"work_precision_{key}.png"
+        fig.savefig(p, dpi=110)
+        plt.close(fig)
+        paths.append(p)
+    return paths

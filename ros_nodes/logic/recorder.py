@@ -150,6 +150,13 @@ class McapRecorder:
         st.count += 1
         st.bytes += len(cdr)
 
+    def note_overflow(self, topic: str, pub_seq: int | None = None) -> None:
+        """Count a message that reached the recorder but was dropped before writing."""
+        st = self.stats[topic]
+        st.queue_overflow += 1
+        if pub_seq is not None and pub_seq > 0:
+            self._track(st, None, 0, pub_seq)
+
     def _track(self, st: TopicStats, stamp: int | None, receive_ns: int, pub_seq) -> None:
         if pub_seq is not None and pub_seq > 0:
             if st._last_seq is not None and pub_seq > st._last_seq + 1:
@@ -222,7 +229,6 @@ class QueuedRecorder:
         self.max_queue = max(1, int(max_queue))
         self._q: deque = deque()
         self._wake = threading.Event()
-        self._overflow: dict[str, int] = {}
         self._closing = False
         self._lock = threading.Lock()  # serialises close() against itself
         self._report: dict | None = None
@@ -251,7 +257,9 @@ class QueuedRecorder:
         if self._closing:  # stopped: a message still in flight is simply not part of this file
             return False
         if len(self._q) >= self.max_queue:
-            self._overflow[topic] = self._overflow.get(topic, 0) + 1
+            # the pixels are dropped; a tiny marker keeps the count (and the sequence number,
+            # so the gap it leaves is not counted a second time as transport loss)
+            self._q.append((2, topic, None, receive_ns, pub_seq))
             return False
         self._q.append((0, topic, cdr, receive_ns, pub_seq))
         if len(self._q) > self.high_water:
@@ -279,6 +287,8 @@ class QueuedRecorder:
             try:
                 if item[0] == 0:
                     rec.write(item[1], item[2], item[3], item[4])
+                elif item[0] == 2:
+                    rec.note_overflow(item[1], item[4])
                 else:
                     getattr(rec, item[1])(*item[2])
             except Exception as e:  # noqa: BLE001 - kept and reported; the thread goes on
@@ -297,9 +307,6 @@ class QueuedRecorder:
             self._wake.set()
             self._thread.join(timeout_s)
             left = len(self._q)
-            for topic, n in self._overflow.items():
-                if topic in self.rec.stats:
-                    self.rec.stats[topic].queue_overflow += n
             if self._thread.is_alive():  # writer stuck (disk): count what it never wrote
                 log.error("recorder writer did not drain in %.0f s (%d queued)", timeout_s, left)
             self._report = self.rec.close()

@@ -145,3 +145,40 @@ def test_recover_refuses_non_mcap(tmp_path, ros_env):
     r = subprocess.run([BIN + "metarig", "recover", str(bad)], env=ros_env, capture_output=True,
                        text=True, timeout=60)
     assert r.returncode == 2 and "not an MCAP" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_hand_built_image_cdr_matches_rclpy():
+    """The camera's serialized frames and restamped camera info decode to the same messages."""
+    from rclpy.serialization import deserialize_message, serialize_message
+    from sensor_msgs.msg import CameraInfo, Image
+
+    from ros_nodes import convert
+    from ros_nodes.logic.cdr import ImageEncoder, restamp
+
+    rng = np.random.default_rng(1)
+    for shape, dt, fid in [((48, 64), np.uint8, "camera"), ((5, 7), np.uint16, "ab"),
+                           ((3, 3), np.uint8, "")]:
+        f = rng.integers(0, 255, shape).astype(dt)
+        cdr = ImageEncoder(*shape, dt, fid).encode(1_234_567_891_011, f)
+        ref = serialize_message(convert.image(1_234_567_891_011, f, fid))
+        assert len(cdr) == len(ref)
+        assert deserialize_message(cdr, Image) == deserialize_message(ref, Image)
+        assert np.array_equal(convert.image_array(deserialize_message(cdr, Image)), f)
+    info = serialize_message(convert.camera_info(5, 640, 480, 6e-4))
+    assert deserialize_message(restamp(info, 77_000_000_123), CameraInfo) == \
+        convert.camera_info(77_000_000_123, 640, 480, 6e-4)
+
+
+def test_queued_recorder_counts_overflow(tmp_path):
+    """A full write queue drops the message and counts it in `dropped` (never silent)."""
+    from ros_nodes.logic.recorder import McapRecorder, QueuedRecorder
+
+    rec = QueuedRecorder(McapRecorder(tmp_path / "q.mcap"), max_queue=1)
+    rec.call("add_topic", "/t", "std_msgs/msg/String")
+    data = b"\x00\x01\x00\x00\x02\x00\x00\x00a\x00"
+    results = [rec.put("/t", data, 1_000 + k, k + 1) for k in range(500)]
+    report = rec.close()
+    t = report["topics"]["/t"]
+    assert t["count"] + t["queue_overflow"] == 500
+    assert t["count"] == sum(results) and report["dropped"] == t["queue_overflow"]
+    assert t["missing_by_sequence"] == 0  # the overflow is not counted twice

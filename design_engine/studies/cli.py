@@ -8,13 +8,15 @@ from pathlib import Path
 
 
 def bench_main(argv: list[str] | None = None) -> int:
-    """Speed against accuracy: work-precision charts and the side-by-side speed-up."""
+    """Speed against accuracy: work-precision charts, throughput and the side-by-side speed-up."""
     p = argparse.ArgumentParser(prog="metarig bench", description=bench_main.__doc__)
     sub = p.add_subparsers(dest="study", required=True)
     wp = sub.add_parser("work-precision", help="error vs wall time for every method, both scenes")
     wp.add_argument("--out", type=Path, default=Path("runs/bench"))
     wp.add_argument("--quick", action="store_true", help="three methods only (smoke run)")
     wp.add_argument("--scene", action="append", help="limit to these study scenes")
+    tp = sub.add_parser("throughput", help="vmap batch cost per design; first-call compile time")
+    tp.add_argument("--out", type=Path, default=Path("runs/bench"))
     sp = sub.add_parser("speedup", help="default vs baseline value-and-gradient, 24x16 focusing")
     sp.add_argument("--out", type=Path, default=Path("runs/bench"))
     sp.add_argument("--repeats", type=int, default=3)
@@ -42,6 +44,14 @@ def bench_main(argv: list[str] | None = None) -> int:
                    "fastest_acceptable": best[0] if best else None}
         (args.out / "work_precision_summary.json").write_text(json.dumps(summary, indent=2))
         print(json.dumps(summary, indent=2))
+        return 0
+    if args.study == "throughput":
+        from design_engine.studies.throughput import run_throughput
+
+        r = run_throughput(args.out)
+        for row in r["batches"]:
+            print(f"batch {row['batch']:>3}: {row['per_design_s']:.3f} s per design")
+        print(f"first value-and-gradient call: {r['value_and_grad_first_call']}")
         return 0
     from design_engine.studies.speedup import run_speedup
 

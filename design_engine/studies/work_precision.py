@@ -57,7 +57,7 @@ def run_study(out: Path, *, quick: bool = False, scenes: list[str] | None = None
         for m in tqdm(methods, desc=key):
             if m.name in rows:
                 continue
-            r = measure(scene, m.config)
+            r = measure(scene, m.config, repeats=1)
             if "error" not in r:
                 r.update(errors(r["J"], r.pop("_grad"), j_ref, g_ref))
             rows[m.name] = {"family": m.family, **r}

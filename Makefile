@@ -25,7 +25,11 @@ test: install
 test-slow: install
 	$(BIN)/python -m pytest --runslow
 
+# Speed-accuracy studies: charts + JSON in runs/bench (about an hour on 2 cores).
 bench: install
+	$(BIN)/metarig bench work-precision --out runs/bench
+	$(BIN)/metarig bench speedup --out runs/bench
+	$(BIN)/metarig bench throughput --out runs/bench
 	$(BIN)/python benchmarks/bench_core.py --out runs/bench
 
 clean:

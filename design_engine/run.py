@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from design_engine.auto import Choice, choose_config, fallback_config
+from design_engine.auto import Choice, choose_config, fallback_config, needs_contact, with_contact
 from design_engine.fixed_step import FixedStepVerlet
 from design_engine.loading import Loading
 from design_engine.objectives import (angular_momentum, block_kinetic_energy,
@@ -143,6 +143,11 @@ def _run_with_policy(scene: Scene, config: SolverConfig | None, ts_ms=None, load
     choice = default_choice(scene)
     try:
         sol, wall = _simulate(scene, choice.config, ts_ms, loading)
+        if needs_contact(choice.config, sol.min_void_margin, scene):
+            cfg = with_contact(choice.config)
+            sol, wall2 = _simulate(scene, cfg, ts_ms, loading)
+            return sol, wall + wall2, cfg, choice.reasons + (
+                "a void reached the contact cutoff: re-solved with contact (full model, adaptive)",)
         return sol, wall, choice.config, choice.reasons
     except SimulationError as exc:
         cfg, why = fallback_config()
@@ -216,16 +221,39 @@ def simulate_rig(scene: Scene, times_s, input_t_s, input_u_m, stage_t_s=None, st
 
 
 def make_objective(scene: Scene, config: SolverConfig | None = None, weights=None):
-    """Factory: jitted `value_and_grad(x) -> ((J, aux), dJ/dx)` of the scene's objective.
+    """Factory: `(value_and_grad, value)` of the scene's objective, each `x -> ...`.
 
-    J (mJ, or g mm^2/ms for spin) is the weighted sum of the target-region energies J_Omega
-    (spec 8; default weights 1 for a single target, (0.5, 0.5) for two), or the angular
-    momentum J_L for spin scenes. `aux` holds the solver result code and step counts, so that
-    failures can be reported after the jitted call (see `checked`). `config=None` uses the
-    automatic per-scene choice; on a reported failure, retry with `auto.fallback_config()`.
+    `value_and_grad(x) -> ((J, aux), dJ/dx)` and `value(x) -> (J, aux)`. J (mJ, or g mm^2/ms for
+    spin) is the weighted sum of the target-region energies J_Omega (spec 8; default weights 1
+    for a single target, (0.5, 0.5) for two), or the angular momentum J_L for spin scenes. `aux`
+    holds the solver result code, step count and void margin, so that failures can be reported
+    after the jitted call (see `checked`). With a given `config` both functions are jitted as
+    they are. `config=None` uses the automatic per-scene choice: when that leaves contact out,
+    an evaluation whose voids reached the contact cutoff is repeated with contact (compiled on
+    first need), so the result always equals the full model's; on a reported failure, retry
+    with `auto.fallback_config()`.
     """
-    if config is None:
-        config = default_choice(scene).config
+    if config is not None:
+        return _jitted_objective(scene, config, weights)
+    config = default_choice(scene).config
+    fast = _jitted_objective(scene, config, weights)
+    if config.use_contact:
+        return fast
+    slow: list = []
+
+    def pick(i, x):
+        out = fast[i](x)
+        aux = out[0][1] if i == 0 else out[1]
+        if needs_contact(config, aux["void_margin"], scene):
+            if not slow:
+                slow.extend(_jitted_objective(scene, with_contact(config), weights))
+            out = slow[i](x)
+        return out
+
+    return (lambda x: pick(0, x)), (lambda x: pick(1, x))
+
+
+def _jitted_objective(scene: Scene, config: SolverConfig, weights):
     sim = make_simulator(scene.lattice, scene.supports, config, scene.sample_times)
     names = list(scene.targets)
     if weights is None:

@@ -79,3 +79,15 @@ def test_automatic_choice_says_what_it_picked_and_falls_back(small, monkeypatch)
 
 def test_full_model_can_be_forced(small):
     assert choose_config(small, full_model=True).config == SolverConfig()
+
+
+def test_contact_left_out_only_while_it_is_exactly_zero():
+    # voids of 2 deg close past the -10 deg cutoff under the pulse: the no-contact solve is
+    # detected as invalid and repeated with the full model, so the result is the full model's
+    scene = build_scene("focusing-24x16", nx=8, ny=6, bias_angle_deg=44.0, amplitude_m=6e-3)
+    auto = simulate_scene(scene)
+    assert auto.metrics["solver"]["use_contact"] is True
+    assert "re-solved with contact" in auto.metrics["solver"]["choice"][-1]
+    full = simulate_scene(scene, SolverConfig())
+    assert auto.metrics["target_ke_mean_J"] == pytest.approx(full.metrics["target_ke_mean_J"],
+                                                             rel=1e-12)

@@ -1,24 +1,25 @@
 """Per-scene choice of integrator and model from measured quantities (speed against accuracy).
 
-The default policy (chosen from the work-precision charts, see README):
-- fixed-step velocity Verlet (one force evaluation per step) with a step of `safety * 2 / omega_max`,
-  where omega_max is the highest natural frequency measured by power iteration on the stiffness
-  (Hessian-vector products) about the reference state and, for pre-compressed scenes, about the
-  pre-compressed state as well;
-- float64 and nonlinear strains (the linearised strains miss J by tens of percent on the chart);
-- without pre-compression, the contact terms are left out of the solve and every solve then
-  checks that all void angles stayed above the contact cutoff at every sample, in which case the
-  contact energy was identically zero and the result equals the full model's; if a void came
-  within the cutoff, the solve is repeated with the full model (adaptive Dopri5 with contact:
-  the barrier stiffens the scene far beyond the frequency the fixed step was chosen for, and the
-  chart shows fixed steps losing accuracy there) (`needs_contact`, `with_contact`).
-  Pre-compressed scenes keep contact from the start (their voids close onto the barrier);
-- if a fixed-step solve fails (instability, a unit driven through the contact barrier), the
-  adaptive Dormand-Prince solver at the reference tolerances is used instead, and said so.
+The default policy, read off the work-precision charts (README, `metarig bench work-precision`):
+- scenes whose voids stay away from the contact barrier (pulse scenes without pre-compression):
+  fixed-step velocity Verlet (one force evaluation per step) with a step of
+  `safety * 2 / omega_max`, omega_max being the highest natural frequency measured by power
+  iteration on the stiffness (Hessian-vector products); float32 (on the chart it changes J by
+  1e-5 and the gradient by 3e-3 relative, like float64 Verlet, at 15-20 % less time) and
+  nonlinear strains (the linearised strains miss J by tens of percent). The contact terms are left out of the solve and
+  every solve checks that all void angles stayed above the contact cutoff at every sample, in
+  which case the contact energy was identically zero and the result equals the full model's;
+  otherwise the solve is repeated with contact (`needs_contact`, `with_contact`);
+- scenes in contact (pre-compressed, or a void that reached the cutoff): adaptive Dopri8 at the
+  reference tolerances with contact. The barrier makes the gradient stiff: on the chart fixed
+  steps and Dopri5 at the reference tolerances miss it by 4-12 %, Dopri8 stays within 1 %;
+- if a fixed-step solve fails (instability), the contact configuration is used instead, and said.
 `full_model=True` forces the reference configuration (Dopri5, spec tolerances).
 """
 
 from dataclasses import dataclass
+
+import diffrax
 
 import jax
 import jax.numpy as jnp
@@ -81,26 +82,28 @@ def choose_config(scene: Scene, *, full_model: bool = False,
     if full_model:
         return Choice(SolverConfig(), ("forced full model: Dopri5, rtol 1e-8, atol 1e-4, float64, "
                                        "nonlinear strains, contact",))
-    omega = max_angular_frequency(scene)
-    reasons = [f"highest natural frequency at rest {omega / (2 * np.pi) * 1e3:.0f} Hz"]
     if scene.loading.strain > 0.0:
-        from design_engine.modal import prestressed_state
-
-        ramp = SolverConfig(solver=FixedStepVerlet(max_dt=0.5 * 2.0 / omega))
-        q_pre = prestressed_state(scene, ramp)
-        omega_pre = max_angular_frequency(scene, q_pre)
-        reasons.append(f"after pre-compression {omega_pre / (2 * np.pi) * 1e3:.0f} Hz")
-        omega = max(omega, omega_pre)
+        return Choice(contact_config(), (
+            "pre-compression closes voids onto the contact barrier: adaptive Dopri8, rtol 1e-8, "
+            "atol 1e-4, with contact (the only method within 1 % of the reference gradient "
+            "on the pre-compressed chart)",))
+    omega = max_angular_frequency(scene)
     dt = safety * 2.0 / omega
-    reasons.append(f"fixed-step Verlet, dt = {dt * 1e3:.1f} us = {safety:g} x the stability limit "
-                   "(1 force evaluation per step; charted within 0.5 % of J and 1 % of the "
-                   "gradient of the reference solution)")
-    contact = scene.loading.strain > 0.0
-    reasons.append("contact kept: pre-compression closes voids onto the barrier" if contact else
-                   "contact terms left out while every void stays above the contact cutoff "
-                   "(checked after each solve; exact then, else re-solved with the full model)")
-    return Choice(SolverConfig(solver=FixedStepVerlet(max_dt=dt), use_contact=contact),
-                  tuple(reasons), omega)
+    reasons = (
+        f"highest natural frequency at rest {omega / (2 * np.pi) * 1e3:.0f} Hz",
+        f"fixed-step Verlet, dt = {dt * 1e3:.1f} us = {safety:g} x the stability limit (1 force "
+        "evaluation per step; within 0.5 % of J and 1 % of the gradient on the focusing chart)",
+        "float32: within 1e-5 of J and 3e-3 of the gradient on the focusing chart",
+        "contact terms left out while every void stays above the contact cutoff (checked after "
+        "each solve; exact then, else re-solved with contact)",
+    )
+    config = SolverConfig(solver=FixedStepVerlet(max_dt=dt), use_contact=False, dtype="float32")
+    return Choice(config, reasons, omega)
+
+
+def contact_config() -> SolverConfig:
+    """Configuration for scenes in contact: Dopri8 at the reference tolerances, with contact."""
+    return SolverConfig(solver=diffrax.Dopri8())
 
 
 def needs_contact(config: SolverConfig, min_void_margin: float, scene: Scene) -> bool:
@@ -111,11 +114,11 @@ def needs_contact(config: SolverConfig, min_void_margin: float, scene: Scene) ->
 
 
 def with_contact(config: SolverConfig) -> SolverConfig:
-    """Configuration for a scene whose voids reach the contact cutoff: the full model."""
-    return SolverConfig()
+    """Configuration for a scene whose voids reached the contact cutoff."""
+    return contact_config()
 
 
 def fallback_config() -> tuple[SolverConfig, str]:
     """The configuration used when a fixed-step solve fails, and why."""
-    return SolverConfig(), ("the fixed-step solve failed (contact stiffening or instability): "
-                            "fell back to adaptive Dopri5 at the reference tolerances")
+    return contact_config(), ("the fixed-step solve failed (contact stiffening or instability): "
+                              "fell back to adaptive Dopri8 at the reference tolerances")

@@ -147,7 +147,7 @@ def _run_with_policy(scene: Scene, config: SolverConfig | None, ts_ms=None, load
             cfg = with_contact(choice.config)
             sol, wall2 = _simulate(scene, cfg, ts_ms, loading)
             return sol, wall + wall2, cfg, choice.reasons + (
-                "a void reached the contact cutoff: re-solved with contact (full model, adaptive)",)
+                "a void reached the contact cutoff: re-solved with contact (adaptive Dopri8)",)
         return sol, wall, choice.config, choice.reasons
     except SimulationError as exc:
         cfg, why = fallback_config()

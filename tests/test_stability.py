@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from design_engine import run as run_mod
-from design_engine.auto import Choice, choose_config, max_angular_frequency
+from design_engine.auto import Choice, choose_config, contact_config, max_angular_frequency
 from design_engine.fixed_step import FixedStepVerlet
 from design_engine.modal import modal_analysis
 from design_engine.run import checked, make_objective, simulate_scene
@@ -73,7 +73,7 @@ def test_automatic_choice_says_what_it_picked_and_falls_back(small, monkeypatch)
                  ("deliberately unstable",))
     monkeypatch.setattr(run_mod, "default_choice", lambda scene: bad)
     run = simulate_scene(small)
-    assert run.metrics["solver"]["solver"] == "Dopri5"
+    assert run.metrics["solver"]["solver"] == "Dopri8"
     assert any("fell back" in r for r in run.metrics["solver"]["choice"])
 
 
@@ -83,11 +83,16 @@ def test_full_model_can_be_forced(small):
 
 def test_contact_left_out_only_while_it_is_exactly_zero():
     # voids of 2 deg close past the -10 deg cutoff under the pulse: the no-contact solve is
-    # detected as invalid and repeated with the full model, so the result is the full model's
+    # detected as invalid and repeated with contact (Dopri8), so the result is that model's
     scene = build_scene("focusing-24x16", nx=8, ny=6, bias_angle_deg=44.0, amplitude_m=6e-3)
     auto = simulate_scene(scene)
     assert auto.metrics["solver"]["use_contact"] is True
     assert "re-solved with contact" in auto.metrics["solver"]["choice"][-1]
-    full = simulate_scene(scene, SolverConfig())
+    full = simulate_scene(scene, contact_config())
     assert auto.metrics["target_ke_mean_J"] == pytest.approx(full.metrics["target_ke_mean_J"],
                                                              rel=1e-12)
+
+
+def test_precompressed_scenes_use_the_contact_configuration():
+    choice = choose_config(build_scene("protection-24x18", nx=8, ny=8, strain=0.05))
+    assert choice.config == contact_config() and "Dopri8" in choice.reasons[0]

@@ -15,6 +15,7 @@ def bench_main(argv: list[str] | None = None) -> int:
     wp.add_argument("--out", type=Path, default=Path("runs/bench"))
     wp.add_argument("--quick", action="store_true", help="three methods only (smoke run)")
     wp.add_argument("--scene", action="append", help="limit to these study scenes")
+    wp.add_argument("--implicit", action="store_true", help="also run the implicit solver (slow)")
     tp = sub.add_parser("throughput", help="vmap batch cost per design; first-call compile time")
     tp.add_argument("--out", type=Path, default=Path("runs/bench"))
     sp = sub.add_parser("speedup", help="default vs baseline value-and-gradient, 24x16 focusing")
@@ -34,7 +35,8 @@ def bench_main(argv: list[str] | None = None) -> int:
                   file=sys.stderr)
             return 2
         try:
-            results = run_study(args.out, quick=args.quick, scenes=args.scene)
+            results = run_study(args.out, quick=args.quick, scenes=args.scene,
+                                implicit=args.implicit)
         except KeyboardInterrupt:
             print("interrupted: finished methods are kept in work_precision.json; rerun to resume")
             return 130

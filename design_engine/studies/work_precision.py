@@ -134,9 +134,14 @@ def plot_study(results: dict, out: Path) -> list[Path]:
             ax.set_title(f"{key}: {title}")
             ax.grid(alpha=0.3, which="both")
         axes[1].legend(fontsize=7, loc="best")
-        failed = [n for n, r in sc["methods"].items() if "error" in r]
-        if failed:
-            fig.text(0.01, 0.01, "failed (detected and reported): " + "; ".join(failed), fontsize=7)
+        failed = [n for n, r in sc["methods"].items()
+                  if "error" in r and not r["error"].startswith("not run")]
+        not_run = [n for n, r in sc["methods"].items()
+                   if "skipped" in r or r.get("error", "").startswith("not run")]
+        note = ("failed (detected and reported): " + "; ".join(failed) + "   ") if failed else ""
+        note += ("not run on this scene (see JSON): " + "; ".join(not_run)) if not_run else ""
+        if note:
+            fig.text(0.01, 0.01, note, fontsize=6)
         fig.tight_layout(rect=(0, 0.03, 1, 1))
         p = out / f"work_precision_{key}.png"
         fig.savefig(p, dpi=110)

@@ -29,6 +29,7 @@ test-slow: install
 bench: install
 	$(BIN)/metarig bench work-precision --out runs/bench
 	$(BIN)/metarig bench speedup --out runs/bench
+	$(BIN)/metarig bench stability --out runs/bench
 	$(BIN)/metarig bench throughput --out runs/bench
 	$(BIN)/python benchmarks/bench_core.py --out runs/bench
 

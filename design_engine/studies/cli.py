@@ -16,6 +16,8 @@ def bench_main(argv: list[str] | None = None) -> int:
     wp.add_argument("--quick", action="store_true", help="three methods only (smoke run)")
     wp.add_argument("--scene", action="append", help="limit to these study scenes")
     wp.add_argument("--implicit", action="store_true", help="also run the implicit solver (slow)")
+    st = sub.add_parser("stability", help="where methods break: step, amplitude, pre-compression")
+    st.add_argument("--out", type=Path, default=Path("runs/bench"))
     tp = sub.add_parser("throughput", help="vmap batch cost per design; first-call compile time")
     tp.add_argument("--out", type=Path, default=Path("runs/bench"))
     sp = sub.add_parser("speedup", help="default vs baseline value-and-gradient, 24x16 focusing")
@@ -46,6 +48,15 @@ def bench_main(argv: list[str] | None = None) -> int:
                    "fastest_acceptable": best[0] if best else None}
         (args.out / "work_precision_summary.json").write_text(json.dumps(summary, indent=2))
         print(json.dumps(summary, indent=2))
+        return 0
+    if args.study == "stability":
+        from design_engine.studies.stability import run_stability
+
+        r = run_stability(args.out)
+        for row in r["step_vs_limit"]["rows"]:
+            print(f"dt/limit {row['dt_over_limit']:.2f}: "
+                  + (f"J error {row['J_rel_err']:.2e}" if row["ok"] else row["error"]))
+        print(f"wrote {args.out / 'stability.json'} and stability.png")
         return 0
     if args.study == "throughput":
         from design_engine.studies.throughput import run_throughput

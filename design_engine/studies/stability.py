@@ -50,7 +50,8 @@ def run_stability(out: Path) -> dict:
         rows.append({"amplitude_m": amp,
                      "verlet": _outcome(sc, SolverConfig(solver=FixedStepVerlet(max_dt=dt))),
                      "dopri8": _outcome(sc, contact_config())})
-    report["amplitude"] = {"scene": "focusing 8x6, bias 44 deg", "rows": rows}
+    report["amplitude"] = {"scene": "focusing 8x6, bias 44 deg", "rows": rows,
+                           "contact_deg": [-15.0, -10.0]}
     # 3. pre-compression: fixed step chosen at rest vs Dopri8
     rows = []
     base = build_scene("protection-24x18", nx=8, ny=8, strain=0.0)
@@ -60,7 +61,8 @@ def run_stability(out: Path) -> dict:
         rows.append({"strain": eps,
                      "verlet": _outcome(sc, SolverConfig(solver=FixedStepVerlet(max_dt=dt_rest))),
                      "dopri8": _outcome(sc, contact_config())})
-    report["precompression"] = {"scene": "protection 8x8", "verlet_dt_ms": dt_rest, "rows": rows}
+    report["precompression"] = {"scene": "protection 8x8", "verlet_dt_ms": dt_rest, "rows": rows,
+                                "contact_deg": [-10.0, -5.0]}
     (out / "stability.json").write_text(json.dumps(report, indent=2))
     _plot(report, out / "stability.png")
     return report
@@ -92,12 +94,13 @@ def _plot(report: dict, path: Path) -> None:
         for m, style in (("verlet", "o"), ("dopri8", "s")):
             for r in rs:
                 o = r[m]
-                ax.plot(r[xkey], o["min_void_deg"] if o["ok"] else -20.0,
+                ax.plot(r[xkey], o["min_void_deg"] if o["ok"] else asymptote - 5.0,
                         style, color="g" if o["ok"] else "r", ms=8, fillstyle="none" if m == "verlet" else "full")
-        ax.axhline(-10.0, color="k", ls="--", lw=0.8)
-        ax.axhline(-15.0, color="k", ls="-", lw=0.8)
+        asymptote, cutoff = report[key]["contact_deg"]
+        ax.axhline(cutoff, color="k", ls="--", lw=0.8)
+        ax.axhline(asymptote, color="k", ls="-", lw=0.8)
         ax.set_xlabel(xlabel)
-        ax.set_ylabel("smallest void angle [deg] (red at -20: failure reported)")
+        ax.set_ylabel("smallest void angle [deg] (red: failure reported)")
         ax.set_title(f"{report[key]['scene']}: open = Verlet, filled = Dopri8")
     fig.tight_layout()
     fig.savefig(path, dpi=110)

@@ -91,12 +91,12 @@ def _plot(report: dict, path: Path) -> None:
     for ax, key, xkey, xlabel in ((axes[1], "amplitude", "amplitude_m", "input amplitude [m]"),
                                   (axes[2], "precompression", "strain", "pre-compression strain")):
         rs = report[key]["rows"]
+        asymptote, cutoff = report[key]["contact_deg"]
         for m, style in (("verlet", "o"), ("dopri8", "s")):
             for r in rs:
                 o = r[m]
                 ax.plot(r[xkey], o["min_void_deg"] if o["ok"] else asymptote - 5.0,
                         style, color="g" if o["ok"] else "r", ms=8, fillstyle="none" if m == "verlet" else "full")
-        asymptote, cutoff = report[key]["contact_deg"]
         ax.axhline(cutoff, color="k", ls="--", lw=0.8)
         ax.axhline(asymptote, color="k", ls="-", lw=0.8)
         ax.set_xlabel(xlabel)

@@ -64,13 +64,17 @@ class SceneRun:
     wall_s: float
 
 
-def to_trajectory(sol: Solution, t0_ms: float = 0.0) -> Trajectory:
-    """Convert an internal solution to an SI `Trajectory` with time shifted by `t0_ms`."""
-    q = np.array(sol.q)
+def to_trajectory(sol: Solution, t0_ms: float = 0.0, ts_ms=None) -> Trajectory:
+    """Convert an internal solution to an SI float64 `Trajectory`, time shifted by `t0_ms`.
+
+    `ts_ms` gives the exact requested sample times (the solver may have run in float32).
+    """
+    ts = np.asarray(sol.ts if ts_ms is None else ts_ms, np.float64)
+    q = np.array(sol.q, np.float64)
     q[..., :2] /= units.MM_PER_M
-    qdot = np.array(sol.qdot)
+    qdot = np.array(sol.qdot, np.float64)
     qdot[..., 2] *= units.MS_PER_S  # rad/ms -> rad/s; mm/ms == m/s already
-    return Trajectory(t=units.time_to_si(np.asarray(sol.ts) - t0_ms), q=q, qdot=qdot)
+    return Trajectory(t=units.time_to_si(ts - t0_ms), q=q, qdot=qdot)
 
 
 def scene_metrics(scene: Scene, sol: Solution) -> dict:
@@ -166,7 +170,8 @@ def simulate_scene(scene: Scene, config: SolverConfig | None = None) -> SceneRun
     metrics["solver"] = solver_stats(sol)
     metrics["solver"].update(config_summary(config))
     metrics["solver"]["choice"] = list(reasons)
-    return SceneRun(trajectory=to_trajectory(sol, scene.window_start), solution=sol,
+    return SceneRun(trajectory=to_trajectory(sol, scene.window_start, scene.sample_times),
+                    solution=sol,
                     metrics=metrics, wall_s=wall)
 
 
@@ -217,7 +222,7 @@ def simulate_rig(scene: Scene, times_s, input_t_s, input_u_m, stage_t_s=None, st
         stage_t=jnp.asarray(st), stage_closing=jnp.asarray(sc),
     )
     sol, _, _, _ = _run_with_policy(scene, config, times_ms, loading)
-    return to_trajectory(sol, 0.0)
+    return to_trajectory(sol, 0.0, times_ms)
 
 
 def make_objective(scene: Scene, config: SolverConfig | None = None, weights=None):

@@ -16,13 +16,14 @@ sample point (x, y) m lies at col = origin_px[0] + x / m_per_px and
 row = origin_px[1] - y / m_per_px when y_up (row = origin_px[1] + y / m_per_px otherwise).
 """
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
+
+from ros_nodes.logic.jsonfile import read_json
 
 
 class CalibrationError(ValueError):
@@ -174,13 +175,5 @@ def calibration_from_dict(d: dict, where: str = "calibration") -> Calibration:
 
 def load_calibration(path: str | Path) -> Calibration:
     """Read a calibration JSON file; raises `CalibrationError` naming the file on any problem."""
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise CalibrationError(f"cannot read calibration file {path}: {exc.strerror}") from None
-    try:
-        d = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise CalibrationError(f"{path}: not valid JSON ({exc})") from None
+    d = read_json(path, CalibrationError, "calibration")
     return calibration_from_dict(d, where=str(path))

@@ -5,10 +5,14 @@ design engine, which carries the same top-level key. The outlines are the refere
 configuration in the sample frame (m), in unit-id order (row-major, x fastest).
 """
 
-import json
 from pathlib import Path
 
 import numpy as np
+
+from ros_nodes.logic.jsonfile import read_json
+
+# one shoelace centroid for the whole rig side: the renderer's
+from hardware_sim.camera import area_centroids as polygon_centroids  # noqa: F401
 
 
 class UnitsError(ValueError):
@@ -20,17 +24,6 @@ def polygon_areas(polygons: np.ndarray) -> np.ndarray:
     p = np.asarray(polygons, dtype=np.float64)
     q = np.roll(p, -1, axis=1)
     return 0.5 * (p[..., 0] * q[..., 1] - q[..., 0] * p[..., 1]).sum(axis=1)
-
-
-def polygon_centroids(polygons: np.ndarray) -> np.ndarray:
-    """Area centroids [n, 2] of simple polygons [n, nv, 2] (shoelace formula), same units."""
-    p = np.asarray(polygons, dtype=np.float64)
-    q = np.roll(p, -1, axis=1)
-    cross = p[..., 0] * q[..., 1] - q[..., 0] * p[..., 1]
-    six_a = 3.0 * cross.sum(axis=1)
-    cx = ((p[..., 0] + q[..., 0]) * cross).sum(axis=1) / six_a
-    cy = ((p[..., 1] + q[..., 1]) * cross).sum(axis=1) / six_a
-    return np.stack([cx, cy], axis=-1)
 
 
 def _self_intersecting(poly: np.ndarray) -> bool:
@@ -93,14 +86,7 @@ def validate_polygons(polys, where: str = "polygons_m") -> np.ndarray:
 def load_unit_polygons(path: str | Path) -> np.ndarray:
     """Read `polygons_m` [n_units, n_vertices, 2] (m, sample frame) from a JSON file."""
     path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise UnitsError(f"cannot read units file {path}: {exc.strerror}") from None
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise UnitsError(f"{path}: not valid JSON ({exc})") from None
+    data = read_json(path, UnitsError, "units")
     if not isinstance(data, dict) or "polygons_m" not in data:
         raise UnitsError(f"{path}: no top-level key 'polygons_m' (unit outlines in metres)")
     return validate_polygons(data["polygons_m"], where=str(path))

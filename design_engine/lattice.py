@@ -79,10 +79,6 @@ class Lattice:
         """[n_bonds, 2] local vertex index k at the two ends of each bond."""
         return self.bonds % self.n_vertices
 
-    @property
-    def cells_shape(self) -> tuple[int, int]:
-        """(columns, rows) of the grid used for regions and edges."""
-        return self.shape
 
     def describe(self) -> dict:
         """JSON-ready description (SI lengths) that `lattice_from_description` inverts."""

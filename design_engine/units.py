@@ -12,11 +12,6 @@ G_PER_KG = 1.0e3
 J_PER_MJ = 1.0e-3  # energy: internal mJ -> J
 
 
-def length_to_si(x_mm):
-    """mm -> m."""
-    return x_mm / MM_PER_M
-
-
 def length_from_si(x_m):
     """m -> mm."""
     return x_m * MM_PER_M
@@ -35,16 +30,6 @@ def time_from_si(t_s):
 def energy_to_si(e_mj):
     """mJ -> J."""
     return e_mj * J_PER_MJ
-
-
-def mass_to_si(m_g):
-    """g -> kg."""
-    return m_g / G_PER_KG
-
-
-def inertia_to_si(j_gmm2):
-    """g*mm^2 -> kg*m^2."""
-    return j_gmm2 / (G_PER_KG * MM_PER_M**2)
 
 
 def angular_momentum_to_si(l_gmm2_per_ms):

@@ -76,6 +76,9 @@ class CameraNodeConfig:
     loop: bool = _p(False, "restart a replay at its end")
     publish_clock: bool = _p(False, "publish /clock from the frame stamps (replay)")
     frame_id: str = _p("camera", "frame_id of the images")
+    queue_depth: int = _p(1000, "frames the image publisher keeps for slow readers (reliable "
+                          "keep-last: older unacknowledged frames are dropped, and counted by "
+                          "the recorder)", 1, 100000)
     scene: str = _p("precompression-24x18", "sim: design_engine scene name")
     nx: int = _p(24, "sim: units along x", 2, 200)
     ny: int = _p(16, "sim: units along y", 2, 200)

@@ -21,6 +21,7 @@ import time
 import numpy as np
 from rclpy.duration import Duration
 from rclpy.node import Node
+from rclpy.qos import QoSProfile
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo, Image, JointState
 from std_msgs.msg import String
@@ -47,7 +48,9 @@ class CameraNode(Node):
         super().__init__(NAME, **kwargs)
         self._params = TypedParams(self, CameraNodeConfig)
         cfg = self._params.config
-        self._img = self.create_publisher(Image, "/camera/image_raw", STREAM)
+        frames_qos = QoSProfile(depth=cfg.queue_depth, reliability=STREAM.reliability,
+                                history=STREAM.history)
+        self._img = self.create_publisher(Image, "/camera/image_raw", frames_qos)
         self._info = self.create_publisher(CameraInfo, "/camera/camera_info", STREAM)
         self._status_pub = self.create_publisher(String, "~/status", LATCHED)
         self._clock_pub = self.create_publisher(Clock, "/clock", CLOCK) if cfg.publish_clock else None

@@ -15,6 +15,7 @@ from pathlib import Path
 RECORDING_NAME = "recording.mcap"
 SUMMARY_NAME = "run.json"
 DESIGN_NAME = "design.json"
+IMAGE_TOPIC = "/camera/image_raw"
 
 
 class Phase(str, Enum):
@@ -103,10 +104,21 @@ def node_parameters(plan: ExperimentPlan, out_dir: Path) -> dict[str, dict]:
 
 def summary(plan: ExperimentPlan, params: dict, report: dict | None, timings: dict,
             events: list[tuple[str, float]], status: str) -> dict:
-    """The machine-readable run summary (`run.json`)."""
-    return {"status": status, "plan": plan.as_dict(), "node_parameters": params,
-            "recording": report, "timings_s": timings,
-            "phases": [{"phase": p, "sim_time_s": t} for p, t in events]}
+    """The machine-readable run summary (`run.json`).
+
+    `frames` compares the frames the camera published (`timings["frames"]`) with those in the
+    recording: `lost` counts every frame missing from the file, trailing ones included (frames
+    still in transit when the recording stopped leave no gap for the recorder to see).
+    """
+    out = {"status": status, "plan": plan.as_dict(), "node_parameters": params,
+           "recording": report, "timings_s": timings,
+           "phases": [{"phase": p, "sim_time_s": t} for p, t in events]}
+    if "frames" in timings and report is not None:
+        published = int(timings["frames"])
+        recorded = int(report.get("topics", {}).get(IMAGE_TOPIC, {}).get("count", 0))
+        out["frames"] = {"published": published, "recorded": recorded,
+                         "lost": max(0, published - recorded)}
+    return out
 
 
 def write_summary(out_dir: Path, data: dict) -> Path:

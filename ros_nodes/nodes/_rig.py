@@ -90,6 +90,10 @@ def run_rig(plan, node_params: dict[str, dict], out: Path, processes: bool = Fal
         lost = report.get("dropped", 0)
         log.info("%s in %.1f s: %d messages recorded, %d dropped -> %s", status,
                  timings["total_wall"], report.get("messages", 0), lost, report.get("path"))
+        frames = data.get("frames")
+        if frames and frames["lost"]:
+            log.warning("%d of %d camera frames are missing from the recording",
+                        frames["lost"], frames["published"])
     else:
         log.warning("%s: no recording report (see %s)", status, path)
         if code == 0:

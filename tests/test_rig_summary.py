@@ -1,0 +1,29 @@
+"""The run summary's frame accounting and the plan's frame count (pure logic, no ROS)."""
+
+import pytest
+
+from ros_nodes.logic.sequence import ExperimentPlan, summary
+
+
+def _report(recorded: int, dropped: int = 0) -> dict:
+    return {"messages": recorded, "dropped": dropped,
+            "topics": {"/camera/image_raw": {"count": recorded, "missing_by_sequence": dropped}}}
+
+
+def test_trailing_frames_missing_from_the_recording_are_counted_as_lost():
+    # 3 frames never reached the file and left no gap (they were last): only the published
+    # count reveals them
+    s = summary(ExperimentPlan(), {}, _report(97), {"frames": 100}, [], "completed")
+    assert s["frames"] == {"published": 100, "recorded": 97, "lost": 3}
+
+
+def test_complete_recording_has_no_lost_frames_and_no_report_means_no_frame_section():
+    s = summary(ExperimentPlan(), {}, _report(100), {"frames": 100}, [], "completed")
+    assert s["frames"]["lost"] == 0
+    assert "frames" not in summary(ExperimentPlan(), {}, None, {"frames": 100}, [], "failed")
+
+
+@pytest.mark.parametrize("t_start, expected", [(0.0, 100), (0.0205, 100), (0.02, 101)])
+def test_expected_frames_counts_the_multiples_of_the_period_inside_the_window(t_start, expected):
+    # frames at k / fps with t_start <= k / fps <= t_start + record_s, k >= 1
+    assert ExperimentPlan(record_s=0.1, fps=1000.0).expected_frames(t_start) == expected

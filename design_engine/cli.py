@@ -49,7 +49,7 @@ def _build(args):
                        strain=args.precompression, design=design, n_samples=args.samples)
 
 
-SOLVERS = ("auto", "dopri5", "tsit5", "dopri8", "verlet")
+SOLVERS = ("auto", "dopri5", "tsit5", "dopri8", "verlet", "newmark")
 
 
 def _config(args):
@@ -57,6 +57,7 @@ def _config(args):
     import diffrax
 
     from design_engine.fixed_step import FixedStepVerlet
+    from design_engine.implicit_step import ImplicitNewmark
     from design_engine.simulate import SolverConfig
 
     model = dict(linearized=args.linearized, use_contact=not args.no_contact,
@@ -70,6 +71,9 @@ def _config(args):
         return None
     if args.solver == "verlet":
         return SolverConfig(solver=FixedStepVerlet(max_dt=args.max_dt * 1e3), **model)
+    if args.solver == "newmark":
+        return SolverConfig(solver=ImplicitNewmark(max_dt=args.max_dt * 1e3,
+                                                   iterations=args.iterations), **model)
     solver = {"dopri5": diffrax.Dopri5(), "tsit5": diffrax.Tsit5(), "dopri8": diffrax.Dopri8()}
     return SolverConfig(solver=solver[args.solver], rtol=args.rtol, atol=args.atol, **model)
 
@@ -82,13 +86,17 @@ def simulate_main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, default=None, help="output folder (default runs/<preset>)")
     p.add_argument("--solver", choices=SOLVERS, default="auto",
                    help="auto: fixed-step Verlet at a step set from the measured highest natural "
-                   "frequency, falling back to adaptive Dopri5 on failure")
+                   "frequency away from contact, adaptive Dopri8 in contact or on failure; "
+                   "newmark: implicit trapezoidal Newmark (chord iterations)")
     p.add_argument("--full-model", action="store_true", help="force the reference configuration "
                    "(Dopri5, rtol 1e-8, atol 1e-4, float64, nonlinear strains, contact)")
     p.add_argument("--rtol", type=float, default=1e-8, help="relative tolerance (adaptive solvers)")
     p.add_argument("--atol", type=float, default=1e-4, help="absolute tolerance on mm and mm/s "
                    "(adaptive solvers)")
-    p.add_argument("--max-dt", type=float, default=4e-5, help="step of --solver verlet, s")
+    p.add_argument("--max-dt", type=float, default=4e-5, help="step of --solver verlet or "
+                   "newmark, s")
+    p.add_argument("--iterations", type=int, default=3, help="chord iterations per step of "
+                   "--solver newmark")
     p.add_argument("--linearized", action="store_true", help="linearised strain measures")
     p.add_argument("--no-contact", action="store_true", help="switch the contact barrier off")
     p.add_argument("--float32", action="store_true", help="single precision")

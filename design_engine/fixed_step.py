@@ -36,6 +36,42 @@ def substeps(interval: float, max_dt: float) -> int:
     return max(1, math.ceil(interval / max_dt - 1e-9))
 
 
+def march(step, carry, ts, t0: float, n_pre: int, n_sub: int, remat: bool = False):
+    """Drive a one-step map through the sample times (shared by every fixed-step scheme).
+
+    Args:
+        step: `step(carry, t, dt) -> carry`; `carry[0], carry[1]` are the sampled q and v.
+        carry: state at t0.
+        ts: [n_t] sample times (the first may equal t0).
+        n_pre: steps from t0 to ts[0] (static; 0 when ts[0] == t0).
+        n_sub: equal steps between consecutive samples (static).
+        remat: recompute the steps between two samples in the backward pass.
+
+    Returns:
+        (carry at ts[-1], q [n_t, ...], v [n_t, ...]).
+    """
+
+    def advance(carry, t_start, t_end, n):
+        dt = (t_end - t_start) / n
+
+        def body(c, k):
+            return step(c, t_start + k * dt, dt), None
+
+        return jax.lax.scan(body, carry, jnp.arange(n, dtype=ts.dtype))[0]
+
+    if n_pre > 0:
+        carry = advance(carry, jnp.asarray(t0, ts.dtype), ts[0], n_pre)
+    first = carry
+
+    def interval(c, pair):
+        advance_fn = jax.checkpoint(advance, static_argnums=(3,)) if remat else advance
+        c = advance_fn(c, pair[0], pair[1], n_sub)
+        return c, (c[0], c[1])
+
+    last, (qs, vs) = jax.lax.scan(interval, carry, jnp.stack([ts[:-1], ts[1:]], axis=1))
+    return last, jnp.concatenate([first[0][None], qs]), jnp.concatenate([first[1][None], vs])
+
+
 def integrate(method: FixedStepVerlet, force, inv_mass, damping, y0, ts, t0: float, n_pre: int,
               n_sub: int):
     """Integrate from t0 through the sample times.
@@ -62,23 +98,7 @@ def integrate(method: FixedStepVerlet, force, inv_mass, damping, y0, ts, t0: flo
         v1 = (v_half + 0.5 * dt * inv_mass * f1) / (1.0 + dt * half_c)
         return (q1, v1, f1)
 
-    def advance(carry, t_start, t_end, n):
-        dt = (t_end - t_start) / n
-
-        def body(c, k):
-            return step(c, t_start + k * dt, dt), None
-
-        return jax.lax.scan(body, carry, jnp.arange(n, dtype=ts.dtype))[0]
-
     q0, v0 = y0
     carry = (q0, v0, force(q0, jnp.asarray(t0, ts.dtype)))
-    if n_pre > 0:
-        carry = advance(carry, jnp.asarray(t0, ts.dtype), ts[0], n_pre)
-
-    def interval(c, pair):
-        advance_fn = jax.checkpoint(advance, static_argnums=(3,)) if method.remat else advance
-        c = advance_fn(c, pair[0], pair[1], n_sub)
-        return c, (c[0], c[1])
-
-    _, (qs, vs) = jax.lax.scan(interval, carry, jnp.stack([ts[:-1], ts[1:]], axis=1))
-    return jnp.concatenate([carry[0][None], qs]), jnp.concatenate([carry[1][None], vs])
+    _, qs, vs = march(step, carry, ts, t0, n_pre, n_sub, method.remat)
+    return qs, vs

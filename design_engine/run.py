@@ -12,14 +12,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from design_engine.auto import Choice, choose_config, fallback_config, needs_contact, with_contact
-from design_engine.fixed_step import FixedStepVerlet
 from design_engine.loading import Loading
 from design_engine.objectives import (angular_momentum, block_kinetic_energy,
                                       peak_energy_along_units, region_energy, region_energy_ratio)
 from design_engine.regions import row_units
 from design_engine.scenes import Scene
-from design_engine.simulate import (SimulationError, Solution, SolverConfig, check_solution,
-                                    failure_message, make_simulator)
+from design_engine.implicit_step import ImplicitNewmark
+from design_engine.simulate import (FIXED_STEP, SimulationError, Solution, SolverConfig,
+                                    check_solution, failure_message, make_simulator)
 from design_engine.trajectory import Trajectory
 from design_engine import units
 
@@ -28,7 +28,7 @@ _COMPILED: dict[tuple, object] = {}
 
 def _key(scene: Scene, config: SolverConfig, tag: str, ts_ms) -> tuple:
     s = scene.supports
-    grid = np.asarray(ts_ms).tobytes() if isinstance(config.solver, FixedStepVerlet) else b""
+    grid = np.asarray(ts_ms).tobytes() if isinstance(config.solver, FIXED_STEP) else b""
     return (tag, scene.lattice.kind, scene.lattice.shape, scene.lattice.spacing,
             scene.lattice.ligament_length, s.constrained.tobytes(), s.channel.tobytes(),
             s.gain.tobytes(), repr(config), grid)
@@ -179,8 +179,10 @@ def config_summary(config: SolverConfig) -> dict:
     """JSON-ready description of a solver configuration."""
     out = {"solver": type(config.solver).__name__, "linearized": config.linearized,
            "use_contact": config.use_contact, "dtype": config.dtype}
-    if isinstance(config.solver, FixedStepVerlet):
+    if isinstance(config.solver, FIXED_STEP):
         out["max_dt_s"] = config.solver.max_dt * 1e-3
+        if isinstance(config.solver, ImplicitNewmark):
+            out["iterations_per_step"] = config.solver.iterations
     else:
         out.update(rtol=config.rtol, atol=config.atol, adjoint=type(config.adjoint).__name__)
     return out

@@ -15,8 +15,10 @@ import numpy as np
 from design_engine._types import Array, DesignVector, Float, Int
 from design_engine.dynamics import VELOCITY_SCALE, make_dynamics_args, make_full_state, make_rhs
 from design_engine.energy import make_energy
+from design_engine import implicit_step
 from design_engine.fixed_step import FixedStepVerlet, integrate, substeps
 from design_engine.geometry import block_geometry
+from design_engine.implicit_step import ImplicitNewmark
 from design_engine.lattice import Lattice
 from design_engine.loading import Loading, Supports, make_prescribed
 from design_engine.material import Material
@@ -26,8 +28,9 @@ class SolverConfig(eqx.Module):
     """Integrator settings.
 
     Attributes:
-        solver: a diffrax solver object (default Dormand-Prince 5(4), as the reference), or
-            `FixedStepVerlet` (one force evaluation per step; needs the time grid up front).
+        solver: a diffrax solver object (default Dormand-Prince 5(4), as the reference), or a
+            fixed-step scheme (`FIXED_STEP`: `FixedStepVerlet`, one force evaluation per step;
+            `ImplicitNewmark`, implicit; both need the time grid up front).
         rtol, atol: tolerances on the state (positions mm, velocities mm/s; spec 6.5).
         max_steps: step budget; exceeding it is reported as an error.
         adjoint: gradient method (default: discretise-then-optimise with recursive checkpointing).
@@ -42,7 +45,7 @@ class SolverConfig(eqx.Module):
             softer stretch allows larger steps at an error that the work-precision chart shows.
     """
 
-    solver: diffrax.AbstractSolver | FixedStepVerlet = diffrax.Dopri5()
+    solver: diffrax.AbstractSolver | FixedStepVerlet | ImplicitNewmark = diffrax.Dopri5()
     rtol: float = eqx.field(static=True, default=1e-8)
     atol: float = eqx.field(static=True, default=1e-4)
     max_steps: int = eqx.field(static=True, default=200_000)
@@ -84,6 +87,11 @@ class Solution(eqx.Module):
     min_void_margin: Float[Array, ""]
 
 
+FIXED_STEP = (FixedStepVerlet, ImplicitNewmark)  # schemes run on a static step grid
+# result code of an implicit solve whose iterations did not converge (diffrax's meaning)
+NOT_CONVERGED = int(diffrax.RESULTS.nonlinear_max_steps_reached._value)
+
+
 class SimulationError(RuntimeError):
     """The solver failed (step budget, non-finite state); the message names the cause."""
 
@@ -112,7 +120,7 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
     constrained = np.asarray(supports.constrained)
     n_free, nb = free.size, lattice.n_blocks
     bb = np.asarray(lattice.bond_blocks)
-    fixed = isinstance(config.solver, FixedStepVerlet)
+    fixed = isinstance(config.solver, FIXED_STEP)
     if fixed:
         if time_grid is None:
             raise ValueError("the fixed-step solver needs the time grid (time_grid=) up front")
@@ -120,6 +128,11 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
         n_pre = substeps(grid[0], config.solver.max_dt) if grid[0] > 0 else 0
         n_sub = substeps(float(np.max(np.diff(grid))), config.solver.max_dt)
         n_steps = n_pre + n_sub * (grid.size - 1)
+        if isinstance(config.solver, ImplicitNewmark):
+            layout = implicit_step.band_layout(
+                implicit_step.free_dof_pairs(bb, free, 3 * nb), n_free)
+            dt_nominal = max(float(np.max(np.diff(grid))) / n_sub,
+                             float(grid[0]) / n_pre if n_pre else 0.0)
     else:
         term = diffrax.ODETerm(rhs)
         controller = diffrax.PIDController(rtol=config.rtol, atol=config.atol)
@@ -142,9 +155,15 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
                                                  args.material))(qf)
 
         q0, v0 = y0[:n_free], y0[n_free:] / VELOCITY_SCALE
+        n = jnp.asarray(n_steps)
+        if isinstance(config.solver, ImplicitNewmark):
+            qs, vs, moved = implicit_step.integrate(
+                config.solver, force, args.inv_mass, args.damping, layout, (q0, v0), ts, 0.0,
+                n_pre, n_sub, dt_nominal)
+            result = jnp.where(moved <= config.solver.tol, 0, NOT_CONVERGED).astype(jnp.int32)
+            return qs, vs, (result, n, n, jnp.asarray(0))
         qs, vs = integrate(config.solver, force, args.inv_mass, args.damping, (q0, v0), ts, 0.0,
                            n_pre, n_sub)
-        n = jnp.asarray(n_steps)
         return qs, vs, (jnp.asarray(0, jnp.int32), n, n, jnp.asarray(0))
 
     dtype = jnp.dtype(config.dtype)
@@ -200,6 +219,11 @@ def failure_message(result: int, config: SolverConfig) -> str | None:
     if int(result) == int(diffrax.RESULTS.max_steps_reached._value):
         return (f"the solver hit its step budget (max_steps={config.max_steps}); the scene is too "
                 "stiff for the explicit solver at this tolerance, or the state blew up")
+    if int(result) == NOT_CONVERGED and isinstance(config.solver, ImplicitNewmark):
+        return (f"the implicit iterations did not converge ({config.solver.iterations} chord "
+                f"iterations per step left a correction above {config.solver.tol:g} mm/rad): the "
+                "stiffness moved too far from the initial one for this step; use a smaller step "
+                "or more iterations")
     for name in ("successful", "singular", "breakdown", "divergence", "nonfinite_input",
                  "event_occurred", "discrete_terminating_event_occurred"):
         item = getattr(diffrax.RESULTS, name, None)

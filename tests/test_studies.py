@@ -3,6 +3,7 @@
 import diffrax
 
 from design_engine.fixed_step import FixedStepVerlet
+from design_engine.implicit_step import ImplicitNewmark
 from design_engine.simulate import SolverConfig
 from design_engine.studies.methods import rhs_evaluations
 from design_engine.studies.work_precision import acceptable, fastest_acceptable
@@ -29,3 +30,5 @@ def test_rhs_evaluation_counts():
     assert rhs_evaluations(SolverConfig(), 100) == 100 * 6 + 1  # Dopri5: 7 stages, FSAL
     assert rhs_evaluations(SolverConfig(solver=diffrax.Tsit5()), 10) == 61
     assert rhs_evaluations(SolverConfig(solver=FixedStepVerlet(max_dt=0.01)), 500) == 501
+    # one force evaluation per chord iteration, plus the initial acceleration
+    assert rhs_evaluations(SolverConfig(solver=ImplicitNewmark(iterations=3)), 200) == 601

@@ -15,7 +15,8 @@ def bench_main(argv: list[str] | None = None) -> int:
     wp.add_argument("--out", type=Path, default=Path("runs/bench"))
     wp.add_argument("--quick", action="store_true", help="three methods only (smoke run)")
     wp.add_argument("--scene", action="append", help="limit to these study scenes")
-    wp.add_argument("--implicit", action="store_true", help="also run the implicit solver (slow)")
+    wp.add_argument("--implicit", action="store_true", help="also run diffrax's Kvaerno5 "
+                    "(dense Newton solves; very slow here)")
     st = sub.add_parser("stability", help="where methods break: step, amplitude, pre-compression")
     st.add_argument("--out", type=Path, default=Path("runs/bench"))
     tp = sub.add_parser("throughput", help="vmap batch cost per design; first-call compile time")

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import diffrax
 
 from design_engine.fixed_step import FixedStepVerlet
+from design_engine.implicit_step import ImplicitNewmark
 from design_engine.simulate import SolverConfig
 
 SPEC_TOL = (1e-8, 1e-4)
@@ -50,6 +51,12 @@ def verlet(max_dt: float, **kw) -> Method:
                                                                **kw))
 
 
+def newmark(max_dt: float, iterations: int, **kw) -> Method:
+    tag = "Newmark-implicit" + ("-f32" if kw.get("dtype") == "float32" else "")
+    return Method(f"{tag} dt={max_dt:g}ms x{iterations}", tag,
+                  SolverConfig(solver=ImplicitNewmark(max_dt=max_dt, iterations=iterations), **kw))
+
+
 def study_methods(quick: bool = False) -> list[Method]:
     """Methods of the work-precision study (`quick`: a reduced set for smoke runs)."""
     if quick:
@@ -64,7 +71,12 @@ def study_methods(quick: bool = False) -> list[Method]:
     out += [verlet(dt) for dt in (0.04, 0.02, 0.01)]
     out += [verlet(0.02, dtype="float32")]
     out += [verlet(0.02, use_contact=False), verlet(0.02, linearized=True)]
-    # implicit last: a dense Jacobian and LU per Newton step make it the slowest by far here
+    # implicit trapezoidal Newmark, chord iterations on the factored initial stiffness: 1x, 2x
+    # and 3-4x the default Verlet step (the last two are expected to fail: see implicit_step)
+    out += [newmark(dt, 3) for dt in (0.04, 0.08)] + [newmark(0.08, 3, dtype="float32")]
+    out += [newmark(0.12, 4), newmark(0.16, 6)]
+    # diffrax's implicit ESDIRK last: a dense Jacobian and LU per Newton step make it the
+    # slowest by far here (run only with --implicit)
     out += [_adaptive(diffrax.Kvaerno5(), "Kvaerno5 (implicit)", 1e-4, 1e-2)]
     return out
 
@@ -74,6 +86,8 @@ def rhs_evaluations(config: SolverConfig, num_steps: int) -> int:
     solver = config.solver
     if isinstance(solver, FixedStepVerlet):
         return num_steps + 1
+    if isinstance(solver, ImplicitNewmark):  # Hessian-vector products of the factor not counted
+        return num_steps * solver.iterations + 1
     tableau = getattr(solver, "tableau", None)
     if tableau is None:  # implicit solvers: stages (Newton iterations not counted)
         return -1

@@ -1,5 +1,6 @@
-"""Where methods break: fixed step against the stability limit, amplitude into the contact
-asymptote, pre-compression. Each failure must come back as a reported error, never as numbers.
+"""Where methods break: fixed step against the stability limit (explicit Verlet, and implicit
+Newmark whose chord iterations stop converging instead), amplitude into the contact asymptote,
+pre-compression. Each failure must come back as a reported error, never as numbers.
 """
 
 import json
@@ -10,6 +11,7 @@ from tqdm import tqdm
 
 from design_engine.auto import contact_config, max_angular_frequency
 from design_engine.fixed_step import FixedStepVerlet
+from design_engine.implicit_step import ImplicitNewmark
 from design_engine.run import simulate_scene
 from design_engine.scenes import build_scene
 from design_engine.simulate import SimulationError, SolverConfig
@@ -41,7 +43,15 @@ def run_stability(out: Path) -> dict:
         if o["ok"]:
             o["J_rel_err"] = abs(o["J_mean_J"] - ref) / ref
         rows.append(o)
-    report["step_vs_limit"] = {"scene": "focusing 12x8, 4 mm", "limit_ms": limit, "rows": rows}
+    implicit = []
+    for r in tqdm((0.6, 1.2, 2.0, 3.0, 4.0), desc="implicit dt / limit"):
+        o = _outcome(scene, SolverConfig(solver=ImplicitNewmark(max_dt=r * limit, iterations=3)))
+        o["dt_over_limit"] = r
+        if o["ok"]:
+            o["J_rel_err"] = abs(o["J_mean_J"] - ref) / ref
+        implicit.append(o)
+    report["step_vs_limit"] = {"scene": "focusing 12x8, 4 mm", "limit_ms": limit, "rows": rows,
+                               "newmark_rows": implicit}
     # 2. amplitude into the contact asymptote (44 deg bias: voids of 2 deg), fixed step vs Dopri8
     rows = []
     for amp in tqdm((2e-3, 4e-3, 6e-3, 8e-3, 1e-2), desc="amplitude"):
@@ -75,15 +85,17 @@ def _plot(report: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.3))
-    rows = report["step_vs_limit"]["rows"]
-    ok = [r for r in rows if r["ok"]]
     ax = axes[0]
-    ax.semilogy([r["dt_over_limit"] for r in ok], [max(r["J_rel_err"], 1e-9) for r in ok], "o-",
-                label="Verlet: J error")
-    for r in rows:
-        if not r["ok"]:
-            ax.axvline(r["dt_over_limit"], color="r", ls=":", lw=1)
-    ax.plot([], [], "r:", label="failure reported")
+    for key, style, colour, label in (("rows", "o-", "r", "Verlet"),
+                                      ("newmark_rows", "s--", "m", "Newmark (implicit, 3 chord it.)")):
+        rows = report["step_vs_limit"].get(key, [])
+        ok = [r for r in rows if r["ok"]]
+        ax.semilogy([r["dt_over_limit"] for r in ok], [max(r["J_rel_err"], 1e-9) for r in ok],
+                    style, label=f"{label}: J error")
+        for r in rows:
+            if not r["ok"]:
+                ax.axvline(r["dt_over_limit"], color=colour, ls=":", lw=1)
+        ax.plot([], [], ":", color=colour, label=f"{label}: failure reported")
     ax.set_xlabel("fixed step / (2 / omega_max)")
     ax.set_ylabel("relative error of J")
     ax.set_title(report["step_vs_limit"]["scene"])

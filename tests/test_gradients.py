@@ -1,29 +1,12 @@
 """Autodiff through the solver against central finite differences (spec 11.10)."""
 
-import jax.numpy as jnp
-import numpy as np
 import pytest
 
-from design_engine.run import checked, make_objective
 from design_engine.scenes import build_scene
 from design_engine.simulate import SolverConfig
+from gradcheck import directional_check
 
 TIGHT = SolverConfig(rtol=1e-10, atol=1e-9)
-
-
-def _directional_check(scene, config, h, seed=0, rel=1e-4):
-    vg, value = make_objective(scene, config)
-    x = jnp.asarray(scene.design)
-    (j, aux), grad = checked(vg(x), config)
-    d = np.random.default_rng(seed).normal(size=x.size)
-    d /= np.linalg.norm(d)
-    jp = checked(value(x + h * d), config)[0]
-    jm = checked(value(x - h * d), config)[0]
-    fd = (float(jp) - float(jm)) / (2 * h)
-    ad = float(jnp.dot(grad, d))
-    assert float(j) > 0 or scene.spin_point is not None
-    assert ad == pytest.approx(fd, rel=rel), (ad, fd)
-    return ad, fd
 
 
 # Small lattices get a gentler pulse: the paper's 7.5 mm pulse on an 8x6 lattice (units jammed
@@ -34,18 +17,18 @@ SMALL_AMPLITUDE_M = 2e-3
 
 def test_focusing_gradient_matches_finite_differences():
     scene = build_scene("focusing-24x16", nx=8, ny=6, amplitude_m=SMALL_AMPLITUDE_M)
-    _directional_check(scene, TIGHT, h=1e-3)
+    directional_check(scene, TIGHT, h=1e-3)
 
 
 def test_splitting_gradient_matches_finite_differences():
     scene = build_scene("splitting-24x16", nx=10, ny=8, amplitude_m=SMALL_AMPLITUDE_M)
-    _directional_check(scene, TIGHT, h=1e-3, seed=1)
+    directional_check(scene, TIGHT, h=1e-3, seed=1)
 
 
 @pytest.mark.slow
 def test_gradients_at_reference_tolerance_on_the_full_focusing_scene():
     # spec 11.10: relative error ~3e-4 at step 1e-2 mm with atol 1e-4 (adaptive-step noise)
-    _directional_check(build_scene("focusing-24x16"), SolverConfig(), h=1e-2, rel=3e-3)
+    directional_check(build_scene("focusing-24x16"), SolverConfig(), h=1e-2, rel=3e-3)
 
 
 @pytest.mark.slow
@@ -53,4 +36,4 @@ def test_gradients_at_reference_tolerance_on_the_full_focusing_scene():
 def test_other_objectives_match_finite_differences(name):
     scene = build_scene(name, nx=8, ny=8 if name.startswith("spin") else 10,
                         amplitude_m=SMALL_AMPLITUDE_M)
-    _directional_check(scene, TIGHT, h=1e-3, seed=2)
+    directional_check(scene, TIGHT, h=1e-3, seed=2)

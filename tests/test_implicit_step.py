@@ -14,9 +14,10 @@ from design_engine.fixed_step import FixedStepVerlet
 from design_engine.geometry import block_geometry
 from design_engine.implicit_step import ImplicitNewmark
 from design_engine.loading import Loading
-from design_engine.run import checked, make_objective, simulate_scene
+from design_engine.run import simulate_scene
 from design_engine.scenes import build_scene
 from design_engine.simulate import SimulationError, SolverConfig, check_solution, make_simulator
+from gradcheck import directional_check
 
 
 @pytest.fixture(scope="module")
@@ -113,14 +114,7 @@ def test_implicit_matches_the_adaptive_reference(small, verlet_dt):
 
 def test_implicit_gradient_matches_finite_differences(small, verlet_dt):
     config = SolverConfig(solver=ImplicitNewmark(max_dt=verlet_dt))
-    vg, value = make_objective(small, config)
-    x = jnp.asarray(small.design)
-    (_, _), g = checked(vg(x), config)
-    d = np.random.default_rng(5).normal(size=x.size)
-    d /= np.linalg.norm(d)
-    h = 1e-4
-    fd = (float(value(x + h * d)[0]) - float(value(x - h * d)[0])) / (2 * h)
-    assert float(g @ d) == pytest.approx(fd, rel=1e-5)
+    directional_check(small, config, h=1e-4, seed=5, rel=1e-5)
 
 
 def test_unconverged_iterations_are_reported_not_returned(small, verlet_dt):

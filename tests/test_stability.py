@@ -2,17 +2,16 @@
 
 import math
 
-import jax.numpy as jnp
-import numpy as np
 import pytest
 
 from design_engine import run as run_mod
 from design_engine.auto import Choice, choose_config, contact_config, max_angular_frequency
 from design_engine.fixed_step import FixedStepVerlet
 from design_engine.modal import modal_analysis
-from design_engine.run import checked, make_objective, simulate_scene
+from design_engine.run import simulate_scene
 from design_engine.scenes import build_scene
 from design_engine.simulate import SimulationError, SolverConfig
+from gradcheck import directional_check
 
 
 @pytest.fixture(scope="module")
@@ -43,14 +42,7 @@ def test_fixed_step_below_the_limit_matches_the_adaptive_reference(small):
 
 def test_fixed_step_gradient_matches_finite_differences(small):
     config = SolverConfig(solver=FixedStepVerlet(max_dt=0.6 * 2.0 / max_angular_frequency(small)))
-    vg, value = make_objective(small, config)
-    x = jnp.asarray(small.design)
-    (_, _), g = checked(vg(x), config)
-    d = np.random.default_rng(4).normal(size=x.size)
-    d /= np.linalg.norm(d)
-    h = 1e-4
-    fd = (float(value(x + h * d)[0]) - float(value(x - h * d)[0])) / (2 * h)
-    assert float(g @ d) == pytest.approx(fd, rel=1e-5)
+    directional_check(small, config, h=1e-4, seed=4, rel=1e-5)
 
 
 def test_contact_stiffened_precompression_breaks_a_too_large_fixed_step():

@@ -33,7 +33,7 @@ from rclpy.serialization import serialize_message
 from ros_nodes import convert
 from ros_nodes.logic.cdr import ImageEncoder, restamp
 from ros_nodes.logic.replay import SourceError, open_source
-from ros_nodes.nodes._common import CLOCK, COMMAND, LATCHED, STREAM, run_node
+from ros_nodes.nodes._common import CLOCK, LATCHED, STREAM, run_node
 from ros_nodes.nodes._params import TypedParams
 from ros_nodes.params import CameraNodeConfig
 

@@ -8,6 +8,7 @@ interrupted study resumes where it stopped) and to log-log charts, one curve per
 
 import json
 import logging
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -119,16 +120,19 @@ def plot_study(results: dict, out: Path) -> list[Path]:
         for name, row in sc["methods"].items():
             if "error" not in row and "skipped" not in row:
                 fams.setdefault(row["family"], []).append((name, row))
-        for fam, rows in sorted(fams.items()):
+        colours = plt.get_cmap("tab20").colors  # one colour and marker per family
+        for k, (fam, rows) in enumerate(sorted(fams.items())):
             rows.sort(key=lambda r: r[1]["forward_s"])
-            style = "*" if fam == "auto" else "o-"
+            style = "*" if fam == "auto" else "os^vDP"[k % 6] + "-"
             for ax, tkey, ekey in ((axes[0], "forward_s", "J_rel_err"),
                                    (axes[1], "value_and_grad_s", "grad_rel_err")):
                 ax.loglog([r[1][tkey] for r in rows], [max(r[1][ekey], 1e-12) for r in rows],
-                          style, label=fam, ms=12 if fam == "auto" else 5)
+                          style, label=fam, ms=12 if fam == "auto" else 5,
+                          color="k" if fam == "auto" else colours[(2 * k) % 20 + (k // 10) % 2])
         for ax, tol, title in ((axes[0], J_TOL, "forward objective J"),
                                (axes[1], GRAD_TOL, "gradient dJ/dx")):
             ax.axhline(tol, color="k", ls="--", lw=0.8)
+            ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
             ax.set_xlabel("wall time per evaluation [s] (compile excluded)")
             ax.set_ylabel("relative error vs Dopri8 rtol 1e-11")
             ax.set_title(f"{key}: {title}")
@@ -140,9 +144,10 @@ def plot_study(results: dict, out: Path) -> list[Path]:
                    if "skipped" in r or r.get("error", "").startswith("not run")]
         note = ("failed (detected and reported): " + "; ".join(failed) + "   ") if failed else ""
         note += ("not run on this scene (see JSON): " + "; ".join(not_run)) if not_run else ""
-        if note:
-            fig.text(0.01, 0.01, note, fontsize=6)
-        fig.tight_layout(rect=(0, 0.03, 1, 1))
+        lines = textwrap.wrap(note, 220)
+        if lines:
+            fig.text(0.01, 0.005, "\n".join(lines), fontsize=6, va="bottom")
+        fig.tight_layout(rect=(0, 0.012 + 0.018 * len(lines), 1, 1))
         p = out / f"work_precision_{key}.png"
         fig.savefig(p, dpi=110)
         plt.close(fig)

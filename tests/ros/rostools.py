@@ -18,12 +18,27 @@ def wait_for_service(client, executor, timeout_s: float = 45.0) -> None:
                f"service {client.srv_name}")
 
 
-def call(client, request, executor, timeout_s: float = 45.0):
-    """Call a service and spin until the response arrives."""
+def call(client, request, executor, timeout_s: float = 45.0, resend_s: float = 5.0):
+    """Call a service and spin until the response arrives.
+
+    `service_is_ready()` only says that our side has matched the server; right after start-up
+    the server's response writer may not have matched our reader yet, and Fast DDS then drops
+    the response ("failed to send response (timeout)"). A request unanswered after `resend_s`
+    is therefore sent again (tests call only services whose repeat is harmless at that point).
+    """
     wait_for_service(client, executor, timeout_s)
-    fut = client.call_async(request)
-    spin_until(executor, fut.done, timeout_s, f"response of {client.srv_name}")
-    return fut.result()
+    deadline = time.monotonic() + timeout_s
+    while True:
+        fut = client.call_async(request)
+        try:
+            spin_until(executor, fut.done, min(resend_s, max(deadline - time.monotonic(), 0.0)),
+                       f"response of {client.srv_name}")
+            return fut.result()
+        except AssertionError:
+            client.remove_pending_request(fut)
+            if time.monotonic() >= deadline:
+                raise AssertionError(f"timed out after {timeout_s} s waiting for the response "
+                                     f"of {client.srv_name}") from None
 
 
 def wait_matched(pub_or_sub, executor, timeout_s: float = 20.0, count: int = 1) -> None:

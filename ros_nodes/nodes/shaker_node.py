@@ -20,6 +20,7 @@ from std_srvs.srv import Trigger
 from hardware_sim import shaker as sh
 from metarig_msgs.srv import FirePulse
 from ros_nodes import convert
+from ros_nodes.logic.sampling import due_samples
 from ros_nodes.nodes._common import COMMAND, LATCHED, STREAM, run_node
 from ros_nodes.nodes._params import TypedParams
 from ros_nodes.params import ShakerNodeConfig
@@ -90,13 +91,11 @@ class ShakerNode(LifecycleNode):
         return self.get_clock().now().nanoseconds * 1e-9
 
     def _tick(self) -> None:
-        t = self._now_s()
-        if t <= self._state.t:
-            return
-        cfg = self._params.config.device
-        self._state, r = sh.advance(cfg, self._state, self._program, t, self._rng)
-        self._pubs["js"].publish(convert.shaker_state(int(round(r.t * 1e9)), r.x_m, r.v_m_s))
-        if self._program is not None and t > self._program.end_s:
+        cfg = self._params.config
+        for t in due_samples(self._state.t, self._now_s(), 1.0 / cfg.rate_hz):
+            self._state, r = sh.advance(cfg.device, self._state, self._program, t, self._rng)
+            self._pubs["js"].publish(convert.shaker_state(int(round(r.t * 1e9)), r.x_m, r.v_m_s))
+        if self._program is not None and self._state.t > self._program.end_s:
             self._program = None
             self._report("ok", "waveform finished")
 

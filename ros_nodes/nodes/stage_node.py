@@ -19,6 +19,7 @@ from hardware_sim import stage as sg
 from hardware_sim.shaker import LimitError
 from metarig_msgs.srv import SetStrain
 from ros_nodes import convert
+from ros_nodes.logic.sampling import due_samples
 from ros_nodes.nodes._common import COMMAND, LATCHED, STREAM, run_node
 from ros_nodes.nodes._params import TypedParams
 from ros_nodes.params import StageNodeConfig
@@ -92,18 +93,23 @@ class StageNode(LifecycleNode):
     def _tick(self) -> None:
         if self._state is None:
             return
-        t = max(self._now_s(), self._state.t)
-        cmd, self._pending = self._pending, sg.StageCommand()
-        try:
-            self._state, r = sg.step(self._params.config.device, self._state, cmd,
-                                     t - self._state.t, self._rng)
-        except LimitError as e:  # cannot happen for checked commands; never let it kill the node
-            self.get_logger().error(str(e))
+        cfg = self._params.config
+        due = due_samples(self._state.t, self._now_s(), 1.0 / cfg.rate_hz)
+        if not due:
             return
-        if "js" in self._pubs:
-            self._pubs["js"].publish(convert.stage_state(int(round(r.t * 1e9)), r.bottom_m,
-                                                         r.top_m))
-        self._publish_mode()
+        cmd, self._pending = self._pending, sg.StageCommand()
+        for t in due:
+            try:
+                self._state, r = sg.step(cfg.device, self._state, cmd, t - self._state.t,
+                                         self._rng)
+            except LimitError as e:  # cannot happen for checked commands; never kill the node
+                self.get_logger().error(str(e))
+                return
+            cmd = sg.StageCommand()  # a command acts once, at the first sample after it came
+            if "js" in self._pubs:
+                self._pubs["js"].publish(convert.stage_state(int(round(r.t * 1e9)), r.bottom_m,
+                                                             r.top_m))
+            self._publish_mode()
 
     def _publish_mode(self, force: bool = False) -> None:
         s = self._state

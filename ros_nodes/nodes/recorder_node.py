@@ -4,7 +4,8 @@ Interfaces (node name `recorder`):
 - services `~/start` and `~/stop` (std_srvs/Trigger): open `path` and record / finish the file;
   the stop response carries the loss report (JSON) in `message`; `autostart` records at once.
 - `~/report` (std_msgs/String, latched): the report of the last finished recording (JSON).
-- `~/status` (std_msgs/String, 5 Hz): whether recording, and messages written per topic (JSON).
+- `~/status` (std_msgs/String, 5 Hz): whether recording, whether every subscription has matched
+  its publishers (`matched`), and messages written per topic (JSON).
 Topics in `topics` are subscribed as they appear (types discovered from the graph), with the
 publishers' reliability and durability (latched topics stay latched). The strings on
 `/rig/design` and `/rig/config` are also stored as MCAP metadata records. Ctrl-C or SIGTERM
@@ -109,9 +110,16 @@ class RecorderNode(Node):
         return {} if rec is None else {t: s.count for t, s in list(rec.stats.items())}
 
     # callbacks ------------------------------------------------------------------------------
+    def matched(self) -> bool:
+        """True when every recorded topic's subscription has matched all its publishers (until
+        then a message sent now may never reach the file)."""
+        return all(entry[2].get_publisher_count() >= self.count_publishers(topic)
+                   for topic, entry in list(self._subs.items()) if entry is not None)
+
     def _status(self) -> None:
         self._status_pub.publish(String(data=json.dumps(
-            {"recording": self._rec is not None, "counts": self.message_counts()})))
+            {"recording": self._rec is not None, "matched": self.matched(),
+             "counts": self.message_counts()})))
 
     def _discover(self) -> None:
         wanted = set(self._params.config.topics)

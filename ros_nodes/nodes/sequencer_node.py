@@ -166,8 +166,10 @@ class SequencerNode(Node):
         self.pause_clock()
         self.phase(Phase.RECORD)
         self.call("rec_start", Trigger.Request())
-        self._until(lambda: (self.latest.get("recorder") or {}).get("recording"),
-                    "the recorder to start", 30.0)
+        # recording, and subscribed to every rig topic: a sample sent before the match is lost
+        self._until(lambda: (self.latest.get("recorder") or {}).get("recording") and
+                    (self.latest.get("recorder") or {}).get("matched", True),
+                    "the recorder to start and match every topic", 30.0)
         t_rec = self.sim_s
         if not self.call("cam_start", Trigger.Request()).success:
             raise RigError("camera refused to start")

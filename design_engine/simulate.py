@@ -15,10 +15,10 @@ import numpy as np
 from design_engine._types import Array, DesignVector, Float, Int
 from design_engine.dynamics import VELOCITY_SCALE, make_dynamics_args, make_full_state, make_rhs
 from design_engine.energy import make_energy
-from design_engine import implicit_step
 from design_engine.fixed_step import FixedStepVerlet, integrate, substeps
 from design_engine.geometry import block_geometry
-from design_engine.implicit_step import ImplicitNewmark
+from design_engine.implicit_step import ImplicitNewmark, band_layout, free_dof_pairs
+from design_engine.implicit_step import integrate as integrate_implicit
 from design_engine.lattice import Lattice
 from design_engine.loading import Loading, Supports, make_prescribed
 from design_engine.material import Material
@@ -129,8 +129,7 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
         n_sub = substeps(float(np.max(np.diff(grid))), config.solver.max_dt)
         n_steps = n_pre + n_sub * (grid.size - 1)
         if isinstance(config.solver, ImplicitNewmark):
-            layout = implicit_step.band_layout(
-                implicit_step.free_dof_pairs(bb, free, 3 * nb), n_free)
+            layout = band_layout(free_dof_pairs(bb, free, 3 * nb), n_free)
             dt_nominal = max(float(np.max(np.diff(grid))) / n_sub,
                              float(grid[0]) / n_pre if n_pre else 0.0)
     else:
@@ -157,7 +156,7 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
         q0, v0 = y0[:n_free], y0[n_free:] / VELOCITY_SCALE
         n = jnp.asarray(n_steps)
         if isinstance(config.solver, ImplicitNewmark):
-            qs, vs, moved = implicit_step.integrate(
+            qs, vs, moved = integrate_implicit(
                 config.solver, force, args.inv_mass, args.damping, layout, (q0, v0), ts, 0.0,
                 n_pre, n_sub, dt_nominal)
             result = jnp.where(moved <= config.solver.tol, 0, NOT_CONVERGED).astype(jnp.int32)

@@ -87,6 +87,7 @@ class Solution(eqx.Module):
     min_void_margin: Float[Array, ""]
 
 
+VOID_WRAP = np.pi / 3.0  # reference void angles are taken on [-VOID_WRAP, 2 pi - VOID_WRAP)
 FIXED_STEP = (FixedStepVerlet, ImplicitNewmark)  # schemes run on a static step grid
 # result code of an implicit solve whose iterations did not converge (diffrax's meaning)
 NOT_CONVERGED = int(diffrax.RESULTS.nonlinear_max_steps_reached._value)
@@ -192,8 +193,13 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
         qc_dot = jax.vmap(lambda t: prescribed(t, loading)[1])(ts)
         v_all = jnp.zeros((ts.shape[0], 3 * nb), vf.dtype)
         v_all = v_all.at[:, free].set(vf).at[:, constrained].set(qc_dot)
+        # void angles followed continuously from the reference; the reference angle (signed, in
+        # (-pi, pi]) is first put on [-60, 300) deg so that a wide void (> 180 deg, which the
+        # contact law sees as far below theta_min) is not mistaken for a unit that passed
+        # through the barrier (a feasible design has reference voids in [0, 300] deg)
+        ref = jnp.mod(args.bonds.void_ref + VOID_WRAP, 2.0 * jnp.pi) - VOID_WRAP
         bend = q[:, bb[:, 1], 2] - q[:, bb[:, 0], 2]
-        voids = jnp.stack([args.bonds.void_ref[:, 0] - bend, args.bonds.void_ref[:, 1] + bend])
+        voids = jnp.stack([ref[:, 0] - bend, ref[:, 1] + bend])
         return Solution(
             ts=ts,
             q=q,

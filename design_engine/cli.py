@@ -6,6 +6,7 @@ import logging
 import math
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +30,9 @@ def _scene_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--design", type=Path, help="design file (JSON, metarig-design/1) to simulate "
                    "instead of the periodic design")
     p.add_argument("--samples", type=int, help="samples in the dynamic window (default 200)")
+    p.add_argument("--task", help="task preset or task file: simulate its first scene (with "
+                   "--design, that design) and report the task's objectives as `metarig design` "
+                   "optimises them")
 
 
 def _build(args):
@@ -42,11 +46,41 @@ def _build(args):
         if (nx and nx != lattice.shape[0]) or (ny and ny != lattice.shape[1]):
             raise ValueError(f"--nx/--ny disagree with the design file's lattice {lattice.shape}")
         nx, ny = lattice.shape
+    if getattr(args, "task", None):
+        task = _task(args, nx, ny, design)
+        return task.scenes[task.terms[0].scene]
     if args.samples is not None and args.samples < 2:
         raise ValueError("--samples must be at least 2")
     return build_scene(args.preset, nx=nx, ny=ny, bias_angle_deg=args.bias_angle_deg,
                        amplitude_m=args.amplitude, frequency_hz=args.frequency,
                        strain=args.precompression, design=design, n_samples=args.samples)
+
+
+def _task(args, nx, ny, design):
+    """The task of `--task`, on the design's lattice, with the design in every scene."""
+    from design_engine.task import load_task
+
+    task = load_task(args.task, size=(nx, ny) if nx and ny else None,
+                     bias_angle_deg=args.bias_angle_deg)
+    if design is not None:
+        if design.size != task.lattice.n_design:
+            raise ValueError(f"the design does not fit the task's {task.lattice.kind} lattice")
+        task = replace(task, scenes={k: s.with_design(design) for k, s in task.scenes.items()})
+    return task
+
+
+def task_summary(task, main_scene: str, main_solution, config) -> dict:
+    """The task's objectives on the scene designs (other scenes simulated with `config`)."""
+    from design_engine.run import simulate_scene
+    from design_engine.task_eval import task_terms
+
+    sols = {main_scene: main_solution}
+    for t in task.terms:
+        if t.scene not in sols:
+            sols[t.scene] = simulate_scene(task.scenes[t.scene], config).solution
+    terms = task_terms(task, sols)
+    return {"name": task.name, "goal": task.goal, "objective": task.scalarised_si(terms),
+            "objectives": task.objectives_si(terms), "metrics": task.metrics(terms)}
 
 
 SOLVERS = ("auto", "dopri5", "tsit5", "dopri8", "verlet", "newmark")
@@ -123,6 +157,13 @@ def simulate_main(argv: list[str] | None = None) -> int:
     except (ValueError, InvalidDesignError, SimulationError, OSError) as exc:
         print(f"metarig simulate: error: {exc}", file=sys.stderr)
         return 2
+    if args.task:
+        try:
+            task = _task(args, *scene.lattice.shape, scene.design)
+            run.metrics["task"] = task_summary(task, task.terms[0].scene, run.solution, config)
+        except (ValueError, SimulationError) as exc:
+            print(f"metarig simulate: error: {exc}", file=sys.stderr)
+            return 2
     summary = {"scene": scene.name, "lattice": scene.lattice.describe(), "n_units": scene.n_units,
                "input_units": scene.input_units.tolist(),
                "precompression_strain": float(scene.loading.strain),
@@ -139,6 +180,10 @@ def simulate_main(argv: list[str] | None = None) -> int:
         log.info("solver: %s", line)
     log.info("target kinetic energy, mean over the window: %.6g J (%.6g mJ)",
              summary["target_ke_mean_J"], 1e3 * summary["target_ke_mean_J"])
+    if "task" in summary:
+        log.info("task %s: objective %.6g (%s)", summary["task"]["name"],
+                 summary["task"]["objective"],
+                 ", ".join(f"{k} {v:.6g}" for k, v in summary["task"]["objectives"].items()))
     log.info("wrote %s", ", ".join(sorted(f.name for f in out.iterdir())))
     return 0
 

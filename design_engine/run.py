@@ -26,7 +26,7 @@ from design_engine import units
 _COMPILED: dict[tuple, object] = {}
 
 
-def _key(scene: Scene, config: SolverConfig, tag: str, ts_ms) -> tuple:
+def compile_key(scene: Scene, config: SolverConfig, tag: str, ts_ms) -> tuple:
     s = scene.supports
     grid = np.asarray(ts_ms).tobytes() if isinstance(config.solver, FIXED_STEP) else b""
     return (tag, scene.lattice.kind, scene.lattice.shape, scene.lattice.spacing,
@@ -41,7 +41,7 @@ def compiled_simulator(scene: Scene, config: SolverConfig, ts_ms=None):
     the compiled function must then be called with those sample times.
     """
     ts_ms = scene.sample_times if ts_ms is None else np.asarray(ts_ms)
-    key = _key(scene, config, "sim", ts_ms)
+    key = compile_key(scene, config, "sim", ts_ms)
     if key not in _COMPILED:
         _COMPILED[key] = jax.jit(make_simulator(scene.lattice, scene.supports, config, ts_ms))
     return _COMPILED[key]
@@ -132,7 +132,7 @@ _CHOICES: dict[tuple, Choice] = {}
 
 def default_choice(scene: Scene) -> Choice:
     """The automatic configuration for this scene and design (cached per process)."""
-    key = _key(scene, SolverConfig(), "choice", np.zeros(0)) + (
+    key = compile_key(scene, SolverConfig(), "choice", np.zeros(0)) + (
         scene.design.tobytes(), float(scene.loading.strain), repr(scene.material))
     if key not in _CHOICES:
         _CHOICES[key] = choose_config(scene)

@@ -159,6 +159,10 @@ def build_scene(
     design: np.ndarray | None = None,
     n_samples: int | None = None,
     target_windows: dict[str, tuple[tuple[int, int], tuple[int, int]]] | None = None,
+    side: str | None = None,
+    shift: int | None = None,
+    contact_deg: tuple[float, float] | None = None,
+    periods: float | None = None,
 ) -> Scene:
     """Build a preset scene, optionally resized or re-loaded.
 
@@ -175,10 +179,19 @@ def build_scene(
         n_samples: samples in the dynamic window (default 200; spin 250).
         target_windows: name -> ((w, h), (sx, sy)) target regions replacing the preset's (for
             resized lattices whose preset windows do not fit).
+        side, shift: input side (left, right, bottom, top) and offset of the two driven units
+            (spec 7.2), replacing the preset's; an explicit shift is used as given (not scaled).
+        contact_deg: (theta_min, theta_cutoff) contact angles, degrees (spec 5.3).
+        periods: window length T in input periods (default the preset's: 2, spin 5, kagome 3).
     """
     if name not in PRESETS:
         raise ValueError(f"unknown scene {name!r}; choose one of: {', '.join(PRESETS)}")
     r = dict(PRESETS[name])
+    explicit_shift = shift is not None
+    r.update({k: v for k, v in (("side", side), ("shift", shift), ("contact_deg", contact_deg),
+                                ("periods", periods)) if v is not None})
+    if periods is not None and not (math.isfinite(periods) and periods > 0):
+        raise ValueError(f"window length must be a positive number of periods, got {periods}")
     shape = (nx or r["shape"][0], ny or r["shape"][1])
     lattice = quads(*shape) if r["kind"] == "quads" else kagome(*shape)
     if frequency_hz <= 0 or not math.isfinite(frequency_hz):
@@ -187,9 +200,12 @@ def build_scene(
     x = periodic_design(lattice, math.radians(bias)) if design is None else design
     x = check_design(lattice, x)
     cmin, ccut = r.get("contact_deg", (-15.0, -10.0))
+    if not -90.0 < cmin < ccut < 0.0:
+        raise ValueError(f"contact angles need -90 < theta_min < theta_cutoff < 0 deg, got "
+                         f"{cmin}, {ccut}")
     material = Material.paper(lattice, contact_min_deg=cmin, contact_cutoff_deg=ccut)
     shift = r["shift"]
-    if shape != tuple(r["shape"]):
+    if shape != tuple(r["shape"]) and not explicit_shift:
         axis = 1 if r["side"] in ("left", "right") else 0
         shift = round(shift * shape[axis] / r["shape"][axis])
     inputs = driven_units(lattice, r["side"], 2, shift)

@@ -11,6 +11,8 @@ import sys
 SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     "simulate": ("design_engine.cli", "simulate_main", "simulate a scene and write its outputs"),
     "modes": ("design_engine.cli", "modes_main", "linear modal analysis of a scene"),
+    "design": ("design_engine.design_cli", "design_main", "optimise a design for a task (MMA)"),
+    "export": ("design_engine.export", "export_main", "export a design's outlines for fabrication (SVG, DXF)"),
     "bench": ("design_engine.studies.cli", "bench_main", "speed-accuracy studies (work-precision, speedup)"),
     "rig": ("ros_nodes.cli_rig", "rig_main", "run an experiment on the simulated (or real) rig"),
     "recover": ("ros_nodes.cli_rig", "recover_main", "salvage an MCAP recording whose writer was killed"),

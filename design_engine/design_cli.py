@@ -1,0 +1,202 @@
+"""`metarig design`: optimise a design for a task preset or task file; outputs in a run folder.
+
+Writes to --out: `design.json` (best feasible design, `metarig-design/1` with task, objectives,
+max constraint, evaluation and provenance), `last_design.json`, `history.json` (every
+evaluation), `checkpoint.npz` + `run.json` (resume), and the plots `history.png`,
+`designs.png` (initial and optimised, coloured by time-averaged kinetic energy) and
+`active_constraints.png`.
+"""
+
+import argparse
+import datetime
+import json
+import logging
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger("metarig.design")
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        nx, ny = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"size must look like 24x16, got {text!r}") from None
+    if nx < 2 or ny < 2:
+        raise argparse.ArgumentTypeError(f"size needs at least 2x2, got {text!r}")
+    return nx, ny
+
+
+def _positive(kind):
+    def parse(text: str):
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a {kind.__name__}, got {text!r}") from None
+        if not v > 0:
+            raise argparse.ArgumentTypeError(f"must be positive, got {text!r}")
+        return v
+    return parse
+
+
+def provenance(solver: dict | None = None) -> dict:
+    """Package version, git commit (if any), date and solver configuration of a result."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        ver = version("metarig")
+    except PackageNotFoundError:
+        ver = "unknown"
+    try:
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).parent,
+                                capture_output=True, text=True, timeout=5).stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        commit = None
+    return {"package": "metarig", "version": ver, "git_commit": commit,
+            "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+            "solver": solver}
+
+
+def design_main(argv: list[str] | None = None) -> int:
+    """Optimise a design by MMA for a task preset or a task file (TOML)."""
+    from design_engine.task import preset_names
+
+    p = argparse.ArgumentParser(prog="metarig design", description=design_main.__doc__,
+                                formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+                                epilog="presets: " + ", ".join(preset_names()))
+    p.add_argument("task", nargs="?", help="task preset name or task file (.toml)")
+    p.add_argument("--out", type=Path, help="run folder (default runs/design-<task>)")
+    p.add_argument("--size", type=_size, help="lattice size NXxNY (default the task's)")
+    p.add_argument("--max-evals", type=_positive(int), help="objective evaluations, MMA inner "
+                   "iterations included (default the task's)")
+    p.add_argument("--max-time", type=_positive(float), help="wall-time budget of the whole run, "
+                   "s (default the task's)")
+    p.add_argument("--bias-angle-deg", type=float, help="bias angle of the periodic initial "
+                   "design, degrees")
+    p.add_argument("--seed", type=int, help="start from a random initial guess drawn with this "
+                   "seed (periodic design + uniform noise, spec 3.1)")
+    p.add_argument("--algorithm", choices=("mma", "nlopt-mma", "nlopt-ccsaq"),
+                   help="optimiser (default the task's: mma)")
+    p.add_argument("--resume", action="store_true", help="continue the run in --out")
+    p.add_argument("--list", action="store_true", help="list the task presets and exit")
+    p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    args = p.parse_args(argv)
+    if args.list:
+        from design_engine.task import load_task
+
+        for name in preset_names():
+            t = load_task(name)
+            print(f"{name:<20}{t.description}")
+        return 0
+    if not args.task:
+        p.error("a task preset or task file is required (see --list)")
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+
+    import design_engine  # noqa: F401  (x64, cache)
+    from design_engine.geometry import InvalidDesignError
+    from design_engine.optimize import ResumeError, run_design
+    from design_engine.simulate import SimulationError
+    from design_engine.task import TaskError, load_task
+
+    try:
+        task = load_task(args.task, size=args.size, max_evals=args.max_evals,
+                         max_time_s=args.max_time, bias_angle_deg=args.bias_angle_deg,
+                         seed=args.seed, algorithm=args.algorithm)
+        out = args.out or Path("runs") / f"design-{task.name}"
+        log.info("task %s (%s): %s lattice %dx%d, %d design variables, %d constraints, "
+                 "%d scene(s), budget %d evaluations / %.0f s, optimiser %s",
+                 task.name, task.source, task.lattice.kind, *task.lattice.shape, task.free.size,
+                 4 * task.lattice.n_bonds + task.lattice.n_blocks * task.lattice.n_vertices,
+                 len(task.scenes), task.budget.max_evals, task.budget.max_time_s,
+                 task.optimizer.algorithm)
+        result = run_design(task, out, resume=args.resume, progress=not args.quiet)
+    except (TaskError, ResumeError, InvalidDesignError, SimulationError, OSError) as exc:
+        print(f"metarig design: error: {exc}", file=sys.stderr)
+        return 2
+    write_outputs(task, out, result, plots=not args.no_plots)
+    return 130 if result.status == "interrupted" else 0
+
+
+def write_outputs(task, out: Path, result, plots: bool = True) -> None:
+    """Design files, a summary in the log, and the plots of a finished (or stopped) run."""
+    from design_engine.design_io import save_design
+
+    evals = result.evaluations
+    if not evals:
+        log.info("no evaluation was completed; nothing to write")
+        return
+    last = len(evals) - 1
+    _save(out / "last_design.json", task, result.last_x, evals[last], save_design)
+    if result.best is None:
+        log.warning("no feasible design among %d evaluations: design.json not written", len(evals))
+    else:
+        _save(out / "design.json", task, result.best_x, evals[result.best], save_design)
+    first = evals[0]
+    totals = {k: sum(e[k] for e in evals) for k in ("sim_s", "jac_s", "opt_s")}
+    log.info("%s after %d evaluations (%s): compilations this session: %d",
+             "interrupted" if result.status == "interrupted" else "stopped", len(evals),
+             result.stop_reason, result.compilations)
+    if result.best is not None:
+        b = evals[result.best]
+        ratio = b["objective"] / first["objective"] if first["objective"] else float("nan")
+        log.info("objective %.6g -> %.6g (best feasible, evaluation %d; x%.1f)",
+                 first["objective"], b["objective"], b["eval"], ratio)
+    log.info("time: simulation %.1f s, constraint Jacobians %.1f s, optimiser step %.1f s",
+             totals["sim_s"], totals["jac_s"], totals["opt_s"])
+    if result.status == "interrupted":
+        log.info("resume with: metarig design %s --out %s --resume", task.source, out)
+    if plots:
+        try:
+            _plots(task, out, result)
+        except Exception as exc:  # a plot must never cost the run's results
+            log.warning("plots failed: %s", exc)
+    log.info("wrote %s", ", ".join(sorted(f.name for f in out.iterdir())))
+
+
+def _save(path: Path, task, x, rec: dict, save_design) -> None:
+    save_design(path, task.lattice, x, name=f"{task.name} (evaluation {rec['eval']})",
+                task=task.name, task_source=task.source, goal=task.goal,
+                objective=rec["objective"], objectives=rec["objectives"],
+                objectives_units={t.name: ("kg m^2/s" if t.quantity == "angular_momentum"
+                                           else "J (mean kinetic energy over the window)")
+                                  for t in task.terms},
+                max_constraint=rec["max_constraint"], feasible=rec["feasible"],
+                eval=rec["eval"], provenance=provenance(rec.get("solver")))
+
+
+def _plots(task, out: Path, result) -> None:
+    import jax.numpy as jnp
+
+    from design_engine.constraints import active_constraint_masks, make_sparse_constraints
+    from design_engine.design_plots import (plot_active_constraints, plot_design_comparison,
+                                            plot_history)
+    from design_engine.geometry import block_geometry
+    from design_engine.objectives import block_kinetic_energy
+    from design_engine.run import simulate_scene
+
+    plot_history(out / "history.png", result.evaluations, task.goal,
+                 f"{task.name}: objective per evaluation")
+    final = result.best_x if result.best_x is not None else result.last_x
+    scene = task.scenes[task.terms[0].scene]
+    maps = []
+    for x in (task.initial_design, final):
+        sc = scene.with_design(x)
+        run = simulate_scene(sc)
+        maps.append((sc.reference_polygons_m(),
+                     np.asarray(block_kinetic_energy(run.solution)).mean(axis=0) * 1e-3))
+    plot_design_comparison(out / "designs.png", maps[0][0], maps[0][1], maps[1][0], maps[1][1],
+                           task.targets, f"{task.name}: initial and optimised design "
+                           f"({scene.name} scene)")
+    g, _ = make_sparse_constraints(task.lattice, task.limits, final, task.free)(final[task.free])
+    masks = active_constraint_masks(task.lattice, g)
+    geom = block_geometry(task.lattice, jnp.asarray(final))
+    nodes = np.asarray(geom.centroids[:, None, :] + geom.arms).reshape(-1, 2) / 1e3
+    bond_points = nodes[task.lattice.bonds].mean(axis=1)
+    plot_active_constraints(out / "active_constraints.png", maps[1][0], masks["edges"],
+                            masks["vertices"], masks["voids"], bond_points,
+                            f"{task.name}: active constraints of the final design")
+    (out / "active_constraints.json").write_text(json.dumps(masks["counts"]))

@@ -1,0 +1,228 @@
+"""A task's objective as the optimiser sees it: value and exact gradient for any design.
+
+One compiled value-and-gradient per solver configuration (the design, material, loading and
+sample times are traced arguments, so every evaluation and every scene of the same topology
+reuses it). Per evaluation and scene the solver policy of `auto` applies, with two additions
+that an optimisation needs:
+- the fixed step is kept valid while the design changes: before each fixed-step solve the
+  highest natural frequency of the *current* design is re-measured (a warm-started power
+  iteration, `STEP_CHECK_ITERATIONS` Hessian-vector products, a few per cent of a solve) and
+  when the step exceeds `STEP_RECHECK` x 2/omega_max a new step of `auto.STABILITY_SAFETY` x
+  2/omega_max is taken (one more compilation, recorded as an event); a solve that still goes
+  non-finite is caught and redone with the fallback configuration;
+- a design whose voids reach the contact cutoff is re-solved with contact, and a failed solve is
+  retried with the fallback; if that fails too the evaluation raises `EvaluationFailed`.
+Every such step is recorded with its reason.
+"""
+
+import time
+from dataclasses import dataclass, field
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from design_engine.auto import (STABILITY_SAFETY, choose_config, fallback_config,
+                                initial_vector, make_frequency_estimator, needs_contact,
+                                with_contact)
+from design_engine.fixed_step import FixedStepVerlet
+from design_engine.objectives import angular_momentum, region_energy
+from design_engine.run import checked, compile_key, config_summary
+from design_engine.simulate import SimulationError, Solution, SolverConfig, make_simulator
+from design_engine.task import OPTIMISER_SCALE, Task, Term
+
+STEP_RECHECK = 0.8  # re-choose the fixed step above this fraction of the stability limit
+STEP_CHECK_ITERATIONS = 30  # warm-started power iterations per evaluation
+INITIAL_ITERATIONS = 300  # cold power iterations for the initial design
+
+
+def term_value(term: Term, sol: Solution, ids, point=None):
+    """Internal value of one objective term on a solution: J_Omega (mJ, summed over the
+    samples) or J_L about `point` (g mm^2/ms). The one definition `design` optimises and
+    `simulate --task` reports."""
+    if term.quantity == "angular_momentum":
+        return angular_momentum(sol, ids, point)
+    return region_energy(sol, ids)
+
+
+def task_terms(task: Task, solutions: dict[str, Solution]) -> dict[str, float]:
+    """Term name -> internal value, from one solution per scene (scene name -> Solution)."""
+    return {t.name: float(term_value(t, solutions[t.scene], task.targets[t.target],
+                                     task.spin_point)) for t in task.terms}
+
+
+class EvaluationFailed(RuntimeError):
+    """Every configuration failed for this design; the message says why."""
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """One evaluated design.
+
+    Attributes:
+        value: scalarised objective in optimiser units (sum_i w_i * scale_i * term_i).
+        grad: [n_design] d value / d x, per mm.
+        terms: term name -> internal value (J_Omega mJ summed over samples, or J_L g mm^2/ms).
+        solver: scene name -> {"config": summary, "why": [reasons]} of the solve that counted.
+        events: what happened beyond the plain solve (step re-chosen, contact, fallback).
+        sim_s: wall time of the solves and step checks, s.
+    """
+
+    value: float
+    grad: np.ndarray
+    terms: dict[str, float]
+    solver: dict[str, dict]
+    events: tuple[str, ...] = field(default=())
+    sim_s: float = 0.0
+
+
+@dataclass
+class _SceneState:
+    config: SolverConfig
+    reasons: tuple[str, ...]
+    omega: float | None = None
+    vector: np.ndarray | None = None
+
+
+class TaskEvaluator:
+    """Evaluates a task's scalarised objective and its gradient (see module docstring)."""
+
+    def __init__(self, task: Task):
+        self.task = task
+        self.compilations = 0
+        self._compiled: dict[tuple, object] = {}
+        self._estimators: dict[str, object] = {}
+        self._state: dict[str, _SceneState] = {}
+        for name, scene in task.scenes.items():
+            omega, vec = None, None
+            if scene.loading.strain == 0.0:
+                omega, vec = self._frequency(name, task.initial_design, None)
+            choice = choose_config(scene, omega=omega)
+            self._state[name] = _SceneState(choice.config, choice.reasons, omega, vec)
+
+    # --- compiled pieces -------------------------------------------------------------------
+
+    def _frequency(self, name: str, x, vector):
+        scene = self.task.scenes[name]
+        if name not in self._estimators:
+            self._estimators[name] = make_frequency_estimator(scene, STEP_CHECK_ITERATIONS)
+        est = self._estimators[name]
+        rounds = 1
+        if vector is None:
+            vector, rounds = initial_vector(scene), INITIAL_ITERATIONS // STEP_CHECK_ITERATIONS
+        v = jnp.asarray(vector)
+        for _ in range(rounds):
+            omega, v = est(jnp.asarray(x), v)
+        return float(omega), np.asarray(v)
+
+    def _function(self, name: str, config: SolverConfig):
+        scene = self.task.scenes[name]
+        terms = [t for t in self.task.terms if t.scene == name]
+        key = compile_key(scene, config, "task", scene.sample_times) + tuple(
+            (t.name, t.weight, t.quantity, tuple(self.task.targets[t.target])) for t in terms)
+        if key in self._compiled:
+            return self._compiled[key]
+        sim = make_simulator(scene.lattice, scene.supports, config, scene.sample_times)
+        targets = {t.name: np.asarray(self.task.targets[t.target]) for t in terms}
+        point = None if self.task.spin_point is None else jnp.asarray(self.task.spin_point)
+
+        def objective(x, material, loading, ts):
+            sol = sim(x, material, loading, ts)
+            raw = {t.name: term_value(t, sol, targets[t.name], point) for t in terms}
+            value = sum(t.weight * OPTIMISER_SCALE[t.quantity] * raw[t.name] for t in terms)
+            aux = {"result": sol.result, "num_steps": sol.num_steps, "terms": raw,
+                   "finite": jnp.all(jnp.isfinite(sol.qdot)), "void_margin": sol.min_void_margin}
+            return value, aux
+
+        fn = jax.jit(jax.value_and_grad(objective, has_aux=True))
+        self._compiled[key] = fn
+        self.compilations += 1
+        return fn
+
+    def _solve(self, name: str, config: SolverConfig, x: np.ndarray):
+        """One value-and-gradient solve; raises `SimulationError` on any failure."""
+        scene = self.task.scenes[name]
+        fn = self._function(name, config)
+        out = fn(jnp.asarray(x), scene.material, scene.loading, jnp.asarray(scene.sample_times))
+        out = jax.block_until_ready(out)
+        checked(out, config)
+        (value, aux), grad = out
+        grad = np.asarray(grad, np.float64)
+        if not np.all(np.isfinite(grad)):
+            raise SimulationError("non-finite gradient")
+        terms = {k: float(v) for k, v in aux["terms"].items()}
+        return float(value), grad, terms, aux
+
+    # --- the policy ------------------------------------------------------------------------
+
+    def _check_step(self, name: str, x: np.ndarray, events: list[str]) -> None:
+        st = self._state[name]
+        if not isinstance(st.config.solver, FixedStepVerlet):
+            return
+        st.omega, st.vector = self._frequency(name, x, st.vector)
+        limit = 2.0 / st.omega
+        dt = st.config.solver.max_dt
+        if dt > STEP_RECHECK * limit:
+            new_dt = STABILITY_SAFETY * limit
+            st.config = SolverConfig(solver=FixedStepVerlet(max_dt=new_dt), use_contact=False,
+                                     dtype=st.config.dtype)
+            events.append(
+                f"{name}: highest natural frequency rose to {st.omega / (2 * np.pi) * 1e3:.0f} Hz; "
+                f"fixed step {dt * 1e3:.1f} us was {dt / limit:.2f} x the stability limit, "
+                f"re-chosen to {new_dt * 1e3:.1f} us")
+            st.reasons = st.reasons[:1] + (
+                f"fixed-step Verlet, dt = {new_dt * 1e3:.1f} us = {STABILITY_SAFETY:g} x the "
+                "stability limit of the current design",) + st.reasons[2:]
+
+    def _solve_scene(self, name: str, x: np.ndarray, events: list[str]):
+        st = self._state[name]
+        scene = self.task.scenes[name]
+        config, why = st.config, list(st.reasons)
+        try:
+            self._check_step(name, x, events)
+            config, why = st.config, list(st.reasons)
+            value, grad, terms, aux = self._solve(name, config, x)
+            if needs_contact(config, float(aux["void_margin"]), scene):
+                config = with_contact(config)
+                why.append("a void reached the contact cutoff: re-solved with contact "
+                           "(adaptive Dopri8)")
+                events.append(f"{name}: voids reached the contact cutoff, solved with contact")
+                value, grad, terms, aux = self._solve(name, config, x)
+            return value, grad, terms, {"config": config_summary(config), "why": why}
+        except SimulationError as exc:
+            fb, reason = fallback_config()
+            if config == fb:
+                fb, reason = SolverConfig(), "retried with the reference Dopri5 configuration"
+            events.append(f"{name}: {exc}; {reason}")
+            try:
+                value, grad, terms, _ = self._solve(name, fb, x)
+            except SimulationError as exc2:
+                raise EvaluationFailed(f"{name}: {exc}; the fallback failed too: {exc2}") from None
+            return value, grad, terms, {"config": config_summary(fb), "why": why + [reason]}
+
+    def evaluate(self, x: np.ndarray) -> Evaluation:
+        """Value and gradient of the scalarised objective at design `x` [n_design] (mm).
+
+        Raises:
+            EvaluationFailed: when every configuration failed (the reason is in the message).
+        """
+        start = time.perf_counter()
+        events: list[str] = []
+        value, grad, terms, solver = 0.0, np.zeros(self.task.lattice.n_design), {}, {}
+        for name in self.task.scenes:
+            if not any(t.scene == name for t in self.task.terms):
+                continue
+            v, g, tm, s = self._solve_scene(name, np.asarray(x, np.float64), events)
+            value, grad = value + v, grad + g
+            terms.update(tm)
+            solver[name] = s
+        return Evaluation(value=value, grad=grad, terms=terms, solver=solver,
+                          events=tuple(events), sim_s=time.perf_counter() - start)
+
+    def configurations(self) -> dict[str, dict]:
+        """Scene name -> the configuration currently chosen for it and why."""
+        return {k: {"config": config_summary(s.config), "why": list(s.reasons)}
+                for k, s in self._state.items()}
+
+
+__all__ = ["TaskEvaluator", "Evaluation", "EvaluationFailed", "term_value", "task_terms"]

@@ -5,7 +5,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install demo test test-slow bench clean
+.PHONY: install demo test test-slow bench bench-design clean
 
 $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
@@ -35,3 +35,7 @@ bench: install
 
 clean:
 	rm -rf $(VENV) runs
+
+# Design loop: every task preset at its spec budget (hours on 2 cores; resumable with --resume).
+bench-design: install
+	$(BIN)/python benchmarks/bench_design.py --out runs/bench-design

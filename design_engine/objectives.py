@@ -43,6 +43,22 @@ def angular_momentum(sol: Solution, ids, point) -> Scalar:
     return jnp.sum(lin + sol.inertia[ids] * sol.qdot[:, ids, 2])
 
 
+QUANTITIES = ("kinetic_energy", "angular_momentum")
+
+
+def objective_term(quantity: str, sol: Solution, ids, point=None) -> Scalar:
+    """One objective quantity of a target region (the one definition every caller uses).
+
+    "kinetic_energy": J_Omega, mJ summed over the samples (spec 8); "angular_momentum": J_L
+    about `point` [2] mm, g mm^2/ms (spec 8.6).
+    """
+    if quantity == "angular_momentum":
+        return angular_momentum(sol, ids, point)
+    if quantity == "kinetic_energy":
+        return region_energy(sol, ids)
+    raise ValueError(f"unknown objective quantity {quantity!r} (one of {', '.join(QUANTITIES)})")
+
+
 def peak_energy_along_units(sol: Solution, ids) -> Float[Array, " n"]:
     """max over samples of each listed unit's kinetic energy, mJ (Figs. 2F, 4D)."""
     return jnp.max(block_kinetic_energy(sol)[:, np.asarray(ids)], axis=0)

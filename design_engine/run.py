@@ -13,7 +13,7 @@ import numpy as np
 
 from design_engine.auto import Choice, choose_config, fallback_config, needs_contact, with_contact
 from design_engine.loading import Loading
-from design_engine.objectives import (angular_momentum, block_kinetic_energy,
+from design_engine.objectives import (angular_momentum, block_kinetic_energy, objective_term,
                                       peak_energy_along_units, region_energy, region_energy_ratio)
 from design_engine.regions import row_units
 from design_engine.scenes import Scene
@@ -272,9 +272,11 @@ def _jitted_objective(scene: Scene, config: SolverConfig, weights):
     def objective(x):
         sol = sim(x, scene.material, scene.loading, ts)
         if scene.spin_point is not None:
-            value = angular_momentum(sol, scene.targets[names[0]], scene.spin_point)
+            value = objective_term("angular_momentum", sol, scene.targets[names[0]],
+                                   scene.spin_point)
         else:
-            value = sum(w * region_energy(sol, scene.targets[n]) for w, n in zip(weights, names))
+            value = sum(w * objective_term("kinetic_energy", sol, scene.targets[n])
+                        for w, n in zip(weights, names))
         aux = {"result": sol.result, "num_steps": sol.num_steps,
                "finite": jnp.all(jnp.isfinite(sol.qdot)), "void_margin": sol.min_void_margin}
         return value, aux

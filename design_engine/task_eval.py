@@ -26,7 +26,7 @@ from design_engine.auto import (STABILITY_SAFETY, choose_config, fallback_config
                                 initial_vector, make_frequency_estimator, needs_contact,
                                 with_contact)
 from design_engine.fixed_step import FixedStepVerlet
-from design_engine.objectives import angular_momentum, region_energy
+from design_engine.objectives import objective_term
 from design_engine.run import checked, compile_key, config_summary
 from design_engine.simulate import SimulationError, Solution, SolverConfig, make_simulator
 from design_engine.task import OPTIMISER_SCALE, Task, Term
@@ -37,12 +37,8 @@ INITIAL_ITERATIONS = 300  # cold power iterations for the initial design
 
 
 def term_value(term: Term, sol: Solution, ids, point=None):
-    """Internal value of one objective term on a solution: J_Omega (mJ, summed over the
-    samples) or J_L about `point` (g mm^2/ms). The one definition `design` optimises and
-    `simulate --task` reports."""
-    if term.quantity == "angular_momentum":
-        return angular_momentum(sol, ids, point)
-    return region_energy(sol, ids)
+    """Internal value of one objective term on a solution (`objectives.objective_term`)."""
+    return objective_term(term.quantity, sol, ids, point)
 
 
 def task_terms(task: Task, solutions: dict[str, Solution]) -> dict[str, float]:

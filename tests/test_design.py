@@ -194,6 +194,41 @@ def test_resume_after_an_interrupt_repeats_the_uninterrupted_run(tmp_path, monke
         [e["objective"] for e in resumed.evaluations]
 
 
+def test_a_killed_run_resumes_exactly(tmp_path, small_file, make_task):
+    """SIGKILL in the middle of a run loses at most the evaluation in flight; --resume then
+    walks the same designs as an uninterrupted run."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    n = 30
+    out = tmp_path / "killed"
+    cmd = [sys.executable, "-m", "metarig", "design", str(small_file), "--size", "8x6",
+           "--max-evals", str(n), "--out", str(out), "--quiet", "--no-plots"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 240
+    while time.monotonic() < deadline and proc.poll() is None:
+        try:
+            if len(json.loads((out / "history.json").read_text())["evaluations"]) >= 3:
+                break
+        except (OSError, ValueError):
+            pass
+        time.sleep(0.02)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    done = len(np.load(out / "checkpoint.npz")["x"])
+    assert 3 <= done < n, f"the run was not killed in the middle ({done} evaluations)"
+    resumed = run_design(make_task(n), out, resume=True, progress=False)
+    straight = run_design(make_task(n), tmp_path / "straight", progress=False)
+    assert len(resumed.evaluations) == n
+    a = np.load(tmp_path / "straight" / "checkpoint.npz")["x"]
+    assert np.array_equal(np.load(out / "checkpoint.npz")["x"], a)
+    assert [e["objective"] for e in straight.evaluations] == \
+        [e["objective"] for e in resumed.evaluations]
+
+
 def test_a_failed_solve_is_recorded_and_the_run_goes_on(tmp_path, monkeypatch, make_task):
     task = make_task(8)
     evaluator = TaskEvaluator(task)

@@ -317,3 +317,24 @@ def test_full_focusing_run_reaches_the_paper(tmp_path):
     assert best["max_constraint"] <= 1e-8
     assert best["objective"] / ev[0]["objective"] > 400.0
     assert not any(e["failed"] for e in ev)
+
+
+def test_design_window_and_random_start(tmp_path, small_file):
+    text = small_file.read_text() + "\n[design_window]\nsize = 2\noffset = [4, 5]\n"
+    path = tmp_path / "window.toml"
+    path.write_text(text)
+    task = load_task(path, size=(8, 6), max_evals=3)
+    # 2x2 units: H has 3 columns x 2 rows, V 2 columns x 3 rows of 2-vectors -> 24 variables
+    assert task.free.size == 24
+    res = run_design(task, tmp_path / "w", progress=False)
+    frozen = np.setdiff1d(np.arange(task.lattice.n_design), task.free)
+    assert np.array_equal(res.last_x[frozen], task.initial_design[frozen])
+    assert not np.array_equal(res.last_x[task.free], task.initial_design[task.free])
+
+    a, b = load_task("focusing", seed=3, **SMALL), load_task("focusing", seed=3, **SMALL)
+    periodic = load_task("focusing", **SMALL).initial_design
+    assert np.array_equal(a.initial_design, b.initial_design)
+    noise = a.initial_design - periodic
+    assert 0 < np.max(np.abs(noise)) <= 0.15 * 15.0
+    assert not np.array_equal(load_task("focusing", seed=4, **SMALL).initial_design,
+                              a.initial_design)

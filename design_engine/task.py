@@ -17,6 +17,8 @@ keys are refused):
     [scenes.NAME]  preset, and optional side, shift, strain, amplitude_m, frequency_hz,
                    periods, samples, contact_deg = [theta_min, theta_cutoff]
     [[objective]]  scene, target, weight, quantity ("kinetic_energy" | "angular_momentum"), name
+    [pareto]       weight_rule ("complement": w2 = 1 - w1, both maximised; "protect":
+                   w2 = w1 - 1, the second term minimised; default from the weights' signs)
 
 The scalarised objective is sum_i weight_i * quantity_i (spec 9.3). In SI (what `history.json`
 and `simulate --task` report) a kinetic-energy term is the target's mean kinetic energy over the
@@ -26,7 +28,7 @@ optimiser sees the reference's numbers: J_Omega summed over samples in mJ, J_L i
 
 import math
 import tomllib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
 
@@ -43,6 +45,7 @@ from design_engine.scenes import PRESETS, Scene, build_scene
 FORMAT = "metarig-task/1"
 GOALS = ("max", "min")
 ALGORITHMS = ("mma", "nlopt-mma", "nlopt-ccsaq")
+WEIGHT_RULES = ("complement", "protect")
 # internal value of one term -> what the optimiser is fed (the reference's units, spec 8 / 9.1)
 OPTIMISER_SCALE = {"kinetic_energy": 1.0, "angular_momentum": 1e-3}  # mJ; g mm^2/ms -> t mm^2/s
 
@@ -122,6 +125,24 @@ class Task:
     initial_design: np.ndarray
     free: np.ndarray
     spin_point: np.ndarray | None = field(default=None)
+    weight_rule: str = "complement"
+
+    def pareto_weights(self, w1: float) -> tuple[float, float]:
+        """(w1, w2) of a two-term task for a sweep: w2 = 1 - w1 ("complement", both
+        maximised) or w2 = w1 - 1 ("protect", the second term minimised), spec 9.3."""
+        if len(self.terms) != 2:
+            raise TaskError(f"task {self.name} has {len(self.terms)} objective terms; a Pareto "
+                            "sweep needs two")
+        if not 0.0 <= w1 <= 1.0:
+            raise TaskError(f"weight w1 must lie in [0, 1], got {w1}")
+        return (w1, 1.0 - w1) if self.weight_rule == "complement" else (w1, w1 - 1.0)
+
+    @property
+    def senses(self) -> tuple[str, ...]:
+        """Per term "max" or "min" for Pareto dominance (spec 9.3)."""
+        if self.weight_rule == "protect":
+            return ("max", "min")
+        return tuple("max" for _ in self.terms)
 
     @property
     def sign(self) -> float:
@@ -252,7 +273,7 @@ def _scaled(offset: tuple[int, int], frm: tuple[int, int], to: tuple[int, int]) 
 def load_task(source: str | Path, *, size: tuple[int, int] | None = None,
               max_evals: int | None = None, max_time_s: float | None = None,
               bias_angle_deg: float | None = None, seed: int | None = None,
-              algorithm: str | None = None) -> Task:
+              algorithm: str | None = None, weights: tuple[float, ...] | None = None) -> Task:
     """Read and resolve a task preset (by name) or task file, with command-line overrides.
 
     Args:
@@ -264,6 +285,7 @@ def load_task(source: str | Path, *, size: tuple[int, int] | None = None,
         seed: random initial guess (periodic design plus uniform noise of `random_amplitude`
             times the spacing, default 0.15, spec 3.1) drawn with this seed.
         algorithm: optimiser override.
+        weights: one weight per objective term, replacing the file's (Pareto sweeps).
 
     Raises:
         TaskError: one line naming the file, the key and the problem.
@@ -272,7 +294,7 @@ def load_task(source: str | Path, *, size: tuple[int, int] | None = None,
     where = f"task {label}"
     _known(doc, {"format", "name", "description", "spec", "goal", "lattice", "initial",
                  "design_window", "constraints", "budget", "optimizer", "targets", "scenes",
-                 "objective"}, where)
+                 "objective", "pareto"}, where)
     if doc.get("format", FORMAT) != FORMAT:
         _fail(f"{where}.format", f"must be {FORMAT!r}, got {doc['format']!r}")
     name = _str(doc, "name", where)
@@ -418,6 +440,16 @@ def load_task(source: str | Path, *, size: tuple[int, int] | None = None,
                           quantity=_str(o, "quantity", w, "kinetic_energy", choices=QUANTITIES)))
     if len({t.name for t in terms}) != len(terms):
         _fail(where, "objective term names must be unique (set 'name')")
+    if weights is not None:
+        if len(weights) != len(terms):
+            _fail("weights", f"{len(terms)} objective terms need {len(terms)} weights, got "
+                  f"{len(weights)}")
+        terms = [replace(t, weight=float(w)) for t, w in zip(terms, weights)]
+    par_t = _table(doc, "pareto", where, required=False)
+    _known(par_t, {"weight_rule"}, f"{where}.pareto")
+    rule = _str(par_t, "weight_rule", f"{where}.pareto",
+                "protect" if any(t.weight < 0 for t in terms) else "complement",
+                choices=WEIGHT_RULES)
 
     free = np.arange(lattice.n_design)
     win_t = _table(doc, "design_window", where, required=False)
@@ -455,12 +487,13 @@ def load_task(source: str | Path, *, size: tuple[int, int] | None = None,
         "objective": [dict(name=t.name, scene=t.scene, target=t.target, weight=t.weight,
                            quantity=t.quantity) for t in terms],
         "design_window": dict(win_t),
+        "pareto": {"weight_rule": rule},
         "n_free": int(free.size),
     }
     return Task(name=name, description=str(doc.get("description", "")), goal=goal, source=label,
                 document=resolved, lattice=lattice, scenes=scenes, targets=targets,
                 terms=tuple(terms), limits=limits, budget=budget, optimizer=optimizer,
-                initial_design=x0, free=free, spin_point=spin_point)
+                initial_design=x0, free=free, spin_point=spin_point, weight_rule=rule)
 
 
 def design_window_indices(lattice: Lattice, p: int, offset: tuple[int, int]) -> np.ndarray:

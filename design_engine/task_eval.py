@@ -1,8 +1,8 @@
 """A task's objective as the optimiser sees it: value and exact gradient for any design.
 
-One compiled value-and-gradient per solver configuration (the design, material, loading and
-sample times are traced arguments, so every evaluation and every scene of the same topology
-reuses it). Per evaluation and scene the solver policy of `auto` applies, with two additions
+One compiled value-and-gradient per solver configuration (the design, material, loading, sample
+times and weights are traced arguments, so every evaluation, every scene of the same topology and
+every run of a sweep in the same process reuses it). Per evaluation and scene the solver policy of `auto` applies, with two additions
 that an optimisation needs:
 - the fixed step is kept valid while the design changes: before each fixed-step solve the
   highest natural frequency of the *current* design is re-measured (a warm-started power
@@ -47,6 +47,11 @@ def task_terms(task: Task, solutions: dict[str, Solution]) -> dict[str, float]:
                                      task.spin_point)) for t in task.terms}
 
 
+# compiled value-and-gradient programs of this process, shared by every evaluator: the weights
+# are arguments, so the runs of a sweep (other weights, other starts) reuse them
+_PROGRAMS: dict[tuple, object] = {}
+
+
 class EvaluationFailed(RuntimeError):
     """Every configuration failed for this design; the message says why."""
 
@@ -86,7 +91,6 @@ class TaskEvaluator:
     def __init__(self, task: Task):
         self.task = task
         self.compilations = 0
-        self._compiled: dict[tuple, object] = {}
         self._estimators: dict[str, object] = {}
         self._state: dict[str, _SceneState] = {}
         for name, scene in task.scenes.items():
@@ -115,23 +119,25 @@ class TaskEvaluator:
         scene = self.task.scenes[name]
         terms = [t for t in self.task.terms if t.scene == name]
         key = compile_key(scene, config, "task", scene.sample_times) + tuple(
-            (t.name, t.weight, t.quantity, tuple(self.task.targets[t.target])) for t in terms)
-        if key in self._compiled:
-            return self._compiled[key]
+            (t.quantity, tuple(self.task.targets[t.target])) for t in terms) + (
+            None if self.task.spin_point is None else tuple(self.task.spin_point),)
+        if key in _PROGRAMS:
+            return _PROGRAMS[key]
         sim = make_simulator(scene.lattice, scene.supports, config, scene.sample_times)
-        targets = {t.name: np.asarray(self.task.targets[t.target]) for t in terms}
+        targets = [np.asarray(self.task.targets[t.target]) for t in terms]
+        quantities = [t.quantity for t in terms]
         point = None if self.task.spin_point is None else jnp.asarray(self.task.spin_point)
 
-        def objective(x, material, loading, ts):
+        def objective(x, material, loading, ts, weights):
             sol = sim(x, material, loading, ts)
-            raw = {t.name: term_value(t, sol, targets[t.name], point) for t in terms}
-            value = sum(t.weight * OPTIMISER_SCALE[t.quantity] * raw[t.name] for t in terms)
-            aux = {"result": sol.result, "num_steps": sol.num_steps, "terms": raw,
+            raw = [objective_term(q, sol, ids, point) for q, ids in zip(quantities, targets)]
+            value = sum(weights[k] * OPTIMISER_SCALE[q] * raw[k] for k, q in enumerate(quantities))
+            aux = {"result": sol.result, "num_steps": sol.num_steps, "terms": jnp.stack(raw),
                    "finite": jnp.all(jnp.isfinite(sol.qdot)), "void_margin": sol.min_void_margin}
             return value, aux
 
         fn = jax.jit(jax.value_and_grad(objective, has_aux=True))
-        self._compiled[key] = fn
+        _PROGRAMS[key] = fn
         self.compilations += 1
         return fn
 
@@ -139,15 +145,18 @@ class TaskEvaluator:
         """One value-and-gradient solve; raises `SimulationError` on any failure."""
         scene = self.task.scenes[name]
         fn = self._function(name, config)
-        out = fn(jnp.asarray(x), scene.material, scene.loading, jnp.asarray(scene.sample_times))
+        terms = [t for t in self.task.terms if t.scene == name]
+        weights = jnp.asarray([t.weight for t in terms])
+        out = fn(jnp.asarray(x), scene.material, scene.loading, jnp.asarray(scene.sample_times),
+                 weights)
         out = jax.block_until_ready(out)
         checked(out, config)
         (value, aux), grad = out
         grad = np.asarray(grad, np.float64)
         if not np.all(np.isfinite(grad)):
             raise SimulationError("non-finite gradient")
-        terms = {k: float(v) for k, v in aux["terms"].items()}
-        return float(value), grad, terms, aux
+        values = {t.name: float(v) for t, v in zip(terms, np.asarray(aux["terms"]))}
+        return float(value), grad, values, aux
 
     # --- the policy ------------------------------------------------------------------------
 

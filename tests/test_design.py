@@ -143,7 +143,9 @@ def test_small_focusing_run_improves_and_stays_feasible(tmp_path, make_task):
     ev = res.evaluations
     assert len(ev) == 8 and res.status == "complete" and res.stop_reason == "max_evals"
     configs = {json.dumps(e["solver"]["pulse"]["config"], sort_keys=True) for e in ev}
-    assert res.compilations == len(configs)  # one compilation per solver configuration
+    assert 1 <= len(configs) and res.compilations <= len(configs)  # at most one per config
+    again = run_design(task, tmp_path / "again", progress=False)
+    assert again.compilations == 0  # a second run in this process reuses the programs
     assert all(e["feasible"] and not e["failed"] for e in ev)
     best = ev[res.best]
     assert best["objective"] > 1.05 * ev[0]["objective"]
@@ -273,7 +275,7 @@ def test_the_fixed_step_follows_the_design(make_task):
     assert st.config.solver.max_dt == pytest.approx(0.6 * 2.0 / st.omega, rel=1e-3)
     again = evaluator.evaluate(task.initial_design + 0.01)  # within the limit: no new step
     assert not again.events
-    assert evaluator.compilations == 1  # the re-chosen step equals the first: same program
+    assert evaluator.compilations <= 1  # the re-chosen step equals the first: same program
     # the warm-started estimate agrees with a cold 300-iteration power iteration
     from design_engine.auto import max_angular_frequency
 

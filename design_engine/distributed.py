@@ -1,0 +1,74 @@
+"""Dask distributed for the sweeps (the one owner of dask): a client on a local or remote cluster.
+
+`dask_client(workers=N)` starts a `LocalCluster` of N single-threaded worker processes (default
+one per core) with the scheduler, the workers and the dashboard on 127.0.0.1 only;
+`dask_client(scheduler="tcp://HOST:PORT")` connects to an existing cluster instead (workers
+started by `dask worker`, `dask-jobqueue` on SLURM/PBS, ...: they must reach the same files).
+Workers are spawned with one thread for XLA and BLAS each (a sweep's parallelism is its
+tasks), and share the persistent compilation cache, so a scene's program is compiled once per
+cache, not once per task.
+"""
+
+import contextlib
+import logging
+import os
+
+log = logging.getLogger("metarig.distributed")
+
+WORKER_ENV = {
+    "OMP_NUM_THREADS": "1",
+    "OPENBLAS_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+    "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1",
+    "EQX_ON_ERROR": "nan",
+}
+
+
+def worker_environment() -> dict[str, str]:
+    """Environment variables every worker process starts with."""
+    env = dict(WORKER_ENV)
+    cache = os.environ.get("METARIG_JAX_CACHE")
+    if cache is not None:
+        env["METARIG_JAX_CACHE"] = cache
+    return env
+
+
+@contextlib.contextmanager
+def dask_client(workers: int | None = None, scheduler: str | None = None):
+    """A `distributed.Client` for the sweep; the local cluster (if any) is closed on exit.
+
+    Args:
+        workers: worker processes of a new LocalCluster (default `os.cpu_count()`).
+        scheduler: address of an existing scheduler (`tcp://HOST:PORT`); excludes `workers`.
+    """
+    import dask
+    from distributed import Client, LocalCluster
+
+    logging.getLogger("distributed").setLevel(logging.WARNING)
+
+    if scheduler is not None and workers is not None:
+        raise ValueError("give either a worker count or a scheduler address, not both")
+    if scheduler is not None:
+        client = Client(scheduler, timeout="30s")
+        try:
+            log.info("connected to %s (%d workers); dashboard %s", scheduler,
+                     len(client.scheduler_info().get("workers", {})), client.dashboard_link)
+            yield client
+        finally:
+            client.close()
+        return
+    n = workers or os.cpu_count() or 1
+    if n < 1:
+        raise ValueError(f"need at least one worker, got {n}")
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": worker_environment()}):
+        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                               host="127.0.0.1", dashboard_address="127.0.0.1:0",
+                               silence_logs=logging.WARNING)
+        client = Client(cluster)
+        try:
+            log.info("local Dask cluster: %d single-threaded workers; dashboard %s", n,
+                     client.dashboard_link)
+            yield client
+        finally:
+            client.close()
+            cluster.close()

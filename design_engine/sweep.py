@@ -1,0 +1,238 @@
+"""`metarig pareto`: scalarised design runs over weights x initial designs on Dask (spec 9.3).
+
+Each run (weight w1, bias angle of the initial design) is one `metarig design` run with its own
+folder `DIR/runs/w<w1>_start<deg>` (history, checkpoint, design files), executed on a Dask
+worker; a run that was finished is skipped, a partial one resumes exactly (`optimize`), so a
+re-run of the same command after a kill repeats nothing, and a worker that dies costs only the
+evaluation in flight (Dask re-runs the task, which resumes from its checkpoint). Results reach
+disk from the task that produced them; the scheduler holds no state that matters.
+
+Outputs: `DIR/points.json` (every evaluation of every run: run, eval, weight, start, J1, J2 in
+J, feasible), `DIR/front.json` (the non-dominated feasible points sorted by J1, each naming its
+run and evaluation and pointing at a design file in `DIR/front/`), `DIR/pareto.png`, and
+`DIR/sweep.json` (the settings; a re-run with other settings is refused).
+"""
+
+import argparse
+import json
+import logging
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger("metarig.pareto")
+
+SWEEP_FORMAT = "metarig-pareto/1"
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """One scalarised run: task source, weight w1, initial bias angle (deg), budget, size."""
+
+    source: str
+    w1: float
+    start_deg: float
+    max_evals: int | None
+    size: tuple[int, int] | None
+
+    @property
+    def name(self) -> str:
+        return f"w{self.w1:.3f}_start{self.start_deg:g}"
+
+
+def _task(spec: RunSpec):
+    from design_engine.task import load_task
+
+    base = load_task(spec.source, size=spec.size)
+    return load_task(spec.source, size=spec.size, max_evals=spec.max_evals,
+                     bias_angle_deg=spec.start_deg, weights=base.pareto_weights(spec.w1))
+
+
+def run_one(spec: RunSpec, out: str) -> dict:
+    """Run (or finish, or skip) one scalarised design run; executed on a worker.
+
+    Returns a small summary; everything that matters is in the run folder.
+    """
+    import design_engine  # noqa: F401  (x64, cache)
+    from design_engine.design_cli import write_outputs
+    from design_engine.optimize import run_design
+
+    folder = Path(out) / "runs" / spec.name
+    task = _task(spec)
+    run_path = folder / "run.json"
+    if run_path.exists():
+        run = json.loads(run_path.read_text())
+        if run.get("status") == "complete" and run.get("evaluations", 0) >= task.budget.max_evals:
+            return {"run": spec.name, "evaluations": run["evaluations"], "skipped": True,
+                    "compilations": 0}
+    t0 = time.perf_counter()
+    res = run_design(task, folder, resume=(folder / "checkpoint.npz").exists(), progress=False)
+    write_outputs(task, folder, res, plots=False)
+    return {"run": spec.name, "evaluations": len(res.evaluations), "skipped": False,
+            "compilations": res.compilations, "wall_s": time.perf_counter() - t0,
+            "status": res.status}
+
+
+def collect_points(out: Path, specs: list[RunSpec], term_names: tuple[str, str]) -> list[dict]:
+    """Every recorded evaluation of every run as a point (J1, J2 in J, SI)."""
+    points = []
+    for spec in specs:
+        path = out / "runs" / spec.name / "history.json"
+        if not path.exists():
+            continue
+        for e in json.loads(path.read_text())["evaluations"]:
+            obj = e["objectives"] or {}
+            points.append({"run": spec.name, "eval": e["eval"], "weight": spec.w1,
+                           "start_deg": spec.start_deg, "J1": obj.get(term_names[0]),
+                           "J2": obj.get(term_names[1]),
+                           "feasible": bool(e["feasible"] and not e["failed"])})
+    return points
+
+
+def write_results(out: Path, specs: list[RunSpec], task) -> dict:
+    """points.json, front.json (+ the front's design files) and pareto.png from the run folders."""
+    from design_engine.design_io import save_design
+    from design_engine.pareto import pareto_front, plot_pareto
+
+    names = (task.terms[0].name, task.terms[1].name)
+    points = collect_points(out, specs, names)
+    front = pareto_front(points, task.senses)
+    (out / "front").mkdir(exist_ok=True)
+    for p in front:
+        run_dir = out / "runs" / p["run"]
+        with np.load(run_dir / "checkpoint.npz") as z:
+            xf = z["x"][p["eval"] - 1]
+        x = task.initial_design.copy()
+        x[task.free] = xf
+        path = out / "front" / f"{p['run']}_eval{p['eval']}.json"
+        save_design(path, task.lattice, x, name=f"{task.name} {p['run']} eval {p['eval']}",
+                    task=task.name, objectives={names[0]: p["J1"], names[1]: p["J2"]},
+                    eval=p["eval"])
+        p["design"] = str(path.relative_to(out))
+    doc = {"task": task.name, "terms": list(names), "senses": list(task.senses),
+           "units": "J (mean target kinetic energy over the window)"}
+    (out / "points.json").write_text(json.dumps({**doc, "points": points}, indent=1))
+    (out / "front.json").write_text(json.dumps({**doc, "front": front}, indent=1))
+    plot_pareto(out / "pareto.png", points, front, names,
+                f"{task.name}: {len(points)} evaluated designs, {len(front)} on the front")
+    return {"points": len(points), "front": len(front)}
+
+
+def run_sweep(source: str, out: Path, weights: list[float], starts: list[float], *,
+              max_evals: int | None = None, size: tuple[int, int] | None = None,
+              workers: int | None = None, scheduler: str | None = None,
+              progress: bool = True) -> dict:
+    """Run every (weight, start) design run of a two-objective task on Dask; write the front.
+
+    Raises:
+        TaskError: the task is not a two-objective task, or a weight lies outside [0, 1].
+        ValueError: `out` holds a sweep with other settings.
+    """
+    from distributed import as_completed
+
+    from design_engine.distributed import dask_client
+
+    specs = [RunSpec(str(source), float(w), float(s), max_evals, size)
+             for w in weights for s in starts]
+    task = _task(specs[0])  # validates the task and the weights before any worker starts
+    for spec in specs:
+        task.pareto_weights(spec.w1)
+    out.mkdir(parents=True, exist_ok=True)
+    settings = {"format": SWEEP_FORMAT, "task": str(source), "weights": weights,
+                "starts": starts, "max_evals": task.budget.max_evals,
+                "size": list(task.lattice.shape)}
+    sweep_path = out / "sweep.json"
+    if sweep_path.exists():
+        old = json.loads(sweep_path.read_text())
+        if {k: v for k, v in old.items() if k != "max_evals"} != \
+                {k: v for k, v in settings.items() if k != "max_evals"}:
+            raise ValueError(f"{out} holds a sweep with other settings ({sweep_path}); use "
+                             "another --out")
+    sweep_path.write_text(json.dumps(settings, indent=1))
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(specs), desc=f"pareto {task.name}", unit="run", dynamic_ncols=True)
+    done, evals, t0 = [], 0, time.perf_counter()
+    with dask_client(workers=workers, scheduler=scheduler) as client:
+        log.info("%d runs (%d weights x %d starts) of up to %d evaluations; dashboard %s",
+                 len(specs), len(weights), len(starts), task.budget.max_evals,
+                 client.dashboard_link)
+        futures = [client.submit(run_one, spec, str(out), key=f"run-{spec.name}-{out.name}",
+                                 pure=False, retries=2) for spec in specs]
+        for fut in as_completed(futures):
+            summary = fut.result()
+            done.append(summary)
+            evals += summary["evaluations"]
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix_str(f"{evals} evaluations")
+    if bar is not None:
+        bar.close()
+    counts = write_results(out, specs, task)
+    return {"runs": done, "wall_s": time.perf_counter() - t0, **counts}
+
+
+def _floats(text: str) -> list[float]:
+    try:
+        return [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+
+
+def pareto_main(argv: list[str] | None = None) -> int:
+    """Pareto sweep of a two-objective task: weights x initial designs, on Dask."""
+    p = argparse.ArgumentParser(prog="metarig pareto", description=pareto_main.__doc__,
+                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("task", help="two-objective task preset (splitting, reprogram-location, "
+                   "focus-vs-protect) or task file")
+    p.add_argument("--out", type=Path, required=True, help="sweep folder")
+    p.add_argument("--size", help="lattice size NXxNY (default the task's)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--weights", type=int, default=11, help="K weights w1 evenly in [0, 1]")
+    g.add_argument("--weight-list", type=_floats, help="explicit weights w1, comma-separated")
+    p.add_argument("--starts", type=_floats, default=[15.0, 20.0, 25.0, 30.0, 35.0],
+                   help="bias angles (deg) of the initial designs")
+    p.add_argument("--max-evals", type=int, help="evaluations per run (default the task's)")
+    h = p.add_mutually_exclusive_group()
+    h.add_argument("--workers", type=int, help="worker processes of a local cluster "
+                   "(default one per core)")
+    h.add_argument("--scheduler", help="address of an existing Dask scheduler (tcp://HOST:PORT)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(message)s")
+    logging.getLogger("metarig").setLevel(logging.INFO)
+
+    from design_engine.design_cli import _size
+    from design_engine.task import TaskError
+
+    try:
+        size = _size(args.size) if args.size else None
+        weights = args.weight_list or list(np.linspace(0.0, 1.0, args.weights))
+        if args.weight_list is None and args.weights < 1:
+            raise ValueError("--weights must be at least 1")
+        if not args.starts:
+            raise ValueError("--starts needs at least one bias angle")
+        if args.max_evals is not None and args.max_evals < 1:
+            raise ValueError("--max-evals must be positive")
+        if args.workers is not None and args.workers < 1:
+            raise ValueError("--workers must be positive")
+        result = run_sweep(args.task, args.out, [round(float(w), 6) for w in weights],
+                           args.starts, max_evals=args.max_evals, size=size,
+                           workers=args.workers, scheduler=args.scheduler,
+                           progress=not args.quiet)
+    except (TaskError, ValueError, OSError, argparse.ArgumentTypeError) as exc:
+        print(f"metarig pareto: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"metarig pareto: interrupted; re-run the same command to continue ({args.out})",
+              file=sys.stderr)
+        return 130
+    log.info("%d runs, %d evaluated designs, %d on the front, %.0f s: wrote %s",
+             len(result["runs"]), result["points"], result["front"], result["wall_s"],
+             ", ".join(str(args.out / n) for n in ("points.json", "front.json", "pareto.png")))
+    return 0

@@ -1,0 +1,157 @@
+"""Pareto sweeps on Dask: dominance, a sweep on a local cluster that loses a worker, resume."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from design_engine.pareto import dominates, front_indices, pareto_front
+from design_engine.sweep import run_sweep
+from design_engine.task import TaskError, load_task
+
+SWEEP = dict(weights=[0.0, 0.5, 1.0], starts=[20.0, 30.0], max_evals=3, size=(8, 6))
+
+
+def _brute_force(points, senses):
+    ok = [p for p in points if p["feasible"] and p["J1"] is not None]
+    out = []
+    for p in ok:
+        if not any(dominates((q["J1"], q["J2"]), (p["J1"], p["J2"]), senses) for q in ok):
+            if (p["J1"], p["J2"]) not in {(r["J1"], r["J2"]) for r in out}:
+                out.append(p)
+    return sorted(out, key=lambda p: p["J1"])
+
+
+@pytest.mark.parametrize("senses", [("max", "max"), ("max", "min")])
+def test_front_equals_a_brute_force_dominance_check(senses):
+    rng = np.random.default_rng(7)
+    v = np.round(rng.normal(size=(300, 2)), 1)  # rounding makes ties and duplicates
+    idx = front_indices(v, senses)
+    brute = [i for i in range(len(v))
+             if not any(dominates(v[j], v[i], senses) for j in range(len(v)))]
+    assert sorted(idx.tolist()) == sorted(brute)
+    assert np.all(np.diff(v[idx, 0]) >= 0)
+    assert dominates((2, 1), (1, 1), ("max", "max")) and not dominates((1, 1), (1, 1), senses)
+    assert dominates((2, 0), (1, 1), ("max", "min"))
+
+
+def test_pareto_weights_follow_the_spec_rules():
+    assert load_task("splitting").pareto_weights(0.3) == (0.3, 0.7)
+    fvp = load_task("focus-vs-protect")
+    assert fvp.pareto_weights(0.75) == (0.75, -0.25) and fvp.senses == ("max", "min")
+    with pytest.raises(TaskError):
+        load_task("focusing").pareto_weights(0.5)
+    with pytest.raises(TaskError):
+        fvp.pareto_weights(1.5)
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """A 2-worker local cluster (nannies restart killed workers), single-threaded workers."""
+    import dask
+    from distributed import Client, LocalCluster
+
+    from design_engine.distributed import worker_environment
+
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": worker_environment()}):
+        lc = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                          dashboard_address=None)
+    client = Client(lc)
+    yield lc, client
+    client.close()
+    lc.close()
+
+
+def _points(out: Path):
+    return json.loads((out / "points.json").read_text())["points"]
+
+
+def test_a_sweep_survives_a_killed_worker_and_finds_the_front(tmp_path, cluster):
+    lc, client = cluster
+    out = tmp_path / "sweep"
+    result = {}
+
+    def sweep():
+        result["r"] = run_sweep("splitting", out, scheduler=lc.scheduler_address,
+                                progress=False, **SWEEP)
+
+    th = threading.Thread(target=sweep)
+    th.start()
+    killed = None
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and th.is_alive():
+        started = list((out / "runs").glob("*/checkpoint.npz")) if (out / "runs").exists() else []
+        if started:
+            pids = client.run(os.getpid)
+            killed = next(iter(pids.values()))
+            os.kill(killed, signal.SIGKILL)
+            break
+        time.sleep(0.05)
+    th.join(timeout=600)
+    assert killed is not None and "r" in result
+    assert len(result["r"]["runs"]) == 6
+    points = _points(out)
+    assert len(points) == 6 * 3  # every run finished its budget despite the lost worker
+    for run in {p["run"] for p in points}:
+        hist = json.loads((out / "runs" / run / "history.json").read_text())["evaluations"]
+        assert [e["eval"] for e in hist] == [1, 2, 3]
+    front = json.loads((out / "front.json").read_text())["front"]
+    brute = _brute_force(points, ("max", "max"))
+    assert [(p["J1"], p["J2"]) for p in front] == [(p["J1"], p["J2"]) for p in brute]
+    for p in front:
+        assert (out / p["design"]).exists()
+    assert (out / "pareto.png").stat().st_size > 0
+    # a re-run repeats nothing and gives the same result
+    again = run_sweep("splitting", out, scheduler=lc.scheduler_address, progress=False, **SWEEP)
+    assert all(r["skipped"] for r in again["runs"]) and _points(out) == points
+    # other settings in the same folder are refused
+    with pytest.raises(ValueError):
+        run_sweep("splitting", out, scheduler=lc.scheduler_address, progress=False,
+                  **{**SWEEP, "starts": [25.0]})
+    pareto_front(points, ("max", "max"))
+
+
+def test_a_killed_sweep_command_resumes_to_the_uninterrupted_result(tmp_path, cluster):
+    lc, _ = cluster
+    straight = tmp_path / "straight"
+    run_sweep("splitting", straight, scheduler=lc.scheduler_address, progress=False, **SWEEP)
+    out = tmp_path / "killed"
+    cmd = [sys.executable, "-m", "metarig", "pareto", "splitting", "--out", str(out),
+           "--size", "8x6", "--weight-list", "0,0.5,1", "--starts", "20,30", "--max-evals", "3",
+           "--workers", "2", "--quiet"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True)
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and proc.poll() is None:
+        done = [p for p in out.glob("runs/*/run.json")
+                if json.loads(p.read_text()).get("status") == "complete"]
+        if done:
+            break
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGKILL)  # the command, its scheduler and its workers
+    proc.wait()
+    assert not (out / "points.json").exists(), "the sweep was not killed in the middle"
+    complete = {p.parent.name for p in out.glob("runs/*/run.json")
+                if json.loads(p.read_text()).get("status") == "complete"}
+    assert complete
+    again = run_sweep("splitting", out, scheduler=lc.scheduler_address, progress=False, **SWEEP)
+    skipped = {r["run"] for r in again["runs"] if r["skipped"]}
+    assert complete <= skipped
+    assert _points(out) == _points(straight)
+
+
+def test_pareto_cli_refuses_bad_input_in_one_line(tmp_path, capsys):
+    from design_engine.sweep import pareto_main
+
+    assert pareto_main(["focusing", "--out", str(tmp_path / "o"), "--weights", "3"]) == 2
+    assert "two" in capsys.readouterr().err
+    assert pareto_main(["splitting", "--out", str(tmp_path / "o"), "--weight-list", "0.5,2"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "[0, 1]" in err[0]

@@ -65,7 +65,6 @@ def design_main(argv: list[str] | None = None) -> int:
     from design_engine.task import preset_names
 
     p = argparse.ArgumentParser(prog="metarig design", description=design_main.__doc__,
-                                formatter_class=argparse.ArgumentDefaultsHelpFormatter,
                                 epilog="presets: " + ", ".join(preset_names()))
     p.add_argument("task", nargs="?", help="task preset name or task file (.toml)")
     p.add_argument("--out", type=Path, help="run folder (default runs/design-<task>)")
@@ -94,7 +93,8 @@ def design_main(argv: list[str] | None = None) -> int:
         return 0
     if not args.task:
         p.error("a task preset or task file is required (see --list)")
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    logging.basicConfig(level=logging.WARNING, format="%(message)s")
+    logging.getLogger("metarig").setLevel(logging.INFO)
 
     import design_engine  # noqa: F401  (x64, cache)
     from design_engine.geometry import InvalidDesignError

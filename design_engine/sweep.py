@@ -186,17 +186,16 @@ def _floats(text: str) -> list[float]:
 
 def pareto_main(argv: list[str] | None = None) -> int:
     """Pareto sweep of a two-objective task: weights x initial designs, on Dask."""
-    p = argparse.ArgumentParser(prog="metarig pareto", description=pareto_main.__doc__,
-                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p = argparse.ArgumentParser(prog="metarig pareto", description=pareto_main.__doc__)
     p.add_argument("task", help="two-objective task preset (splitting, reprogram-location, "
                    "focus-vs-protect) or task file")
     p.add_argument("--out", type=Path, required=True, help="sweep folder")
     p.add_argument("--size", help="lattice size NXxNY (default the task's)")
     g = p.add_mutually_exclusive_group()
-    g.add_argument("--weights", type=int, default=11, help="K weights w1 evenly in [0, 1]")
+    g.add_argument("--weights", type=int, default=11, help="K weights w1 evenly in [0, 1] (default 11)")
     g.add_argument("--weight-list", type=_floats, help="explicit weights w1, comma-separated")
     p.add_argument("--starts", type=_floats, default=[15.0, 20.0, 25.0, 30.0, 35.0],
-                   help="bias angles (deg) of the initial designs")
+                   help="bias angles (deg) of the initial designs (default 15,20,25,30,35)")
     p.add_argument("--max-evals", type=int, help="evaluations per run (default the task's)")
     h = p.add_mutually_exclusive_group()
     h.add_argument("--workers", type=int, help="worker processes of a local cluster "

@@ -124,9 +124,9 @@ class _Record:
 
     def append(self, rec: dict, x, f, grad) -> None:
         self.evaluations.append(rec)
-        self.x.append(np.asarray(x, np.float64))
+        self.x.append(np.array(x, np.float64))
         self.f.append(float(f))
-        self.grad.append(np.asarray(grad, np.float64))
+        self.grad.append(np.array(grad, np.float64))
 
     def save(self, status: str, elapsed_s: float, extra: dict | None = None) -> None:
         import io
@@ -207,11 +207,11 @@ def run_design(task: Task, out: Path, *, resume: bool = False, progress: bool = 
         g, jac = constraints(xf)
         if not np.all(np.isfinite(g)):
             raise ValueError("non-finite constraint values (damaged design)")
-        state["cache"] = (np.array(xf), g, jac)
+        state["cache"] = (np.array(xf, np.float64), g, jac)
         return g, jac
 
     def fun(xf):
-        xf = np.asarray(xf, np.float64)
+        xf = np.array(xf, np.float64)  # a copy: NLopt hands over a view of its own buffer
         i = state["calls"]
         state["calls"] += 1
         state["last_x"] = xf

@@ -340,3 +340,17 @@ def test_design_window_and_random_start(tmp_path, small_file):
     assert 0 < np.max(np.abs(noise)) <= 0.15 * 15.0
     assert not np.array_equal(load_task("focusing", seed=4, **SMALL).initial_design,
                               a.initial_design)
+
+
+@pytest.mark.parametrize("algorithm", ["nlopt-mma", "nlopt-ccsaq"])
+def test_nlopt_backends_run_and_record(tmp_path, make_task, algorithm):
+    ours = run_design(make_task(4), tmp_path / "ours", progress=False)
+    res = run_design(make_task(4, algorithm=algorithm), tmp_path / algorithm, progress=False)
+    assert len(res.evaluations) == 4 and res.status == "complete"
+    x = np.load(tmp_path / algorithm / "checkpoint.npz")["x"]  # read back after NLopt is gone
+    assert x.shape == (4, make_task(4).free.size) and np.all(np.isfinite(x))
+    if algorithm == "nlopt-mma":  # the same scheme: the same first steps
+        a = np.load(tmp_path / "ours" / "checkpoint.npz")["x"]
+        assert np.max(np.abs(a[:2] - x[:2])) < 1e-3
+        assert res.evaluations[1]["objective"] == pytest.approx(
+            ours.evaluations[1]["objective"], rel=1e-3)

@@ -43,6 +43,7 @@ def main(argv=None) -> int:
     for name in (args.presets.split(",") if args.presets else preset_names()):
         task = load_task(name, max_evals=args.max_evals, algorithm=args.algorithm)
         folder = args.out / name
+        load0 = os.getloadavg()
         t0 = time.perf_counter()
         res = run_design(task, folder, resume=args.resume and (folder / "run.json").exists(),
                          progress=not args.quiet)
@@ -64,7 +65,7 @@ def main(argv=None) -> int:
             "contact_evals": sum(1 for e in ev if e["solver"] and any(
                 s["config"]["use_contact"] for s in e["solver"].values())),
             "compilations": res.compilations,
-            "load_average_end": os.getloadavg(),
+            "load_average_start": load0, "load_average_end": os.getloadavg(),
         }
         path.write_text(json.dumps(report, indent=1))
     print(f"{'preset':<20}{'initial':>12}{'best':>12}{'ratio':>9}{'evals':>7}{'wall s':>9}"

@@ -158,6 +158,16 @@ def write_outputs(task, out: Path, result, plots: bool = True) -> None:
 
 
 def _save(path: Path, task, x, rec: dict, save_design) -> None:
+    from design_engine.geometry import InvalidDesignError
+
+    try:
+        _write_design(path, task, x, rec, save_design)
+    except InvalidDesignError as exc:
+        log.warning("%s not written: evaluation %d is no valid design (%s)", path.name,
+                    rec["eval"], exc)
+
+
+def _write_design(path: Path, task, x, rec: dict, save_design) -> None:
     save_design(path, task.lattice, x, name=f"{task.name} (evaluation {rec['eval']})",
                 task=task.name, task_source=task.source, goal=task.goal,
                 objective=rec["objective"], objectives=rec["objectives"],

@@ -12,8 +12,9 @@ Optimisers (`[optimizer] algorithm` of the task):
 - `nlopt-mma`, `nlopt-ccsaq`: NLopt's LD_MMA / LD_CCSAQ (the paper's method), for comparison.
 
 Every objective evaluation (MMA inner iterations included) is a record in `history.json`; a
-failed evaluation is fed back as +inf (MMA then shrinks its step) and recorded with its reason;
-constraints are never NaN. After every evaluation the run folder holds what is needed to go on
+failed evaluation (every solver failed, or a trial design with an inverted or self-intersecting
+unit, which is not simulated) is fed back as +inf (MMA then shrinks its step) and recorded with
+its reason; constraints are never NaN. After every evaluation the run folder holds what is needed to go on
 (`checkpoint.npz`: every evaluated design with its objective value and gradient; `run.json`:
 the resolved task). `resume=True` replays the record through a fresh optimiser from the same
 start (values and gradients from the record, constraints recomputed), so the optimiser walks
@@ -31,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from design_engine.constraints import make_sparse_constraints
+from design_engine.geometry import InvalidDesignError, check_design
 from design_engine.task import Task
 from design_engine.task_eval import EvaluationFailed, TaskEvaluator
 
@@ -232,6 +234,9 @@ def run_design(task: Task, out: Path, *, resume: bool = False, progress: bool = 
         t0 = time.perf_counter()
         event, terms, solver = None, None, None
         try:
+            # a trial may leave the constraint set; a unit that is inverted or self-intersecting
+            # (a free-edge vertex swung across, which the spec's constraints allow) is no design
+            check_design(task.lattice, x)
             ev = evaluator.evaluate(x)
             f, grad = -task.sign * ev.value, -task.sign * ev.grad[free]
             terms, solver, sim_s = ev.terms, ev.solver, ev.sim_s
@@ -240,6 +245,9 @@ def run_design(task: Task, out: Path, *, resume: bool = False, progress: bool = 
         except EvaluationFailed as exc:
             f, grad, sim_s = math.inf, np.zeros(free.size), time.perf_counter() - t0
             event = f"evaluation failed: {exc}"
+        except InvalidDesignError as exc:
+            f, grad, sim_s = math.inf, np.zeros(free.size), time.perf_counter() - t0
+            event = f"invalid geometry, not simulated: {exc}"
         t1 = time.perf_counter()
         g, _ = constraint_values(xf)
         jac_s = time.perf_counter() - t1

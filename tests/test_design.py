@@ -354,3 +354,24 @@ def test_nlopt_backends_run_and_record(tmp_path, make_task, algorithm):
         assert np.max(np.abs(a[:2] - x[:2])) < 1e-3
         assert res.evaluations[1]["objective"] == pytest.approx(
             ours.evaluations[1]["objective"], rel=1e-3)
+
+
+def test_an_invalid_trial_design_is_not_simulated_and_the_run_steps_back(tmp_path, make_task,
+                                                                           monkeypatch):
+    import design_engine.optimize as opt
+    from design_engine.geometry import InvalidDesignError, check_design
+
+    calls = {"n": 0}
+
+    def strict(lattice, x):
+        calls["n"] += 1
+        if calls["n"] == 3:  # as if the trial had swung a free-edge vertex across the unit
+            raise InvalidDesignError("block 5 is self-intersecting (edges 0 and 2)")
+        return check_design(lattice, x)
+
+    monkeypatch.setattr(opt, "check_design", strict)
+    res = run_design(make_task(6), tmp_path, progress=False)
+    ev = res.evaluations
+    assert ev[2]["failed"] and ev[2]["objective"] is None and ev[2]["sim_s"] < 0.5
+    assert "invalid geometry" in ev[2]["event"] and "self-intersecting" in ev[2]["event"]
+    assert len(ev) == 6 and res.best != 2

@@ -5,6 +5,7 @@ import threading
 from collections.abc import Callable
 
 import rclpy
+from rclpy._rclpy_pybind11 import RCLError
 from rclpy.executors import (ExternalShutdownException, MultiThreadedExecutor,
                               SingleThreadedExecutor)
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -39,6 +40,11 @@ def run_node(make: Callable[..., object], args=None, threads: int = 2, **node_kw
             executor.add_node(node)
             try:
                 executor.spin()
+            except RCLError:
+                # Ctrl-C/SIGTERM shut the context down while the executor was building its
+                # wait set: that is the requested stop, not a failure
+                if rclpy.ok():
+                    raise
             finally:
                 close = getattr(node, "close", None)
                 if close is not None:

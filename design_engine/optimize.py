@@ -196,7 +196,7 @@ def run_design(task: Task, out: Path, *, resume: bool = False, progress: bool = 
     constraints = make_sparse_constraints(task.lattice, task.limits, x_base, free)
     budget = task.budget
     session_start = time.perf_counter()
-    state = {"last_end": time.perf_counter(), "cache": None, "calls": 0, "last_x": None}
+    state = {"last_end": time.perf_counter(), "cache": None, "calls": 0}
     bar = _progress_bar(task, progress, len(record.evaluations))
 
     def elapsed() -> float:
@@ -216,7 +216,6 @@ def run_design(task: Task, out: Path, *, resume: bool = False, progress: bool = 
         xf = np.array(xf, np.float64)  # a copy: NLopt hands over a view of its own buffer
         i = state["calls"]
         state["calls"] += 1
-        state["last_x"] = xf
         if i < len(record.x):  # replay: the optimiser must ask for the recorded design
             if not np.allclose(xf, record.x[i], rtol=0.0, atol=1e-9):
                 raise ResumeError(f"cannot resume: evaluation {i + 1} asks for a design that "
@@ -229,8 +228,7 @@ def run_design(task: Task, out: Path, *, resume: bool = False, progress: bool = 
         if elapsed() >= budget.max_time_s:
             raise _Stop("max_time")
         opt_s = time.perf_counter() - state["last_end"]
-        x = x_base.copy()
-        x[free] = xf
+        x = task.embed(xf)
         t0 = time.perf_counter()
         event, terms, solver = None, None, None
         try:
@@ -292,14 +290,9 @@ def run_design(task: Task, out: Path, *, resume: bool = False, progress: bool = 
     evals = record.evaluations
     best = best_feasible(evals, task.goal)
 
-    def full(i):
-        x = x_base.copy()
-        x[free] = record.x[i]
-        return x
-
     return DesignRun(status=status, stop_reason=reason, evaluations=evals, best=best,
-                     best_x=None if best is None else full(best),
-                     last_x=full(len(evals) - 1) if evals else x_base.copy(),
+                     best_x=None if best is None else task.embed(record.x[best]),
+                     last_x=task.embed(record.x[-1]) if evals else x_base.copy(),
                      compilations=evaluator.compilations)
 
 

@@ -104,9 +104,7 @@ def write_results(out: Path, specs: list[RunSpec], task) -> dict:
     for p in front:
         run_dir = out / "runs" / p["run"]
         with np.load(run_dir / "checkpoint.npz") as z:
-            xf = z["x"][p["eval"] - 1]
-        x = task.initial_design.copy()
-        x[task.free] = xf
+            x = task.embed(z["x"][p["eval"] - 1])
         path = out / "front" / f"{p['run']}_eval{p['eval']}.json"
         save_design(path, task.lattice, x, name=f"{task.name} {p['run']} eval {p['eval']}",
                     task=task.name, objectives={names[0]: p["J1"], names[1]: p["J2"]},

@@ -144,6 +144,12 @@ class Task:
             return ("max", "min")
         return tuple("max" for _ in self.terms)
 
+    def embed(self, x_free) -> np.ndarray:
+        """Full design vector [n_design] (mm) from the free variables [n_free]."""
+        x = self.initial_design.copy()
+        x[self.free] = x_free
+        return x
+
     @property
     def sign(self) -> float:
         """+1 to maximise, -1 to minimise (the optimiser minimises -sign * objective)."""

@@ -11,6 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
+from metarig.argtypes import positive
+
 log = logging.getLogger("metarig.simulate")
 
 
@@ -221,7 +223,7 @@ def modes_main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="metarig modes", description=modes_main.__doc__,
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     _scene_args(p)
-    p.add_argument("--count", type=int, default=20, help="lowest and highest modes to print")
+    p.add_argument("--count", type=positive(int), default=20, help="lowest and highest modes to print")
     p.add_argument("--out", type=Path, default=None, help="folder for modes.json")
     args = p.parse_args(argv)
     import design_engine  # noqa: F401

@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from metarig.argtypes import positive
+
 log = logging.getLogger("metarig.design")
 
 
@@ -28,18 +30,6 @@ def _size(text: str) -> tuple[int, int]:
     if nx < 2 or ny < 2:
         raise argparse.ArgumentTypeError(f"size needs at least 2x2, got {text!r}")
     return nx, ny
-
-
-def _positive(kind):
-    def parse(text: str):
-        try:
-            v = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a {kind.__name__}, got {text!r}") from None
-        if not v > 0:
-            raise argparse.ArgumentTypeError(f"must be positive, got {text!r}")
-        return v
-    return parse
 
 
 def provenance(solver: dict | None = None) -> dict:
@@ -56,7 +46,7 @@ def provenance(solver: dict | None = None) -> dict:
     except (OSError, subprocess.SubprocessError):
         commit = None
     return {"package": "metarig", "version": ver, "git_commit": commit,
-            "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+            "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
             "solver": solver}
 
 
@@ -69,9 +59,9 @@ def design_main(argv: list[str] | None = None) -> int:
     p.add_argument("task", nargs="?", help="task preset name or task file (.toml)")
     p.add_argument("--out", type=Path, help="run folder (default runs/design-<task>)")
     p.add_argument("--size", type=_size, help="lattice size NXxNY (default the task's)")
-    p.add_argument("--max-evals", type=_positive(int), help="objective evaluations, MMA inner "
+    p.add_argument("--max-evals", type=positive(int), help="objective evaluations, MMA inner "
                    "iterations included (default the task's)")
-    p.add_argument("--max-time", type=_positive(float), help="wall-time budget of the whole run, "
+    p.add_argument("--max-time", type=positive(float), help="wall-time budget of the whole run, "
                    "s (default the task's)")
     p.add_argument("--bias-angle-deg", type=float, help="bias angle of the periodic initial "
                    "design, degrees")
@@ -182,8 +172,11 @@ def _plots(task, out: Path, result) -> None:
     import jax.numpy as jnp
 
     from design_engine.constraints import active_constraint_masks, make_sparse_constraints
-    from design_engine.design_plots import (plot_active_constraints, plot_design_comparison,
-                                            plot_history)
+    from design_engine.design_plots import (
+        plot_active_constraints,
+        plot_design_comparison,
+        plot_history,
+    )
     from design_engine.geometry import block_geometry
     from design_engine.objectives import block_kinetic_energy
     from design_engine.run import simulate_scene

@@ -29,6 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
+from metarig.argtypes import number_list, positive
+
 log = logging.getLogger("metarig.robustness")
 
 PROG = "metarig robustness"
@@ -51,34 +53,6 @@ class UserError(Exception):
     """A mistake in the input (reported as one line, exit code 2)."""
 
 
-def _number_list(kind: str):
-    def parse(text: str) -> tuple[float, ...]:
-        try:
-            values = tuple(float(v) for v in text.split(",") if v.strip())
-        except ValueError:
-            raise argparse.ArgumentTypeError(
-                f"{kind} must be a comma list of numbers, got {text!r}") from None
-        if not values:
-            raise argparse.ArgumentTypeError(f"{kind} list is empty")
-        for v in values:
-            if not (math.isfinite(v) and v > 0):
-                raise argparse.ArgumentTypeError(f"{kind} must be positive, got {v:g}")
-        if len(set(values)) != len(values):
-            raise argparse.ArgumentTypeError(f"{kind} list repeats a value: {text!r}")
-        return tuple(sorted(values))
-    return parse
-
-
-def _positive_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {v}")
-    return v
-
-
 def _parser() -> argparse.ArgumentParser:
     from design_engine.robustness import CPU_CHUNK, DEFAULT_CHUNK
 
@@ -87,9 +61,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("design", type=Path, help="design file (JSON, metarig-design/1)")
     p.add_argument("--out", type=Path, required=True,
                    help="output folder (robustness.json, robustness.png); a re-run resumes")
-    p.add_argument("--frequencies", type=_number_list("frequencies"),
+    p.add_argument("--frequencies", type=number_list("frequencies", True, True),
                    default=DEFAULT_FREQUENCIES_HZ, help="input frequencies, Hz, comma list")
-    p.add_argument("--amplitudes", type=_number_list("amplitudes"), default=DEFAULT_AMPLITUDES_S,
+    p.add_argument("--amplitudes", type=number_list("amplitudes", True, True), default=DEFAULT_AMPLITUDES_S,
                    help="input amplitudes, comma list, in --amplitude-unit (default: units of the "
                    "lattice spacing s, so 0.5 is 7.5 mm for s = 15 mm); each below 2 s")
     p.add_argument("--amplitude-unit", choices=tuple(AMPLITUDE_UNITS), default="s",
@@ -97,12 +71,12 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--scene", default="focusing-24x16",
                    help="scene preset, built on the design's lattice (its first target is the "
                    "target region)")
-    p.add_argument("--chunk", type=_positive_int, default=None,
+    p.add_argument("--chunk", type=positive(int), default=None,
                    help=f"grid points per vmap batch and at most per Dask task (default "
                    f"{DEFAULT_CHUNK} on an accelerator, {CPU_CHUNK} on the CPU, where larger "
                    "batches cost more per point)")
     where = p.add_mutually_exclusive_group()
-    where.add_argument("--workers", type=_positive_int, default=None,
+    where.add_argument("--workers", type=positive(int), default=None,
                        help="1 (default): in this process; N > 1: local Dask cluster of N workers")
     where.add_argument("--scheduler", help="address of a running Dask scheduler (tcp://HOST:PORT)")
     p.add_argument("--no-plot", action="store_true", help="skip robustness.png")

@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from metarig.argtypes import number_list
+
 log = logging.getLogger("metarig.pareto")
 
 SWEEP_FORMAT = "metarig-pareto/1"
@@ -175,13 +177,6 @@ def run_sweep(source: str, out: Path, weights: list[float], starts: list[float],
     return {"runs": done, "wall_s": time.perf_counter() - t0, **counts}
 
 
-def _floats(text: str) -> list[float]:
-    try:
-        return [float(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
-
-
 def pareto_main(argv: list[str] | None = None) -> int:
     """Pareto sweep of a two-objective task: weights x initial designs, on Dask."""
     p = argparse.ArgumentParser(prog="metarig pareto", description=pareto_main.__doc__)
@@ -191,8 +186,8 @@ def pareto_main(argv: list[str] | None = None) -> int:
     p.add_argument("--size", help="lattice size NXxNY (default the task's)")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--weights", type=int, default=11, help="K weights w1 evenly in [0, 1] (default 11)")
-    g.add_argument("--weight-list", type=_floats, help="explicit weights w1, comma-separated")
-    p.add_argument("--starts", type=_floats, default=[15.0, 20.0, 25.0, 30.0, 35.0],
+    g.add_argument("--weight-list", type=number_list("weights"), help="explicit weights w1, comma-separated")
+    p.add_argument("--starts", type=number_list("starts"), default=[15.0, 20.0, 25.0, 30.0, 35.0],
                    help="bias angles (deg) of the initial designs (default 15,20,25,30,35)")
     p.add_argument("--max-evals", type=int, help="evaluations per run (default the task's)")
     h = p.add_mutually_exclusive_group()

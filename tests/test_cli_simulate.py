@@ -57,6 +57,12 @@ def test_bad_inputs_give_a_clear_error_and_no_traceback(tmp_path, args, message)
     assert "Traceback" not in r.stderr
 
 
+@pytest.mark.parametrize("count", ["-1", "0", "two"])
+def test_modes_refuses_a_count_that_is_not_positive(count):
+    r = _run("modes", "--nx", "4", "--ny", "3", "--count", count, timeout=120)
+    assert r.returncode == 2 and "--count" in r.stderr and "Traceback" not in r.stderr
+
+
 def test_unknown_preset_and_command():
     r = _run("simulate", "--preset", "nope", timeout=120)
     assert r.returncode == 2 and "invalid choice" in r.stderr

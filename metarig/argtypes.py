@@ -1,0 +1,43 @@
+"""Command-line value types shared by every `metarig` subcommand (argparse `type=` callables).
+
+A bad value becomes argparse's one-line usage error (exit code 2), never a traceback.
+"""
+
+import argparse
+import math
+
+
+def positive(kind=int):
+    """Parser of a positive `kind` (int or float) value."""
+    def parse(text: str):
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a {kind.__name__}, got {text!r}") from None
+        if not (math.isfinite(v) and v > 0):
+            bound = "at least 1" if kind is int else "positive"
+            raise argparse.ArgumentTypeError(f"must be {bound}, got {text}")
+        return v
+    return parse
+
+
+def number_list(what: str, positive_only: bool = False, distinct_sorted: bool = False):
+    """Parser of a comma list of numbers; optionally all positive, and distinct (then sorted)."""
+    def parse(text: str) -> tuple[float, ...]:
+        try:
+            values = tuple(float(v) for v in text.split(",") if v.strip())
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"{what} must be a comma list of numbers, got {text!r}") from None
+        if not values:
+            raise argparse.ArgumentTypeError(f"{what} list is empty")
+        if not all(math.isfinite(v) for v in values):
+            raise argparse.ArgumentTypeError(f"{what} must be finite, got {text!r}")
+        if positive_only and min(values) <= 0:
+            raise argparse.ArgumentTypeError(f"{what} must be positive, got {min(values):g}")
+        if distinct_sorted:
+            if len(set(values)) != len(values):
+                raise argparse.ArgumentTypeError(f"{what} list repeats a value: {text!r}")
+            values = tuple(sorted(values))
+        return values
+    return parse

@@ -63,7 +63,8 @@ def block_geometry(lattice: Lattice, x: DesignVector) -> BlockGeometry:
 
 
 class InvalidDesignError(ValueError):
-    """A design that cannot be simulated (wrong size, non-finite, inverted or self-intersecting)."""
+    """A design that cannot be simulated (wrong size, non-finite, inverted, self-intersecting or
+    overlapping a neighbour)."""
 
 
 def _segments_cross(p1, p2, p3, p4) -> bool:
@@ -73,6 +74,44 @@ def _segments_cross(p1, p2, p3, p4) -> bool:
     d1, d2 = orient(p3, p4, p1), orient(p3, p4, p2)
     d3, d4 = orient(p1, p2, p3), orient(p1, p2, p4)
     return (d1 * d2 < 0) and (d3 * d4 < 0)
+
+
+def _polygons_intersect(a: np.ndarray, b: np.ndarray) -> bool:
+    """Do polygons a [n, 2] and b [m, 2] share interior points (an edge crossing or one inside)?"""
+    a1, a2 = a, np.roll(a, -1, axis=0)
+    b1, b2 = b, np.roll(b, -1, axis=0)
+
+    def orient(p, q, r):  # [.., 2] -> sign of the turn p -> q -> r
+        return (q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1]) - \
+            (q[..., 1] - p[..., 1]) * (r[..., 0] - p[..., 0])
+
+    A1, A2, B1, B2 = a1[:, None], a2[:, None], b1[None], b2[None]
+    cross = (orient(B1, B2, A1) * orient(B1, B2, A2) < 0) & (orient(A1, A2, B1) * orient(A1, A2, B2) < 0)
+    return bool(cross.any()) or _inside(a[0], b) or _inside(b[0], a)
+
+
+def _inside(p: np.ndarray, poly: np.ndarray) -> bool:
+    """Is point p [2] strictly inside polygon poly [n, 2] (even-odd rule)?"""
+    x, y = poly[:, 0], poly[:, 1]
+    xn, yn = np.roll(x, -1), np.roll(y, -1)
+    up = (y > p[1]) != (yn > p[1])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xc = x + (p[1] - y) * (xn - x) / (yn - y)
+    return bool(np.sum(up & (p[0] < xc)) % 2)
+
+
+def first_overlap(polygons: np.ndarray) -> tuple[int, int] | None:
+    """The first pair (a, b), a < b, of polygons [n, n_vertices, 2] that overlap, or None.
+
+    Pairs are screened by bounding boxes, then tested exactly (edge crossings, containment).
+    """
+    lo, hi = polygons.min(axis=1), polygons.max(axis=1)
+    i, j = np.triu_indices(polygons.shape[0], 1)
+    near = np.all((lo[i] < hi[j]) & (lo[j] < hi[i]), axis=1)
+    for a, b in zip(i[near], j[near]):
+        if _polygons_intersect(polygons[a], polygons[b]):
+            return int(a), int(b)
+    return None
 
 
 def check_design(lattice: Lattice, x) -> np.ndarray:
@@ -107,4 +146,9 @@ def check_design(lattice: Lattice, x) -> np.ndarray:
                         continue
                     if _segments_cross(p[k], p[(k + 1) % n], p[m], p[(m + 1) % n]):
                         raise InvalidDesignError(f"block {b} is self-intersecting (edges {k} and {m})")
+    pair = first_overlap(np.asarray(lattice.grid_points, np.float64)[:, None, :] + r)
+    if pair is not None:
+        raise InvalidDesignError(
+            f"block {pair[0]} overlaps block {pair[1]} in the reference geometry (units must not "
+            "interpenetrate their neighbours)")
     return x

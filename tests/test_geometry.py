@@ -118,6 +118,12 @@ def test_invalid_designs_are_rejected_with_clear_messages():
     x[2:4] = [20.0, 0.0]  # H[0, 1]: push the left vertex of unit 3 through the unit
     with pytest.raises(InvalidDesignError, match="block 3"):
         check_design(lat, x)
+    x = periodic_design(lat, 0.0).copy()
+    x[2 * ((4 * 3) + 1)] += 20.0  # V[0, 1]: unit 0 reaches 5 mm into unit 1 (a real overlap)
+    with pytest.raises(InvalidDesignError, match="block 0 overlaps block 1"):
+        check_design(lat, x)
+    for bias in (0.0, 0.3, math.radians(44)):  # the periodic designs themselves are fine
+        check_design(lat, periodic_design(lat, bias))
     with pytest.raises(ValueError, match="bias angle"):
         periodic_design(lat, math.radians(50))
     r = vertex_offsets(lat, jnp.asarray(periodic_design(lat, 0.2)))

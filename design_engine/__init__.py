@@ -36,4 +36,4 @@ from design_engine.scenes import Scene as Scene  # noqa: E402
 from design_engine.scenes import build_scene as build_scene  # noqa: E402
 from design_engine.simulate import SimulationError as SimulationError  # noqa: E402
 from design_engine.simulate import SolverConfig as SolverConfig  # noqa: E402
-from design_engine.trajectory import Trajectory as Trajectory  # noqa: E402
+from metarig.trajectory import Trajectory as Trajectory  # noqa: E402

@@ -20,7 +20,7 @@ from design_engine.scenes import Scene
 from design_engine.implicit_step import ImplicitNewmark
 from design_engine.simulate import (FIXED_STEP, SimulationError, Solution, SolverConfig,
                                     check_solution, failure_message, make_simulator)
-from design_engine.trajectory import Trajectory
+from metarig.trajectory import Trajectory
 from design_engine import units
 
 _COMPILED: dict[tuple, object] = {}

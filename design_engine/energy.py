@@ -1,9 +1,18 @@
-"""Potential energy of the network: scalar per-bond laws and their lift over the lattice.
+"""Potential energy of the network: bond kinematics, scalar per-bond laws, and the bond map.
 
-Laws (spec 5): ligament = 1/2 k_l (eps l0)^2 + 1/2 k_s (psi l0)^2 + 1/2 k_b dtheta^2, and the
-contact barrier per void angle. Energies in mJ, angles rad, lengths mm. Forces are never written
-by hand: the dynamics take `jax.grad` of `make_energy(...)`.
+Three layers, as a scalar law is kept apart from the map that lifts it over a system:
+- kinematics: `make_bond_measures` turns the block state into the deformation measures of every
+  bond (axial strain, shear angle, relative rotation, current void angles), computed once;
+- laws: plain functions `law(measures, material) -> {term name: [n_bonds] energy}` of those
+  measures and their material fields (`ligament_law`, spec 5.1; `contact_law`, spec 5.3);
+- the bond map: `make_bond_terms` / `make_energy` evaluate the measures and call the laws.
+A new law is one such function (plus the `Material` fields it reads), passed in `laws=`.
+
+Energies in mJ, angles rad, lengths mm. Forces are never written by hand: the dynamics take
+`jax.grad` of `make_energy(...)`.
 """
+
+from collections.abc import Callable, Sequence
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -17,31 +26,12 @@ from design_engine.material import Material
 
 PI = jnp.pi
 
+BondTerms = dict[str, Float[Array, " n_bonds"]]  # term name -> per-bond energy, mJ
+
 
 def wrap(phi):
     """Map angles onto [-pi, pi)."""
     return jnp.mod(phi + PI, 2.0 * PI) - PI
-
-
-def ligament_energy(strain, shear, bend, l0, k_stretch, k_shear, k_bend):
-    """Energy of one ligament (mJ) from axial strain, shear angle (rad), relative rotation (rad)."""
-    return 0.5 * k_stretch * (strain * l0) ** 2 + 0.5 * k_shear * (shear * l0) ** 2 + 0.5 * k_bend * bend**2
-
-
-def contact_energy(alpha, k_contact, theta_min, theta_cut):
-    """Contact barrier of one void angle alpha (rad), spec 5.3; mJ.
-
-    Zero for alpha >= theta_cut and for alpha < theta_min (a wide void wrapped to about -pi is
-    not contact); in between k/2 (alpha - theta_cut)^2 / (1 - tau^2), which is C1 at theta_cut
-    and unbounded as alpha -> theta_min+. The middle branch is evaluated on a clamped tau
-    ("double where") so the unused branch never yields NaN gradients.
-    """
-    span = theta_cut - theta_min
-    tau = (alpha - theta_cut) / span
-    active = (alpha >= theta_min) & (alpha < theta_cut)
-    tau_safe = jnp.where(active, tau, -0.5)
-    value = 0.5 * k_contact * span**2 * tau_safe**2 / (1.0 - tau_safe**2)
-    return jnp.where(active, value, 0.0)
 
 
 class BondGeometry(eqx.Module):
@@ -68,22 +58,53 @@ def bond_geometry(lattice: Lattice, geom: BlockGeometry) -> BondGeometry:
     )
 
 
+# --- kinematics ----------------------------------------------------------------------------
+
+
+class BondMeasures(eqx.Module):
+    """Deformation measures of every bond (spec 5.1-5.3), the only input of the laws.
+
+    Attributes:
+        strain: [n_bonds] axial strain |l| / l0 - 1 (or its linearisation, spec 5.2).
+        shear: [n_bonds] shear angle psi, rad: current ligament against the reference one carried
+            by the mean rotation of the two units, wrapped to (-pi, pi].
+        bend: [n_bonds] relative rotation theta_2 - theta_1, rad (not wrapped).
+        voids: [n_bonds, 2] current void angles (alpha1, alpha2), rad, wrapped to [-pi, pi).
+        rest_length: ligament rest length l0, mm.
+    """
+
+    strain: Float[Array, " n_bonds"]
+    shear: Float[Array, " n_bonds"]
+    bend: Float[Array, " n_bonds"]
+    voids: Float[Array, "n_bonds 2"]
+    rest_length: float = eqx.field(static=True)
+
+
+def void_angles(void_ref: Float[Array, "n_bonds 2"],
+                bend: Float[Array, "*batch n_bonds"]) -> Float[Array, "*batch n_bonds 2"]:
+    """Void angles (alpha1, alpha2) after a relative rotation `bend`, rad, not wrapped.
+
+    The units are rigid, so the voids turn with them: alpha1 - bend, alpha2 + bend.
+    """
+    return void_ref + jnp.stack([-bend, bend], axis=-1)
+
+
 def _rotate_minus_identity(theta, d):
     """(R(theta) - I) d for [n] angles and [n, 2] vectors."""
     c, s = jnp.cos(theta), jnp.sin(theta)
     return jnp.stack([(c - 1.0) * d[:, 0] - s * d[:, 1], s * d[:, 0] + (c - 1.0) * d[:, 1]], axis=-1)
 
 
-def make_bond_terms(lattice: Lattice, *, linearized: bool = False, use_contact: bool = True):
-    """Factory: `terms(q, bonds, material) -> dict` of per-bond energies (mJ), each [n_bonds].
+def make_bond_measures(lattice: Lattice, *, linearized: bool = False):
+    """Factory: `measures(q [n_blocks, 3], bonds) -> BondMeasures` (u mm, v mm, theta rad).
 
-    Keys: stretch, shear, bend, contact. `q` is [n_blocks, 3] (u mm, v mm, theta rad).
+    `linearized` uses the small-rotation strain and shear of spec 5.2.
     """
     b1 = np.asarray(lattice.bond_blocks[:, 0])
     b2 = np.asarray(lattice.bond_blocks[:, 1])
     l0 = lattice.ligament_length
 
-    def terms(q: BlockState, bonds: BondGeometry, mat: Material) -> dict:
+    def measures(q: BlockState, bonds: BondGeometry) -> BondMeasures:
         r0 = jnp.asarray(lattice.bond_r0, q.dtype)
         q1, q2 = q[b1], q[b2]
         th1, th2 = q1[:, 2], q2[:, 2]
@@ -103,31 +124,109 @@ def make_bond_terms(lattice: Lattice, *, linearized: bool = False, use_contact: 
             carried = jnp.stack([c * r0[:, 0] - s * r0[:, 1], s * r0[:, 0] + c * r0[:, 1]], axis=-1)
             shear = jnp.arctan2(carried[:, 0] * ell[:, 1] - carried[:, 1] * ell[:, 0],
                                 carried[:, 0] * ell[:, 0] + carried[:, 1] * ell[:, 1])
-        out = {
-            "stretch": 0.5 * mat.k_stretch * (strain * l0) ** 2,
-            "shear": 0.5 * mat.k_shear * (shear * l0) ** 2,
-            "bend": 0.5 * mat.k_bend * bend**2,
-        }
-        if use_contact:
-            # void angles rotate rigidly with the blocks: alpha1 + (th1 - th2), alpha2 + (th2 - th1)
-            a1 = wrap(bonds.void_ref[:, 0] - bend)
-            a2 = wrap(bonds.void_ref[:, 1] + bend)
-            cf = lambda a: contact_energy(a, mat.k_contact, mat.contact_min, mat.contact_cutoff)  # noqa: E731
-            out["contact"] = cf(a1) + cf(a2)
-        else:
-            out["contact"] = jnp.zeros_like(bend)
+        return BondMeasures(strain=strain, shear=shear, bend=bend,
+                            voids=wrap(void_angles(bonds.void_ref, bend)), rest_length=l0)
+
+    return measures
+
+
+# --- laws: (measures, material) -> named per-bond energies ---------------------------------
+
+
+def ligament_law(m: BondMeasures, mat: Material) -> BondTerms:
+    """Ligament energy (spec 5.1), mJ per bond, by part:
+    stretch 1/2 k_stretch (eps l0)^2, shear 1/2 k_shear (psi l0)^2, bend 1/2 k_bend dtheta^2.
+
+    Reads `mat.k_stretch` (N/mm), `mat.k_shear` (N/mm), `mat.k_bend` (N mm/rad).
+    """
+    l0 = m.rest_length
+    return {
+        "stretch": 0.5 * mat.k_stretch * (m.strain * l0) ** 2,
+        "shear": 0.5 * mat.k_shear * (m.shear * l0) ** 2,
+        "bend": 0.5 * mat.k_bend * m.bend**2,
+    }
+
+
+def contact_energy(alpha, k_contact, theta_min, theta_cut):
+    """Contact barrier of one void angle alpha (rad), spec 5.3; mJ.
+
+    Zero for alpha >= theta_cut and for alpha < theta_min (a wide void wrapped to about -pi is
+    not contact); in between k/2 (alpha - theta_cut)^2 / (1 - tau^2), which is C1 at theta_cut
+    and unbounded as alpha -> theta_min+. The middle branch is evaluated on a clamped tau
+    ("double where") so the unused branch never yields NaN gradients.
+    """
+    span = theta_cut - theta_min
+    tau = (alpha - theta_cut) / span
+    active = (alpha >= theta_min) & (alpha < theta_cut)
+    tau_safe = jnp.where(active, tau, -0.5)
+    value = 0.5 * k_contact * span**2 * tau_safe**2 / (1.0 - tau_safe**2)
+    return jnp.where(active, value, 0.0)
+
+
+def contact_law(m: BondMeasures, mat: Material) -> BondTerms:
+    """Contact energy (spec 5.3), mJ per bond: the barrier of both void angles.
+
+    Reads `mat.k_contact` (N mm/rad), `mat.contact_min`, `mat.contact_cutoff` (rad).
+    """
+    def barrier(alpha):
+        return contact_energy(alpha, mat.k_contact, mat.contact_min, mat.contact_cutoff)
+
+    return {"contact": barrier(m.voids[:, 0]) + barrier(m.voids[:, 1])}
+
+
+def no_contact_law(m: BondMeasures, mat: Material) -> BondTerms:
+    """Contact switched off (`use_contact=False`): the contact term is reported as zero."""
+    return {"contact": jnp.zeros_like(m.bend)}
+
+
+BondLaw = Callable[[BondMeasures, Material], BondTerms]
+
+
+def default_laws(use_contact: bool = True) -> tuple[BondLaw, ...]:
+    """The model of spec 5: ligament law plus contact (or its zero stand-in)."""
+    return (ligament_law, contact_law if use_contact else no_contact_law)
+
+
+# --- the bond map ---------------------------------------------------------------------------
+
+
+def make_bond_terms(lattice: Lattice, *, linearized: bool = False, use_contact: bool = True,
+                    laws: Sequence[BondLaw] | None = None):
+    """Factory: `terms(q, bonds, material) -> dict` of per-bond energies (mJ), each [n_bonds].
+
+    The measures are computed once and every law is called on them; the keys are the laws'
+    term names, in law order (default: stretch, shear, bend, contact). `q` is [n_blocks, 3]
+    (u mm, v mm, theta rad). `laws` (default `default_laws(use_contact)`) replaces the model.
+    """
+    measures_fn = make_bond_measures(lattice, linearized=linearized)
+    laws = default_laws(use_contact) if laws is None else tuple(laws)
+
+    def terms(q: BlockState, bonds: BondGeometry, mat: Material) -> BondTerms:
+        m = measures_fn(q, bonds)
+        out: BondTerms = {}
+        for law in laws:
+            part = law(m, mat)
+            if out.keys() & part.keys():
+                raise ValueError(f"two laws define the terms {sorted(out.keys() & part.keys())}")
+            out.update(part)
         return out
 
     return terms
 
 
-def make_energy(lattice: Lattice, *, linearized: bool = False, use_contact: bool = True):
-    """Factory: `energy(q [n_blocks, 3], bonds, material) -> total potential energy (mJ)`."""
-    terms_fn = make_bond_terms(lattice, linearized=linearized, use_contact=use_contact)
+def make_energy(lattice: Lattice, *, linearized: bool = False, use_contact: bool = True,
+                laws: Sequence[BondLaw] | None = None):
+    """Factory: `energy(q [n_blocks, 3], bonds, material) -> total potential energy (mJ)`.
+
+    The sum over bonds of every term of `make_bond_terms` (same arguments).
+    """
+    terms_fn = make_bond_terms(lattice, linearized=linearized, use_contact=use_contact, laws=laws)
 
     def energy(q: BlockState, bonds: BondGeometry, mat: Material) -> Scalar:
-        t = terms_fn(q, bonds, mat)
-        return jnp.sum(t["stretch"] + t["shear"] + t["bend"] + t["contact"])
+        per_bond = None
+        for value in terms_fn(q, bonds, mat).values():
+            per_bond = value if per_bond is None else per_bond + value
+        return jnp.sum(per_bond)
 
     return energy
 

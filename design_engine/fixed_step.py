@@ -1,20 +1,110 @@
-"""Fixed-step velocity Verlet for M q'' = F(q, t) - C q' (one force evaluation per step).
+"""Fixed-step schemes for M q'' = F(q, t) - C q': their shared interface, the step grid, and
+velocity Verlet (one force evaluation per step).
 
-Kick-drift-kick: the first half kick treats damping explicitly, the second implicitly (closed form,
-C and M diagonal), which keeps the scheme second order and symplectic when C = 0. Explicit, so
-it is stable only for dt < 2 / omega_max (the highest natural frequency, see `modal`); the
-contact barrier stiffens without bound, so a scene driven into contact needs a margin or the
-adaptive solver. Differentiation is discretise-then-optimise through `lax.scan`.
+Every scheme is a final subclass of `AbstractFixedStep`; `simulate` and the run policies use
+only that interface (`is_fixed_step` tells them from the adaptive diffrax solvers).
+
+Velocity Verlet, kick-drift-kick: the first half kick treats damping explicitly, the second
+implicitly (closed form, C and M diagonal), which keeps the scheme second order and symplectic
+when C = 0. Explicit, so it is stable only for dt < 2 / omega_max (the highest natural
+frequency, see `modal`); the contact barrier stiffens without bound, so a scene driven into
+contact needs a margin or the adaptive solver. Differentiation is discretise-then-optimise
+through `lax.scan`.
 """
 
+import abc
+import dataclasses
 import math
+from collections.abc import Callable
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 
-class FixedStepVerlet(eqx.Module):
+@dataclasses.dataclass(frozen=True)
+class StepGrid:
+    """Static step counts of a solve from t0 = 0 through fixed sample times.
+
+    Attributes:
+        n_pre: steps from 0 to the first sample (0 when it is at 0).
+        n_sub: equal steps between consecutive samples.
+        n_steps: steps in all.
+        dt_nominal: the largest step taken, ms.
+    """
+
+    n_pre: int
+    n_sub: int
+    n_steps: int
+    dt_nominal: float
+
+
+def step_grid(time_grid, max_dt: float) -> StepGrid:
+    """Step counts for [n_t] sample times `time_grid` (ms, from t0 = 0) and steps <= `max_dt`."""
+    grid = np.asarray(time_grid, np.float64)
+    n_pre = substeps(grid[0], max_dt) if grid[0] > 0 else 0
+    n_sub = substeps(float(np.max(np.diff(grid))), max_dt)
+    dt_nominal = max(float(np.max(np.diff(grid))) / n_sub, float(grid[0]) / n_pre if n_pre else 0.0)
+    return StepGrid(n_pre, n_sub, n_pre + n_sub * (grid.size - 1), dt_nominal)
+
+
+# `integrate(force, inv_mass, damping, (q0, v0), ts) -> (q [n_t, n], v [n_t, n], converged)`:
+# force(q, t) -> F = -dV/dq ([n] -> [n]); inv_mass, damping: [n] diagonals; ts: [n_t] sample
+# times (ms) of the step grid; converged: bool scalar, False when the solve must be reported failed
+Integrator = Callable[..., tuple]
+
+
+class AbstractFixedStep(eqx.Module):
+    """A scheme that runs on a static step grid fitted between the sample times.
+
+    Attributes:
+        max_dt: largest step, ms.
+        stability_limited: True for an explicit scheme, stable only for max_dt < 2 / omega_max
+            (the policies then keep the step below that limit as the design changes).
+    """
+
+    max_dt: eqx.AbstractVar[float]
+    stability_limited: eqx.AbstractClassVar[bool]
+
+    @abc.abstractmethod
+    def make_integrator(self, grid: StepGrid, bond_blocks: np.ndarray, free: np.ndarray,
+                        n_dof: int) -> Integrator:
+        """Factory: the pure `integrate` (see `Integrator`) for this step grid and topology.
+
+        Args:
+            grid: the step grid of the sample times.
+            bond_blocks: [n_bonds, 2] units joined by each ligament.
+            free: [n] increasing global indices of the integrated DOFs, out of `n_dof`.
+        """
+
+    @abc.abstractmethod
+    def force_evaluations(self, num_steps: int) -> int:
+        """Force evaluations of a solve of `num_steps` steps (the initial one included)."""
+
+    @abc.abstractmethod
+    def summary(self) -> dict:
+        """JSON-ready settings (SI) for reports, besides the class name."""
+
+    @abc.abstractmethod
+    def unstable_hint(self) -> str:
+        """Likely cause of a non-finite state, appended to the error message ("" if none)."""
+
+    @abc.abstractmethod
+    def unconverged_message(self) -> str:
+        """Why a solve reported `converged = False` failed, and what to change."""
+
+    def with_max_dt(self, max_dt: float) -> "AbstractFixedStep":
+        """The same scheme with another largest step (ms)."""
+        return dataclasses.replace(self, max_dt=max_dt)
+
+
+def is_fixed_step(solver) -> bool:
+    """True for a fixed-step scheme, False for an adaptive diffrax solver."""
+    return isinstance(solver, AbstractFixedStep)
+
+
+class FixedStepVerlet(AbstractFixedStep):
     """Velocity Verlet with at most `max_dt` (ms) per step; steps are fitted between samples.
 
     Attributes:
@@ -25,10 +115,32 @@ class FixedStepVerlet(eqx.Module):
 
     max_dt: float = eqx.field(static=True, default=0.05)
     remat: bool = eqx.field(static=True, default=False)
+    stability_limited = True
 
     def __check_init__(self):
         if not self.max_dt > 0:
             raise ValueError(f"max_dt must be positive, got {self.max_dt} ms")
+
+    def make_integrator(self, grid: StepGrid, bond_blocks: np.ndarray, free: np.ndarray,
+                        n_dof: int) -> Integrator:
+        def run(force, inv_mass, damping, y0, ts):
+            qs, vs = integrate(self, force, inv_mass, damping, y0, ts, 0.0, grid.n_pre, grid.n_sub)
+            return qs, vs, jnp.asarray(True)
+
+        return run
+
+    def force_evaluations(self, num_steps: int) -> int:
+        return num_steps + 1
+
+    def summary(self) -> dict:
+        return {"max_dt_s": self.max_dt * 1e-3}
+
+    def unstable_hint(self) -> str:
+        return (" (the fixed step is above the stability limit 2/omega_max, or contact stiffened "
+                "the scene beyond it)")
+
+    def unconverged_message(self) -> str:
+        return "the explicit Verlet step has no iterations; it cannot fail to converge"
 
 
 def substeps(interval: float, max_dt: float) -> int:

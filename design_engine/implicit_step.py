@@ -24,10 +24,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from design_engine.fixed_step import march
+from design_engine.fixed_step import AbstractFixedStep, Integrator, StepGrid, march
 
 
-class ImplicitNewmark(eqx.Module):
+class ImplicitNewmark(AbstractFixedStep):
     """Trapezoidal Newmark with at most `max_dt` (ms) per step, `iterations` chord iterations.
 
     Attributes:
@@ -42,12 +42,39 @@ class ImplicitNewmark(eqx.Module):
     iterations: int = eqx.field(static=True, default=3)
     tol: float = eqx.field(static=True, default=1e-4)
     remat: bool = eqx.field(static=True, default=False)
+    stability_limited = False
 
     def __check_init__(self):
         if not self.max_dt > 0:
             raise ValueError(f"max_dt must be positive, got {self.max_dt} ms")
         if self.iterations < 1:
             raise ValueError(f"iterations must be at least 1, got {self.iterations}")
+
+    def make_integrator(self, grid: StepGrid, bond_blocks: np.ndarray, free: np.ndarray,
+                        n_dof: int) -> Integrator:
+        layout = band_layout(free_dof_pairs(bond_blocks, free, n_dof), free.size)
+
+        def run(force, inv_mass, damping, y0, ts):
+            qs, vs, moved = integrate(self, force, inv_mass, damping, layout, y0, ts, 0.0,
+                                      grid.n_pre, grid.n_sub, grid.dt_nominal)
+            return qs, vs, moved <= self.tol
+
+        return run
+
+    def force_evaluations(self, num_steps: int) -> int:
+        return num_steps * self.iterations + 1  # Hessian-vector products of the factor not counted
+
+    def summary(self) -> dict:
+        return {"max_dt_s": self.max_dt * 1e-3, "iterations_per_step": self.iterations}
+
+    def unstable_hint(self) -> str:
+        return ""
+
+    def unconverged_message(self) -> str:
+        return (f"the implicit iterations did not converge ({self.iterations} chord "
+                f"iterations per step left a correction above {self.tol:g} mm/rad): the "
+                "stiffness moved too far from the initial one for this step; use a smaller step "
+                "or more iterations")
 
 
 @dataclass(frozen=True)

@@ -17,9 +17,9 @@ from design_engine.objectives import (angular_momentum, block_kinetic_energy, ob
                                       peak_energy_along_units, region_energy, region_energy_ratio)
 from design_engine.regions import row_units
 from design_engine.scenes import Scene
-from design_engine.implicit_step import ImplicitNewmark
-from design_engine.simulate import (FIXED_STEP, SimulationError, Solution, SolverConfig,
-                                    check_solution, failure_message, make_simulator)
+from design_engine.fixed_step import is_fixed_step
+from design_engine.simulate import (SimulationError, Solution, SolverConfig, check_solution,
+                                    failure_message, make_simulator)
 from metarig.trajectory import Trajectory
 from design_engine import units
 
@@ -28,7 +28,7 @@ _COMPILED: dict[tuple, object] = {}
 
 def compile_key(scene: Scene, config: SolverConfig, tag: str, ts_ms) -> tuple:
     s = scene.supports
-    grid = np.asarray(ts_ms).tobytes() if isinstance(config.solver, FIXED_STEP) else b""
+    grid = np.asarray(ts_ms).tobytes() if is_fixed_step(config.solver) else b""
     return (tag, scene.lattice.kind, scene.lattice.shape, scene.lattice.spacing,
             scene.lattice.ligament_length, s.constrained.tobytes(), s.channel.tobytes(),
             s.gain.tobytes(), repr(config), grid)
@@ -179,10 +179,8 @@ def config_summary(config: SolverConfig) -> dict:
     """JSON-ready description of a solver configuration."""
     out = {"solver": type(config.solver).__name__, "linearized": config.linearized,
            "use_contact": config.use_contact, "dtype": config.dtype}
-    if isinstance(config.solver, FIXED_STEP):
-        out["max_dt_s"] = config.solver.max_dt * 1e-3
-        if isinstance(config.solver, ImplicitNewmark):
-            out["iterations_per_step"] = config.solver.iterations
+    if is_fixed_step(config.solver):
+        out.update(config.solver.summary())
     else:
         out.update(rtol=config.rtol, atol=config.atol, adjoint=type(config.adjoint).__name__)
     return out

@@ -14,11 +14,9 @@ import numpy as np
 
 from design_engine._types import Array, DesignVector, Float, Int
 from design_engine.dynamics import VELOCITY_SCALE, make_dynamics_args, make_full_state, make_rhs
-from design_engine.energy import make_energy
-from design_engine.fixed_step import FixedStepVerlet, integrate, substeps
+from design_engine.energy import make_energy, void_angles
+from design_engine.fixed_step import AbstractFixedStep, is_fixed_step, step_grid
 from design_engine.geometry import block_geometry
-from design_engine.implicit_step import ImplicitNewmark, band_layout, free_dof_pairs
-from design_engine.implicit_step import integrate as integrate_implicit
 from design_engine.lattice import Lattice
 from design_engine.loading import Loading, Supports, make_prescribed
 from design_engine.material import Material
@@ -29,8 +27,8 @@ class SolverConfig(eqx.Module):
 
     Attributes:
         solver: a diffrax solver object (default Dormand-Prince 5(4), as the reference), or a
-            fixed-step scheme (`FIXED_STEP`: `FixedStepVerlet`, one force evaluation per step;
-            `ImplicitNewmark`, implicit; both need the time grid up front).
+            fixed-step scheme (an `AbstractFixedStep`: `FixedStepVerlet`, one force evaluation
+            per step; `ImplicitNewmark`, implicit; both need the time grid up front).
         rtol, atol: tolerances on the state (positions mm, velocities mm/s; spec 6.5).
         max_steps: step budget; exceeding it is reported as an error.
         adjoint: gradient method (default: discretise-then-optimise with recursive checkpointing).
@@ -45,7 +43,7 @@ class SolverConfig(eqx.Module):
             softer stretch allows larger steps at an error that the work-precision chart shows.
     """
 
-    solver: diffrax.AbstractSolver | FixedStepVerlet | ImplicitNewmark = diffrax.Dopri5()
+    solver: diffrax.AbstractSolver | AbstractFixedStep = diffrax.Dopri5()
     rtol: float = eqx.field(static=True, default=1e-8)
     atol: float = eqx.field(static=True, default=1e-4)
     max_steps: int = eqx.field(static=True, default=200_000)
@@ -88,8 +86,7 @@ class Solution(eqx.Module):
 
 
 VOID_WRAP = np.pi / 3.0  # reference void angles are taken on [-VOID_WRAP, 2 pi - VOID_WRAP)
-FIXED_STEP = (FixedStepVerlet, ImplicitNewmark)  # schemes run on a static step grid
-# result code of an implicit solve whose iterations did not converge (diffrax's meaning)
+# result code of a fixed-step solve reported not converged (diffrax's meaning)
 NOT_CONVERGED = int(diffrax.RESULTS.nonlinear_max_steps_reached._value)
 
 
@@ -121,18 +118,12 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
     constrained = np.asarray(supports.constrained)
     n_free, nb = free.size, lattice.n_blocks
     bb = np.asarray(lattice.bond_blocks)
-    fixed = isinstance(config.solver, FIXED_STEP)
+    fixed = is_fixed_step(config.solver)
     if fixed:
         if time_grid is None:
             raise ValueError("the fixed-step solver needs the time grid (time_grid=) up front")
-        grid = np.asarray(time_grid, np.float64)
-        n_pre = substeps(grid[0], config.solver.max_dt) if grid[0] > 0 else 0
-        n_sub = substeps(float(np.max(np.diff(grid))), config.solver.max_dt)
-        n_steps = n_pre + n_sub * (grid.size - 1)
-        if isinstance(config.solver, ImplicitNewmark):
-            layout = band_layout(free_dof_pairs(bb, free, 3 * nb), n_free)
-            dt_nominal = max(float(np.max(np.diff(grid))) / n_sub,
-                             float(grid[0]) / n_pre if n_pre else 0.0)
+        grid = step_grid(time_grid, config.solver.max_dt)
+        integrate = config.solver.make_integrator(grid, bb, free, 3 * nb)
     else:
         term = diffrax.ODETerm(rhs)
         controller = diffrax.PIDController(rtol=config.rtol, atol=config.atol)
@@ -155,16 +146,10 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
                                                  args.material))(qf)
 
         q0, v0 = y0[:n_free], y0[n_free:] / VELOCITY_SCALE
-        n = jnp.asarray(n_steps)
-        if isinstance(config.solver, ImplicitNewmark):
-            qs, vs, moved = integrate_implicit(
-                config.solver, force, args.inv_mass, args.damping, layout, (q0, v0), ts, 0.0,
-                n_pre, n_sub, dt_nominal)
-            result = jnp.where(moved <= config.solver.tol, 0, NOT_CONVERGED).astype(jnp.int32)
-            return qs, vs, (result, n, n, jnp.asarray(0))
-        qs, vs = integrate(config.solver, force, args.inv_mass, args.damping, (q0, v0), ts, 0.0,
-                           n_pre, n_sub)
-        return qs, vs, (jnp.asarray(0, jnp.int32), n, n, jnp.asarray(0))
+        n = jnp.asarray(grid.n_steps)
+        qs, vs, converged = integrate(force, args.inv_mass, args.damping, (q0, v0), ts)
+        result = jnp.where(converged, 0, NOT_CONVERGED).astype(jnp.int32)
+        return qs, vs, (result, n, n, jnp.asarray(0))
 
     dtype = jnp.dtype(config.dtype)
 
@@ -199,7 +184,7 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
         # through the barrier (a feasible design has reference voids in [0, 300] deg)
         ref = jnp.mod(args.bonds.void_ref + VOID_WRAP, 2.0 * jnp.pi) - VOID_WRAP
         bend = q[:, bb[:, 1], 2] - q[:, bb[:, 0], 2]
-        voids = jnp.stack([ref[:, 0] - bend, ref[:, 1] + bend])
+        voids = void_angles(ref, bend)
         return Solution(
             ts=ts,
             q=q,
@@ -224,11 +209,8 @@ def failure_message(result: int, config: SolverConfig) -> str | None:
     if int(result) == int(diffrax.RESULTS.max_steps_reached._value):
         return (f"the solver hit its step budget (max_steps={config.max_steps}); the scene is too "
                 "stiff for the explicit solver at this tolerance, or the state blew up")
-    if int(result) == NOT_CONVERGED and isinstance(config.solver, ImplicitNewmark):
-        return (f"the implicit iterations did not converge ({config.solver.iterations} chord "
-                f"iterations per step left a correction above {config.solver.tol:g} mm/rad): the "
-                "stiffness moved too far from the initial one for this step; use a smaller step "
-                "or more iterations")
+    if int(result) == NOT_CONVERGED and is_fixed_step(config.solver):
+        return config.solver.unconverged_message()
     for name in ("successful", "singular", "breakdown", "divergence", "nonfinite_input",
                  "event_occurred", "discrete_terminating_event_occurred"):
         item = getattr(diffrax.RESULTS, name, None)
@@ -245,8 +227,7 @@ def check_solution(sol: Solution, config: SolverConfig) -> Solution:
     bad = ~np.isfinite(np.asarray(sol.q)) | ~np.isfinite(np.asarray(sol.qdot))
     if bad.any():
         k = int(np.argmax(bad.reshape(bad.shape[0], -1).any(axis=1)))
-        hint = (" (the fixed step is above the stability limit 2/omega_max, or contact stiffened "
-                "the scene beyond it)") if isinstance(config.solver, FixedStepVerlet) else ""
+        hint = config.solver.unstable_hint() if is_fixed_step(config.solver) else ""
         raise SimulationError(f"non-finite state from t = {float(sol.ts[k]):.4g} ms on{hint}")
     q = np.asarray(sol.q)
     if np.max(np.abs(q[..., :2])) > 1e4 or np.max(np.abs(q[..., 2])) > 1e2:

@@ -25,7 +25,7 @@ import numpy as np
 from design_engine.auto import (STABILITY_SAFETY, choose_config, fallback_config,
                                 initial_vector, make_frequency_estimator, needs_contact,
                                 with_contact)
-from design_engine.fixed_step import FixedStepVerlet
+from design_engine.fixed_step import is_fixed_step
 from design_engine.objectives import objective_term
 from design_engine.run import checked, compile_key, config_summary
 from design_engine.simulate import SimulationError, Solution, SolverConfig, make_simulator
@@ -162,14 +162,15 @@ class TaskEvaluator:
 
     def _check_step(self, name: str, x: np.ndarray, events: list[str]) -> None:
         st = self._state[name]
-        if not isinstance(st.config.solver, FixedStepVerlet):
+        solver = st.config.solver
+        if not (is_fixed_step(solver) and solver.stability_limited):
             return
         st.omega, st.vector = self._frequency(name, x, st.vector)
         limit = 2.0 / st.omega
-        dt = st.config.solver.max_dt
+        dt = solver.max_dt
         if dt > STEP_RECHECK * limit:
             new_dt = STABILITY_SAFETY * limit
-            st.config = SolverConfig(solver=FixedStepVerlet(max_dt=new_dt), use_contact=False,
+            st.config = SolverConfig(solver=solver.with_max_dt(new_dt), use_contact=False,
                                      dtype=st.config.dtype)
             events.append(
                 f"{name}: highest natural frequency rose to {st.omega / (2 * np.pi) * 1e3:.0f} Hz; "

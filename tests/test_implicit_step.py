@@ -130,3 +130,17 @@ def test_bad_settings_are_refused():
         ImplicitNewmark(iterations=0)
     with pytest.raises(ValueError, match="max_dt"):
         ImplicitNewmark(max_dt=0.0)
+
+
+def test_both_schemes_share_the_fixed_step_interface():
+    import diffrax
+
+    from design_engine.fixed_step import is_fixed_step
+
+    verlet, newmark = FixedStepVerlet(max_dt=0.01), ImplicitNewmark(iterations=4, tol=1e-5)
+    assert is_fixed_step(verlet) and is_fixed_step(newmark) and not is_fixed_step(diffrax.Dopri5())
+    assert verlet.stability_limited and not newmark.stability_limited
+    assert newmark.with_max_dt(0.02) == ImplicitNewmark(max_dt=0.02, iterations=4, tol=1e-5)
+    assert verlet.force_evaluations(10) == 11 and newmark.force_evaluations(10) == 41
+    assert newmark.summary() == {"max_dt_s": 0.16e-3, "iterations_per_step": 4}
+    assert "stability limit" in verlet.unstable_hint() and "1e-05" in newmark.unconverged_message()

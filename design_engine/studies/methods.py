@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import diffrax
 
-from design_engine.fixed_step import FixedStepVerlet
+from design_engine.fixed_step import FixedStepVerlet, is_fixed_step
 from design_engine.implicit_step import ImplicitNewmark
 from design_engine.simulate import SolverConfig
 
@@ -84,10 +84,8 @@ def study_methods(quick: bool = False) -> list[Method]:
 def rhs_evaluations(config: SolverConfig, num_steps: int) -> int:
     """Right-hand-side (force) evaluations of a solve with `num_steps` steps (attempted)."""
     solver = config.solver
-    if isinstance(solver, FixedStepVerlet):
-        return num_steps + 1
-    if isinstance(solver, ImplicitNewmark):  # Hessian-vector products of the factor not counted
-        return num_steps * solver.iterations + 1
+    if is_fixed_step(solver):
+        return solver.force_evaluations(num_steps)
     tableau = getattr(solver, "tableau", None)
     if tableau is None:  # implicit solvers: stages (Newton iterations not counted)
         return -1

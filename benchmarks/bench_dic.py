@@ -37,11 +37,11 @@ from hardware_sim.camera import (
     render_frame,
     square_lattice_polygons,
 )
-from ros_nodes.cli_track import run_tracking
-from ros_nodes.logic.calibration import Calibration
-from ros_nodes.logic.dic import DICConfig, DICTracker, init_state, track_frame
-from ros_nodes.logic.dic_units import polygon_centroids
-from ros_nodes.logic.frame_sources import open_source
+from metarig.polygon import area_centroids
+from tracking.batch import run_tracking
+from tracking.calibration import Calibration
+from tracking.dic import DICConfig, DICTracker, init_state, track_frame
+from tracking.frame_sources import open_source
 
 PITCH_PX, SIDE_PX, NX, NY = 44, 37, 24, 16
 MPP = 0.015 / PITCH_PX  # 15 mm pitch
@@ -60,7 +60,7 @@ def make_scene(noise: float, blur: float):
 
 def wave(polys: np.ndarray, k: int) -> np.ndarray:
     """[n, 3] true poses at frame k (m, m, rad); zero at k = 0."""
-    c = polygon_centroids(polys) / (PITCH_PX * MPP)
+    c = area_centroids(polys) / (PITCH_PX * MPP)
     ph = 2 * np.pi * (c[:, 0] / 8 + c[:, 1] / 11)
     om = 2 * np.pi * k / 30
 

@@ -11,6 +11,7 @@ import numpy as np
 
 from design_engine._types import Array, DesignVector, Float, Points, Vertices
 from design_engine.lattice import Lattice, vertex_offsets
+from metarig.polygon import first_overlap, self_crossing, signed_areas
 
 
 class BlockGeometry(eqx.Module):
@@ -67,53 +68,6 @@ class InvalidDesignError(ValueError):
     overlapping a neighbour)."""
 
 
-def _segments_cross(p1, p2, p3, p4) -> bool:
-    def orient(a, b, c):
-        return (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
-
-    d1, d2 = orient(p3, p4, p1), orient(p3, p4, p2)
-    d3, d4 = orient(p1, p2, p3), orient(p1, p2, p4)
-    return (d1 * d2 < 0) and (d3 * d4 < 0)
-
-
-def _polygons_intersect(a: np.ndarray, b: np.ndarray) -> bool:
-    """Do polygons a [n, 2] and b [m, 2] share interior points (an edge crossing or one inside)?"""
-    a1, a2 = a, np.roll(a, -1, axis=0)
-    b1, b2 = b, np.roll(b, -1, axis=0)
-
-    def orient(p, q, r):  # [.., 2] -> sign of the turn p -> q -> r
-        return (q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1]) - \
-            (q[..., 1] - p[..., 1]) * (r[..., 0] - p[..., 0])
-
-    A1, A2, B1, B2 = a1[:, None], a2[:, None], b1[None], b2[None]
-    cross = (orient(B1, B2, A1) * orient(B1, B2, A2) < 0) & (orient(A1, A2, B1) * orient(A1, A2, B2) < 0)
-    return bool(cross.any()) or _inside(a[0], b) or _inside(b[0], a)
-
-
-def _inside(p: np.ndarray, poly: np.ndarray) -> bool:
-    """Is point p [2] strictly inside polygon poly [n, 2] (even-odd rule)?"""
-    x, y = poly[:, 0], poly[:, 1]
-    xn, yn = np.roll(x, -1), np.roll(y, -1)
-    up = (y > p[1]) != (yn > p[1])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        xc = x + (p[1] - y) * (xn - x) / (yn - y)
-    return bool(np.sum(up & (p[0] < xc)) % 2)
-
-
-def first_overlap(polygons: np.ndarray) -> tuple[int, int] | None:
-    """The first pair (a, b), a < b, of polygons [n, n_vertices, 2] that overlap, or None.
-
-    Pairs are screened by bounding boxes, then tested exactly (edge crossings, containment).
-    """
-    lo, hi = polygons.min(axis=1), polygons.max(axis=1)
-    i, j = np.triu_indices(polygons.shape[0], 1)
-    near = np.all((lo[i] < hi[j]) & (lo[j] < hi[i]), axis=1)
-    for a, b in zip(i[near], j[near]):
-        if _polygons_intersect(polygons[a], polygons[b]):
-            return int(a), int(b)
-    return None
-
-
 def check_design(lattice: Lattice, x) -> np.ndarray:
     """Validate a design vector before any simulation; returns it as float64 numpy (mm).
 
@@ -129,23 +83,17 @@ def check_design(lattice: Lattice, x) -> np.ndarray:
     if not np.all(np.isfinite(x)):
         raise InvalidDesignError(f"design vector holds {np.sum(~np.isfinite(x))} non-finite values")
     r = np.asarray(vertex_offsets(lattice, x))
-    n = lattice.n_vertices
+    areas = signed_areas(r)
     for b in range(lattice.n_blocks):
-        p = r[b]
-        q = np.roll(p, 1, axis=0)
-        signed = 0.5 * np.sum(q[:, 0] * p[:, 1] - q[:, 1] * p[:, 0])
-        if signed <= 0.0:
+        if areas[b] <= 0.0:
             raise InvalidDesignError(
-                f"block {b} is inverted or degenerate (signed area {signed:.4g} mm^2; vertices must "
-                "stay counter-clockwise)"
+                f"block {b} is inverted or degenerate (signed area {areas[b]:.4g} mm^2; vertices "
+                "must stay counter-clockwise)"
             )
-        if n > 3:
-            for k in range(n):
-                for m in range(k + 2, n):
-                    if k == 0 and m == n - 1:
-                        continue
-                    if _segments_cross(p[k], p[(k + 1) % n], p[m], p[(m + 1) % n]):
-                        raise InvalidDesignError(f"block {b} is self-intersecting (edges {k} and {m})")
+        crossing = self_crossing(r[b]) if lattice.n_vertices > 3 else None
+        if crossing is not None:
+            raise InvalidDesignError(
+                f"block {b} is self-intersecting (edges {crossing[0]} and {crossing[1]})")
     pair = first_overlap(np.asarray(lattice.grid_points, np.float64)[:, None, :] + r)
     if pair is not None:
         raise InvalidDesignError(

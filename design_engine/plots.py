@@ -14,11 +14,9 @@ from matplotlib.colors import LogNorm  # noqa: E402
 def deformed_polygons(polygons_m: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Move reference outlines [n, nv, 2] (m) by poses q [n, 3] (u, v m; theta rad about the
     area centroid). Returns [n, nv, 2] m."""
-    from design_engine.geometry import polygon_properties
-    import jax
+    from metarig.polygon import area_centroids
 
-    _, cent, _ = jax.vmap(polygon_properties)(polygons_m)
-    cent = np.asarray(cent)
+    cent = area_centroids(polygons_m)
     c, s = np.cos(q[:, 2])[:, None], np.sin(q[:, 2])[:, None]
     d = polygons_m - cent[:, None, :]
     rot = np.stack([c * d[..., 0] - s * d[..., 1], s * d[..., 0] + c * d[..., 1]], axis=-1)

@@ -23,6 +23,8 @@ import cv2
 import numpy as np
 from numba import njit
 
+from metarig.polygon import area_centroids, points_inside
+
 FULL_SCALE = 255.0  # grey levels of an 8-bit frame
 
 
@@ -119,24 +121,6 @@ def camera_rng(cfg: CameraConfig) -> np.random.Generator:
     return np.random.default_rng(cfg.seed)
 
 
-def area_centroids(polygons_m: np.ndarray) -> np.ndarray:
-    """Area centroids of simple polygons by the shoelace formula.
-
-    Args:
-        polygons_m: [n_units, n_vertices, 2] vertices, either orientation.
-
-    Returns:
-        [n_units, 2] centroids, same units as the input.
-    """
-    p = np.asarray(polygons_m, dtype=np.float64)
-    q = np.roll(p, -1, axis=1)
-    cross = p[..., 0] * q[..., 1] - q[..., 0] * p[..., 1]
-    area = 0.5 * cross.sum(axis=1)
-    cx = ((p[..., 0] + q[..., 0]) * cross).sum(axis=1) / (6.0 * area)
-    cy = ((p[..., 1] + q[..., 1]) * cross).sum(axis=1) / (6.0 * area)
-    return np.stack([cx, cy], axis=-1)
-
-
 def sample_to_pixel(cfg: CameraConfig, xy_m: np.ndarray) -> np.ndarray:
     """Map sample-frame points (m, [..., 2]) to pixel (col, row) coordinates ([..., 2])."""
     xy = np.asarray(xy_m, dtype=np.float64)
@@ -176,21 +160,6 @@ def make_speckle_textures(
         centres[b, :n] = lo[b] + rng.random((n, 2)) * (hi[b] - lo[b])
         weights[b, :n] = 1.0
     return SpeckleTextures(centres_m=centres, weights=weights, sigma_m=sig)
-
-
-def _inside(px: np.ndarray, py: np.ndarray, verts: np.ndarray) -> np.ndarray:
-    """Even-odd point-in-polygon test on the grid px [ni] x py [nj] -> bool [nj, ni]."""
-    inside = np.zeros((py.size, px.size), dtype=bool)
-    nv = verts.shape[0]
-    for a in range(nv):
-        x1, y1 = verts[a]
-        x2, y2 = verts[(a + 1) % nv]
-        if y1 == y2:
-            continue
-        spans = (py > y1) != (py > y2)
-        x_cross = x1 + (py - y1) * (x2 - x1) / (y2 - y1)
-        inside ^= spans[:, None] & (px[None, :] < x_cross[:, None])
-    return inside
 
 
 _CUTOFF = 1e-9  # blob factors below this are dropped (their sum is far below a grey level)
@@ -261,7 +230,7 @@ def _render_units(
         e_row = np.exp(-((gy[None, :] - q[:, 1:2]) ** 2) / two_sig2)
         speckle = _speckle_sum(e_row, e_col)  # [n_rows_sub, n_cols_sub]
         radiance = amp * (1.0 - np.exp(-speckle)) + (cfg.unit_level - cfg.background_level)
-        radiance *= _inside(gx, gy, verts_rel)
+        radiance *= points_inside(gx[None, :], gy[:, None], verts_rel)
         block = radiance.reshape(r1 - r0, ss, c1 - c0, ss).mean(axis=(1, 3))
         frame[r0:r1, c0:c1] += block
     return frame

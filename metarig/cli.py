@@ -19,7 +19,7 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     "bench": ("design_engine.studies.cli", "bench_main", "speed-accuracy studies (work-precision, speedup)"),
     "rig": ("ros_nodes.cli_rig", "rig_main", "run an experiment on the simulated (or real) rig"),
     "recover": ("ros_nodes.cli_rig", "recover_main", "salvage an MCAP recording whose writer was killed"),
-    "track": ("ros_nodes.cli_track", "track_main", "track unit poses in frames by DIC"),
+    "track": ("tracking.cli", "track_main", "track unit poses in frames by DIC"),
 }
 
 

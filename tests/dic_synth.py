@@ -10,7 +10,7 @@ from hardware_sim.camera import (
     render_frame,
     square_lattice_polygons,
 )
-from ros_nodes.logic.calibration import Calibration
+from tracking.calibration import Calibration
 
 
 @dataclass(frozen=True)

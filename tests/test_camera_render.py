@@ -6,13 +6,13 @@ import pytest
 from hardware_sim.camera import (
     CameraConfig,
     SpeckleTextures,
-    area_centroids,
     lighting_field,
     make_speckle_textures,
     render_frame,
     sample_to_pixel,
     square_lattice_polygons,
 )
+from metarig.polygon import area_centroids
 
 MPP = 0.015 / 40
 

@@ -8,9 +8,11 @@ import numpy as np
 import pytest
 from dic_synth import errors_px, make_scene
 
-from ros_nodes import cli_track
-from ros_nodes.logic.dic import DICConfig
-from ros_nodes.logic.frame_sources import (
+from ros_nodes.logic.msgdefs import schema_text
+from tracking.batch import run_tracking, save_tracks
+from tracking.cli import track_main
+from tracking.dic import DICConfig
+from tracking.frame_sources import (
     BadFrame,
     SourceError,
     count_frames,
@@ -18,7 +20,6 @@ from ros_nodes.logic.frame_sources import (
     iter_frames,
     open_source,
 )
-from ros_nodes.logic.msgdefs import schema_text
 
 N_T = 12
 
@@ -52,7 +53,7 @@ def _args(rec, source, out, *extra):
 @pytest.mark.parametrize("workers", [1, 2])
 def test_track_folder_matches_truth_for_any_worker_count(recording, tmp_path, workers):
     out = tmp_path / "tracks.npz"
-    assert cli_track.track_main(_args(recording, recording["folder"], out,
+    assert track_main(_args(recording, recording["folder"], out,
                                       "--workers", str(workers), "--block", "5")) == 0
     d = np.load(out)
     assert set(d.files) >= {"t", "q", "qdot", "quality", "lost"}
@@ -74,7 +75,7 @@ def test_bad_frames_in_folder_are_flagged(recording, tmp_path):
     (folder / "f004.png").write_bytes(b"not a png at all")
     cv2.imwrite(str(folder / "f007.png"), np.zeros_like(recording["frames"][7]))
     out = tmp_path / "t.npz"
-    assert cli_track.track_main(_args(recording, folder, out, "--workers", "1")) == 0
+    assert track_main(_args(recording, folder, out, "--workers", "1")) == 0
     d = np.load(out)
     assert d["lost"][[4, 7]].all() and np.isnan(d["q"][[4, 7]]).all()
     good = np.setdiff1d(np.arange(N_T), [4, 7])
@@ -109,7 +110,7 @@ def test_track_mcap_recording(recording, tmp_path):
     assert isinstance(items[5][1], BadFrame)
     np.testing.assert_array_equal(items[3][1], recording["frames"][3])
     out = tmp_path / "t.npz"
-    assert cli_track.track_main(_args(recording, path, out, "--workers", "2")) == 0
+    assert track_main(_args(recording, path, out, "--workers", "2")) == 0
     d = np.load(out)
     assert d["lost"][5].all() and not d["lost"][np.arange(N_T) != 5].any()
     pos, rot = errors_px(recording["scene"], d["q"], recording["truth"])
@@ -126,7 +127,7 @@ def test_track_video_file(recording, tmp_path):
         writer.write(f)
     writer.release()
     out = tmp_path / "t.npz"
-    assert cli_track.track_main(_args(recording, path, out, "--workers", "1")) == 0
+    assert track_main(_args(recording, path, out, "--workers", "1")) == 0
     d = np.load(out)
     assert d["q"].shape[0] == N_T and not d["lost"].any()
     pos, _ = errors_px(recording["scene"], d["q"], recording["truth"])
@@ -174,9 +175,40 @@ def test_user_errors_are_reported_without_traceback(recording, tmp_path, capsys,
         args[slot] = str(recording["root"] / "nowhere")
     else:
         _put(recording, args, slot, name, text)
-    assert cli_track.track_main(args) == 2
+    assert track_main(args) == 2
     err = capsys.readouterr().err
     assert "metarig track: error:" in err and message in err and "Traceback" not in err
+
+
+def _gap_squares(scene):
+    """Small squares (16 px) centred where four units meet: background only, no speckle."""
+    mpp = scene.cfg.m_per_px
+    from hardware_sim.camera import square_lattice_polygons
+
+    return square_lattice_polygons(3, 1, 60 * mpp, 16 * mpp, (60 * mpp, 60 * mpp))
+
+
+@pytest.mark.parametrize(
+    ("outlines", "message"),
+    [
+        (lambda sc: make_scene(6, 3).polygons_m, "do not fit the frames: 10 of 18 units"),
+        (_gap_squares, "do not match the frames: 3 of 3 units show no speckle texture"),
+    ],
+    ids=["bigger-lattice", "outlines-off-the-units"],
+)
+def test_outlines_of_another_lattice_are_refused(recording, tmp_path, capsys, outlines,
+                                                  message):
+    """Outlines of another design: one error line, exit 2, no traceback, no output file."""
+    units = tmp_path / "other.json"
+    units.write_text(json.dumps({"polygons_m": outlines(recording["scene"]).tolist()}))
+    out = tmp_path / "t.npz"
+    args = _args(recording, recording["folder"], out, "--workers", "2")
+    args[2] = str(units)
+    assert track_main(args) == 2
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("metarig track: error:"), lines
+    assert message in lines[0] and "another design" in lines[0]
+    assert not out.exists()
 
 
 def test_open_source_errors(tmp_path):
@@ -210,14 +242,14 @@ def test_ctrl_c_keeps_finished_frames(recording, tmp_path, monkeypatch, workers)
     monkeypatch.setattr(tqdm, "tqdm", _InterruptingBar)
     spec = open_source(recording["folder"])
     sc = recording["scene"]
-    res = cli_track.run_tracking(spec, sc.polygons_m, sc.calib, DICConfig(), workers=workers,
+    res = run_tracking(spec, sc.polygons_m, sc.calib, DICConfig(), workers=workers,
                                  block=2)
     assert not res.complete
     n = res.q.shape[0]
     assert 2 <= n < N_T and n % 2 == 0
     pos, _ = errors_px(sc, res.q, recording["truth"][:n])
     assert pos < 0.01
-    out = cli_track.save_tracks(tmp_path / "partial.npz", res, sc.calib.fps)
+    out = save_tracks(tmp_path / "partial.npz", res, sc.calib.fps)
     assert not bool(np.load(out)["complete"])
 
 
@@ -234,12 +266,12 @@ def test_track_sample_recording_against_its_ground_truth(tmp_path):
     args = [str(RECORDING / "recording.mcap"), "--units", str(RECORDING / "design.json"),
             "--calibration", str(RECORDING / "calibration.json"), "--out", str(out), "-q",
             "--margin-px", "1.5", "--min-points", "16"]
-    assert cli_track.track_main(args) == 0
+    assert track_main(args) == 0
     d = np.load(out)
     polys = np.array(json.loads((RECORDING / "design.json").read_text())["polygons_m"])
-    from ros_nodes.logic.dic_units import polygon_centroids
+    from metarig.polygon import area_centroids
 
-    c0 = polygon_centroids(polys)
+    c0 = area_centroids(polys)
     truth = []
     with open(RECORDING / "recording.mcap", "rb") as f:
         reader = make_reader(f, decoder_factories=[DecoderFactory()])
@@ -268,7 +300,7 @@ def test_separate_reference_image(recording, tmp_path):
     ref = tmp_path / "ref.png"
     cv2.imwrite(str(ref), recording["frames"][0])
     out = tmp_path / "t.npz"
-    assert cli_track.track_main(_args(recording, folder, out, "--reference", str(ref))) == 0
+    assert track_main(_args(recording, folder, out, "--reference", str(ref))) == 0
     d = np.load(out)
     assert d["q"].shape[0] == N_T - 3 and not d["lost"].any()
     pos, rot = errors_px(recording["scene"], d["q"], recording["truth"][3:])

@@ -7,19 +7,15 @@ import numpy as np
 import pytest
 from dic_synth import errors_px, make_scene
 
-from ros_nodes.logic.calibration import (
+from metarig.polygon import area_centroids
+from tracking.calibration import (
     Calibration,
     CalibrationError,
     calibration_from_dict,
     load_calibration,
 )
-from ros_nodes.logic.dic import DICTracker, init_state, track_frame
-from ros_nodes.logic.dic_units import (
-    UnitsError,
-    load_unit_polygons,
-    polygon_centroids,
-    validate_polygons,
-)
+from tracking.dic import DICTracker, init_state, track_frame
+from tracking.units import UnitsError, load_unit_polygons, validate_polygons
 
 SQUARE = [[0, 0], [2, 0], [2, 2], [0, 2]]
 
@@ -27,8 +23,8 @@ SQUARE = [[0, 0], [2, 0], [2, 2], [0, 2]]
 def test_centroid_is_the_area_centroid():
     # an L-shape: area centroid differs from the vertex mean
     ell = np.array([[[0, 0], [2, 0], [2, 1], [1, 1], [1, 2], [0, 2]]], float)
-    np.testing.assert_allclose(polygon_centroids(ell), [[5 / 6, 5 / 6]])
-    np.testing.assert_allclose(polygon_centroids(ell[:, ::-1]), [[5 / 6, 5 / 6]])
+    np.testing.assert_allclose(area_centroids(ell), [[5 / 6, 5 / 6]])
+    np.testing.assert_allclose(area_centroids(ell[:, ::-1]), [[5 / 6, 5 / 6]])
 
 
 def test_units_file_plain_and_design(tmp_path):

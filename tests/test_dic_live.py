@@ -7,9 +7,11 @@ import numpy as np
 import pytest
 from dic_synth import errors_px, make_scene
 
-from ros_nodes.logic.dic import DICTracker
-from ros_nodes.logic.dic_live import DICNodeConfig, LivePreview, absolute_poses
-from ros_nodes.logic.dic_units import polygon_centroids
+from metarig.polygon import area_centroids
+from metarig.trajectory import to_absolute
+from ros_nodes.dic_params import DICNodeConfig
+from tracking.dic import DICTracker
+from tracking.live import LivePreview
 
 
 def _wait(cond, timeout_s=20.0):
@@ -55,8 +57,8 @@ def test_offer_never_blocks_and_tracks_newest_frames():
         assert not poses.lost.any()
         pos, _ = errors_px(scene, poses.q, truth[k] - truth[k_ref])
         assert pos < 0.01
-    x, _, _ = absolute_poses(polygon_centroids(scene.polygons_m), got[n_t - 1])
-    c = polygon_centroids(scene.polygons_m)
+    x, _, _ = to_absolute(got[n_t - 1].q, area_centroids(scene.polygons_m))
+    c = area_centroids(scene.polygons_m)
     np.testing.assert_allclose(x - c[:, 0], truth[-1][:, 0] - truth[k_ref][:, 0],
                                atol=0.01 * scene.cfg.m_per_px)
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from dic_synth import errors_px, make_scene
 
-from ros_nodes.logic.dic import (
+from tracking.dic import (
     DICConfig,
     DICTracker,
     FramePoses,
@@ -12,8 +12,8 @@ from ros_nodes.logic.dic import (
     prepare_frame,
     track_frame,
 )
-from ros_nodes.logic.dic_icgn import icgn
-from ros_nodes.logic.dic_kernels import bspline_coefficients, bspline_sample
+from tracking.icgn import icgn
+from tracking.kernels import bspline_coefficients, bspline_sample
 
 
 def _run(scene, frames, cfg=None, reference=None):

@@ -32,17 +32,17 @@ from rclpy.serialization import serialize_message
 
 from ros_nodes import convert
 from ros_nodes.logic.cdr import ImageEncoder, restamp
-from ros_nodes.logic.replay import SourceError, open_source
 from ros_nodes.nodes._common import CLOCK, LATCHED, STREAM, run_node
 from ros_nodes.nodes._params import TypedParams
 from ros_nodes.params import CameraNodeConfig
+from tracking.frame_sources import SourceError, open_replay
 
 NAME = "camera"
 ACK_EVERY = 20  # frames between flow-control waits when publishing as fast as possible
 
 
 class CameraNode(Node):
-    """Thin adapter over `ros_nodes.logic.replay` and `hardware_sim.rig`."""
+    """Thin adapter over `tracking.frame_sources` (replay) and `hardware_sim.rig` (simulated)."""
 
     def __init__(self, **kwargs):
         super().__init__(NAME, **kwargs)
@@ -123,7 +123,7 @@ class CameraNode(Node):
     def _replay(self) -> None:
         cfg = self._params.config
         try:
-            frames = open_source(cfg.source, cfg.path, cfg.fps, cfg.width, cfg.height,
+            frames = open_replay(cfg.source, cfg.path, cfg.fps, cfg.width, cfg.height,
                                  cfg.n_frames, cfg.image_topic, cfg.seed)
             base = self.get_clock().now().nanoseconds if not cfg.publish_clock else 0
             while True:
@@ -136,7 +136,7 @@ class CameraNode(Node):
                 if not cfg.loop or self._stop_evt.is_set() or cfg.n_frames and \
                         self._published >= cfg.n_frames:
                     break
-                frames = open_source(cfg.source, cfg.path, cfg.fps, cfg.width, cfg.height,
+                frames = open_replay(cfg.source, cfg.path, cfg.fps, cfg.width, cfg.height,
                                      cfg.n_frames, cfg.image_topic, cfg.seed)
                 base += t_rel + int(1e9 / cfg.fps)
             self._status("done", f"published {self._published} frames")
@@ -180,7 +180,6 @@ class CameraNode(Node):
                                     noise_std=cfg.noise_std,
                                     lighting_gradient=cfg.lighting_gradient, seed=cfg.seed)
             c0 = self._specimen.centroids_m()
-            ids = np.arange(self._specimen.n_units)
             self._status("publishing", f"{times.size} frames")
             wall0 = time.perf_counter()
             rng = np.random.default_rng(cfg.seed)
@@ -189,8 +188,7 @@ class CameraNode(Node):
                     break
                 ns = int(round(t * 1e9))
                 self._pace(k, int(round((t - times[0]) * 1e9)), wall0)
-                self._truth.publish(convert.unit_poses(ns, ids, c0[:, 0] + q[:, 0],
-                                                       c0[:, 1] + q[:, 1], q[:, 2]))
+                self._truth.publish(convert.unit_poses(ns, q, c0))
                 self._publish(ns, frame)
             self._img.wait_for_all_acked(Duration(seconds=5.0))
             self._status("done", f"published {self._published} frames")

@@ -10,7 +10,8 @@ Interfaces (node name `dic_tracker`):
   `preview_rate_hz`: ids, x, y (reference centroid + displacement, m, sample frame), theta
   (rad, CCW), quality (ZNCC), lost (x, y, theta NaN); the stamp is the frame's;
 - service `~/reset_reference` (std_srvs/Trigger): the next frame becomes the reference.
-The first frame tracked is the reference configuration. Parameters: `DICNodeConfig`.
+The first frame tracked is the reference configuration. Parameters: `DICNodeConfig`
+(`ros_nodes.dic_params`); the tracking itself is `tracking.live.LivePreview`.
 """
 
 import json
@@ -23,13 +24,16 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from ros_nodes import convert
-from ros_nodes.logic.calibration import CalibrationError
-from ros_nodes.logic.dic import DICTracker
-from ros_nodes.logic.dic_live import DICNodeConfig, LivePreview, absolute_poses
-from ros_nodes.logic.dic_units import UnitsError, load_unit_polygons, polygon_centroids
-from ros_nodes.logic.dic_units import validate_polygons as _validate
+from metarig.polygon import area_centroids
+from ros_nodes import topics
+from ros_nodes.dic_params import DICNodeConfig
 from ros_nodes.nodes._common import LATCHED, STREAM, run_node
 from ros_nodes.nodes._params import TypedParams
+from tracking.calibration import CalibrationError
+from tracking.dic import DICTracker
+from tracking.live import LivePreview
+from tracking.units import UnitsError, load_unit_polygons
+from tracking.units import validate_polygons as _validate
 
 NAME = "dic_tracker"
 
@@ -57,15 +61,15 @@ class DICTrackerNode(Node):
             except UnitsError as e:
                 raise SystemExit(f"{NAME}: {e}") from None
         else:
-            self.create_subscription(String, "/rig/design", self._on_design, LATCHED)
-            self.get_logger().info("waiting for the unit outlines on /rig/design")
+            self.create_subscription(String, topics.RIG_DESIGN.name, self._on_design, LATCHED)
+            self.get_logger().info(f"waiting for the unit outlines on {topics.RIG_DESIGN.name}")
 
     def _start(self, polygons: np.ndarray) -> None:
         cfg = self._params.config
         if self._preview is not None:
             self._preview.close()
         tracker = DICTracker(polygons, self._calib, cfg.dic_config())
-        self._centroids = polygon_centroids(tracker.polygons_m)
+        self._centroids = area_centroids(tracker.polygons_m)
         self._preview = LivePreview(tracker, cfg.preview_rate_hz, self._publish,
                                     cfg.threads).start()
         self.get_logger().info(f"tracking {tracker.n_units} units at <= "
@@ -73,9 +77,10 @@ class DICTrackerNode(Node):
 
     def _on_design(self, msg: String) -> None:
         try:
-            self._start(_validate(json.loads(msg.data)["polygons_m"], where="/rig/design"))
+            polys = json.loads(msg.data)["polygons_m"]
+            self._start(_validate(polys, where=topics.RIG_DESIGN.name))
         except (ValueError, KeyError, TypeError) as e:
-            self.get_logger().error(f"/rig/design has no usable polygons_m: {e}")
+            self.get_logger().error(f"{topics.RIG_DESIGN.name} has no usable polygons_m: {e}")
 
     def _on_image(self, msg) -> None:
         if self._preview is None:
@@ -91,10 +96,8 @@ class DICTrackerNode(Node):
         self._preview.offer(convert.to_ns(msg.header.stamp), frame)
 
     def _publish(self, stamp_ns: int, poses) -> None:
-        x, y, theta = absolute_poses(self._centroids, poses)
-        n = x.size
-        self._pub.publish(convert.unit_poses(stamp_ns, np.arange(n), x, y, theta,
-                                             poses.quality, poses.lost))
+        self._pub.publish(convert.unit_poses(stamp_ns, poses.q, self._centroids, poses.quality,
+                                             poses.lost))
 
     def _on_reset(self, _req, res):
         if self._preview is None:

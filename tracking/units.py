@@ -9,40 +9,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ros_nodes.logic.jsonfile import read_json
-
-# one shoelace centroid for the whole rig side: the renderer's
-from hardware_sim.camera import area_centroids as polygon_centroids  # noqa: F401
+from metarig.polygon import self_intersecting, signed_areas
+from tracking.jsonfile import read_json
 
 
 class UnitsError(ValueError):
     """The unit outlines are missing or malformed (the message names the file and the unit)."""
-
-
-def polygon_areas(polygons: np.ndarray) -> np.ndarray:
-    """Signed shoelace areas [n] of polygons [n, nv, 2] (positive when counter-clockwise)."""
-    p = np.asarray(polygons, dtype=np.float64)
-    q = np.roll(p, -1, axis=1)
-    return 0.5 * (p[..., 0] * q[..., 1] - q[..., 0] * p[..., 1]).sum(axis=1)
-
-
-def _self_intersecting(poly: np.ndarray) -> bool:
-    """True when two non-adjacent edges of the closed polygon [nv, 2] cross or touch."""
-    nv = poly.shape[0]
-    a, b = poly, np.roll(poly, -1, axis=0)
-
-    def orient(p, q, r):
-        return np.sign((q[0] - p[0]) * (r[1] - p[1]) - (q[1] - p[1]) * (r[0] - p[0]))
-
-    for i in range(nv):
-        for j in range(i + 1, nv):
-            if j == i + 1 or (i == 0 and j == nv - 1):
-                continue  # adjacent edges share a vertex
-            o1, o2 = orient(a[i], b[i], a[j]), orient(a[i], b[i], b[j])
-            o3, o4 = orient(a[j], b[j], a[i]), orient(a[j], b[j], b[i])
-            if o1 != o2 and o3 != o4:
-                return True
-    return False
 
 
 def validate_polygons(polys, where: str = "polygons_m") -> np.ndarray:
@@ -73,9 +45,9 @@ def validate_polygons(polys, where: str = "polygons_m") -> np.ndarray:
     if bad.size:
         raise UnitsError(f"{where}: unit {int(bad[0])} has non-finite coordinates")
     for k in range(arr.shape[0]):
-        if _self_intersecting(arr[k]):
+        if self_intersecting(arr[k]):
             raise UnitsError(f"{where}: unit {k} outline is self-intersecting")
-    areas = polygon_areas(arr)
+    areas = signed_areas(arr)
     scale = np.ptp(arr.reshape(-1, 2), axis=0).max() or 1.0
     bad = np.flatnonzero(np.abs(areas) <= 1e-12 * scale**2)
     if bad.size:

@@ -11,6 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from metarig.polygon import points_inside
+
 
 @dataclass(frozen=True, slots=True)
 class RefSet:
@@ -64,20 +66,6 @@ def _edge_distance(px: np.ndarray, verts: np.ndarray) -> np.ndarray:
     return np.sqrt((d * d).sum(-1)).min(axis=1)
 
 
-def _inside(px: np.ndarray, verts: np.ndarray) -> np.ndarray:
-    """Even-odd point-in-polygon test for points px [m, 2] -> bool [m]."""
-    inside = np.zeros(px.shape[0], dtype=bool)
-    x, y = px[:, 0], px[:, 1]
-    for a in range(verts.shape[0]):
-        x1, y1 = verts[a]
-        x2, y2 = verts[(a + 1) % verts.shape[0]]
-        if y1 == y2:
-            continue
-        spans = (y > y1) != (y > y2)
-        inside ^= spans & (x < x1 + (y - y1) * (x2 - x1) / (y2 - y1))
-    return inside
-
-
 def subset_pixels(poly_px: np.ndarray, margin_px: float, shape: tuple[int, int]) -> np.ndarray:
     """Integer pixels [m, 2] (col, row) inside `poly_px` [nv, 2] at least `margin_px` from it.
 
@@ -93,7 +81,7 @@ def subset_pixels(poly_px: np.ndarray, margin_px: float, shape: tuple[int, int])
         return np.zeros((0, 2), dtype=np.int64)
     cc, rr = np.meshgrid(np.arange(c0, c1 + 1), np.arange(r0, r1 + 1))
     pts = np.stack([cc.ravel(), rr.ravel()], axis=-1)
-    keep = _inside(pts.astype(np.float64), poly_px)
+    keep = points_inside(pts[:, 0], pts[:, 1], poly_px)
     pts = pts[keep]
     keep = _edge_distance(pts.astype(np.float64), poly_px) >= margin_px
     return pts[keep]

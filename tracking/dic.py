@@ -19,12 +19,13 @@ from dataclasses import dataclass, field, replace
 import cv2
 import numpy as np
 
-from ros_nodes.logic.calibration import Calibration
-from ros_nodes.logic.dic_icgn import icgn
-from ros_nodes.logic.dic_kernels import bspline_coefficients
-from ros_nodes.logic.dic_reference import RefSet, build_refs, replace_refs
-from ros_nodes.logic.dic_search import coarse_search
-from ros_nodes.logic.dic_units import polygon_centroids, validate_polygons
+from metarig.polygon import area_centroids
+from tracking.calibration import Calibration
+from tracking.icgn import icgn
+from tracking.kernels import bspline_coefficients
+from tracking.reference import RefSet, build_refs, replace_refs
+from tracking.search import coarse_search
+from tracking.units import validate_polygons
 
 log = logging.getLogger(__name__)
 
@@ -96,7 +97,7 @@ class DICTracker:
         polys = validate_polygons(self.polygons_m)
         object.__setattr__(self, "polygons_m", polys)
         object.__setattr__(self, "polys_px", self.calib.sample_to_px(polys))
-        object.__setattr__(self, "centroid_px", self.calib.sample_to_px(polygon_centroids(polys)))
+        object.__setattr__(self, "centroid_px", self.calib.sample_to_px(area_centroids(polys)))
 
     @property
     def n_units(self) -> int:

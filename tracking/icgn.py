@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ros_nodes.logic.dic_kernels import icgn_batch
-from ros_nodes.logic.dic_reference import RefSet
+from tracking.kernels import icgn_batch
+from tracking.reference import RefSet
 
 
 @dataclass(frozen=True, slots=True)

@@ -23,7 +23,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ros_nodes.logic.jsonfile import read_json
+from tracking.jsonfile import read_json
 
 
 class CalibrationError(ValueError):

@@ -1,26 +1,21 @@
-"""`metarig track`: DIC-track every unit in a folder of images, a video or an MCAP recording.
+"""Batch DIC tracking of every unit through a frame source, on all cores (`metarig track`).
 
-Parallel over units on all cores: within a process the units of a frame are solved on numba
-threads while a reader thread decodes and prepares the next frame; with `--workers N` the unit
-ids are also split into N contiguous blocks, one per process, each reading the frames itself.
-Every path runs the same tracker (`ros_nodes.logic.dic`) as the live node and units are
-independent, so results do not depend on the split. Results stream back in blocks of frames;
-Ctrl-C stops the workers and writes what every worker has finished.
+Parallel over units: within a process the units of a frame are solved on numba threads while a
+reader thread decodes and prepares the next frame; with `workers = N` the unit ids are also
+split into N contiguous blocks, one per process, each reading the frames itself. Every path
+runs the same tracker (`tracking.dic`) as the live node and units are independent, so results
+do not depend on the split. Results stream back in blocks of frames; Ctrl-C stops the workers
+and keeps what every worker has finished.
 
-Output (.npz, the trajectory layout of `metarig simulate`): `t` [n_t] s (k / fps); `q`
-[n_t, n_units, 3] (u m, v m, theta rad) from the reference outline, NaN where lost; `qdot`
-[n_t, n_units, 3] backward difference (q[k] - q[k-1]) * fps, NaN at k = 0 and next to lost
-frames; `quality` [n_t, n_units] ZNCC; `lost` [n_t, n_units] bool; `complete` (False when
-interrupted); `fps`.
+The result is a `metarig.trajectory.Trajectory`: t = k / fps, q NaN where lost, rates by
+backward difference, quality = ZNCC, complete = False when interrupted.
 """
 
-import argparse
 import logging
 import multiprocessing as mp
 import os
 import queue as queue_mod
 import signal
-import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -31,8 +26,9 @@ import cv2
 import numba
 import numpy as np
 
-from ros_nodes.logic.calibration import Calibration, CalibrationError, load_calibration
-from ros_nodes.logic.dic import (
+from metarig.trajectory import Trajectory
+from tracking.calibration import Calibration
+from tracking.dic import (
     DICConfig,
     DICTracker,
     FrameError,
@@ -42,18 +38,10 @@ from ros_nodes.logic.dic import (
     prepare_frame,
     track_frame,
 )
-from ros_nodes.logic.dic_units import UnitsError, load_unit_polygons
-from ros_nodes.logic.frame_sources import (
-    BadFrame,
-    SourceError,
-    SourceSpec,
-    count_frames,
-    iter_frames,
-    open_source,
-)
+from tracking.frame_sources import BadFrame, SourceError, SourceSpec, count_frames, iter_frames
+from tracking.reference import subset_pixels
 
 log = logging.getLogger("metarig.track")
-_DEFAULTS = DICConfig()
 
 
 @dataclass(frozen=True, slots=True)
@@ -94,18 +82,67 @@ class Block:
     bad: np.ndarray
 
 
-def _reference_image(job: TrackJob) -> np.ndarray:
-    if job.reference is not None:
-        img = cv2.imread(job.reference, cv2.IMREAD_UNCHANGED)
+def reference_image(spec: SourceSpec, reference: str | None = None) -> np.ndarray:
+    """The frame showing the reference configuration: the image file `reference`, else the
+    source's first frame.
+
+    Raises:
+        SourceError: it cannot be read.
+    """
+    if reference is not None:
+        img = cv2.imread(reference, cv2.IMREAD_UNCHANGED)
         if img is None:
-            raise SourceError(f"{job.reference}: cannot read the reference image")
+            raise SourceError(f"{reference}: cannot read the reference image")
         return img
-    for _, item in iter_frames(job.spec):
+    for _, item in iter_frames(spec):
         if isinstance(item, BadFrame):
-            raise SourceError(f"{job.spec.path}: the first frame (the reference) is unreadable: "
+            raise SourceError(f"{spec.path}: the first frame (the reference) is unreadable: "
                               f"{item.reason}")
         return item
-    raise SourceError(f"{job.spec.path}: holds no frames")
+    raise SourceError(f"{spec.path}: holds no frames")
+
+
+class OutlineMismatch(SourceError):
+    """The unit outlines do not match the frames (another design, or the wrong calibration)."""
+
+
+def check_outlines(tracker: DICTracker, reference: np.ndarray,
+                   texture_frac: float = 0.1) -> None:
+    """Refuse outlines that cannot belong to the frames, before any tracking.
+
+    Most outlines (more than half) must lie inside the (rectified) frame, and most must show
+    speckle texture in the reference frame: a subset whose grey-level standard deviation is at
+    least `texture_frac` of the frame's 1-99 percentile range.
+
+    Raises:
+        OutlineMismatch: one line saying which test failed, for how many units.
+        SourceError: the reference frame is unusable (blank, not an image).
+    """
+    try:
+        prep = prepare_frame(tracker, reference)
+    except FrameError as exc:
+        raise SourceError(f"reference frame unusable: {exc}") from None
+    h, w = prep.img.shape
+    n = tracker.n_units
+    p = tracker.polys_px
+    inside = np.all((p[..., 0] >= 0) & (p[..., 0] <= w - 1) & (p[..., 1] >= 0)
+                    & (p[..., 1] <= h - 1), axis=1)
+    hint = "(outlines of another design, or the wrong calibration?)"
+    if 2 * int(inside.sum()) < n:
+        raise OutlineMismatch(f"the unit outlines do not fit the frames: {n - int(inside.sum())} "
+                              f"of {n} units lie outside the {w}x{h} px frame {hint}")
+    lo, hi = np.percentile(prep.img, [1.0, 99.0])
+    outside = n - int(inside.sum())
+    flat = 0
+    for b in np.flatnonzero(inside):
+        pts = subset_pixels(p[b], tracker.cfg.margin_px, (h, w))
+        if pts.shape[0] and prep.img[pts[:, 1], pts[:, 0]].std() < texture_frac * (hi - lo):
+            flat += 1
+    if 2 * (outside + flat) > n:
+        where = "lie outside the frame or " if outside else ""
+        raise OutlineMismatch(f"the unit outlines do not match the frames: {outside + flat} of "
+                              f"{n} units {where}show no speckle texture in the reference frame "
+                              f"{hint}")
 
 
 def _prepared_frames(
@@ -160,7 +197,7 @@ def track_blocks(job: TrackJob, stop: Callable[[], bool] = lambda: False) -> Ite
         numba.set_num_threads(min(job.threads, numba.config.NUMBA_NUM_THREADS))
     tracker = DICTracker(job.polygons_m, job.calib, job.cfg)
     try:
-        state = init_state(tracker, _reference_image(job))
+        state = init_state(tracker, reference_image(job.spec, job.reference))
     except FrameError as exc:
         raise SourceError(f"reference frame unusable: {exc}") from None
     buf: list[tuple] = []
@@ -199,20 +236,10 @@ def _worker(wid: int, job: TrackJob, out: "mp.Queue", stop: "mp.Event") -> None:
         out.put(("error", wid, f"{type(exc).__name__}: {exc}"))
 
 
-@dataclass(frozen=True, slots=True)
-class TrackResult:
-    """Assembled output. q: [n_t, n_units, 3]; quality, lost: [n_t, n_units]; bad: [n_t]."""
-
-    q: np.ndarray
-    quality: np.ndarray
-    lost: np.ndarray
-    bad: np.ndarray
-    complete: bool
-
-
-def _assemble(parts: list[list[Block]], splits: list[np.ndarray], n_units: int,
-              complete: bool) -> TrackResult:
-    """Join per-worker block lists into full arrays, keeping only frames every worker did."""
+def _assemble(parts: list[list[Block]], splits: list[np.ndarray], n_units: int, fps: float,
+              complete: bool) -> tuple[Trajectory, np.ndarray]:
+    """Join per-worker block lists into a trajectory and the per-frame unusable flags [n_t],
+    keeping only the frames every worker did."""
     n_t = min((sum(b.q.shape[0] for b in p) for p in parts), default=0)
     q = np.full((n_t, n_units, 3), np.nan)
     qual = np.full((n_t, n_units), np.nan)
@@ -226,27 +253,52 @@ def _assemble(parts: list[list[Block]], splits: list[np.ndarray], n_units: int,
             sl = slice(b.k0, b.k0 + m)
             q[sl, ids], qual[sl, ids], lost[sl, ids] = b.q[:m], b.quality[:m], b.lost[:m]
             bad[sl] |= b.bad[:m]
-    return TrackResult(q, qual, lost, bad, complete)
+    traj = Trajectory.from_positions(np.arange(n_t) / fps, q, quality=qual, lost=lost,
+                                     complete=complete)
+    return traj, bad
 
 
 def run_tracking(
     spec: SourceSpec, polygons_m: np.ndarray, calib: Calibration, cfg: DICConfig,
     workers: int = 1, reference: str | None = None, block: int = 8, max_frames: int = 0,
     progress: bool = False, threads: int = 0,
-) -> TrackResult:
+) -> Trajectory:
+    """Track all units through the source; the trajectory of `track_source`."""
+    return track_source(spec, polygons_m, calib, cfg, workers, reference, block, max_frames,
+                        progress, threads)[0]
+
+
+def track_source(
+    spec: SourceSpec, polygons_m: np.ndarray, calib: Calibration, cfg: DICConfig,
+    workers: int = 1, reference: str | None = None, block: int = 8, max_frames: int = 0,
+    progress: bool = False, threads: int = 0,
+) -> tuple[Trajectory, np.ndarray]:
     """Track all units, in this process (workers = 1) or split over worker processes.
 
-    Within a process, units are solved on `threads` numba threads (0: all cores shared out
-    between the workers) while a reader thread decodes and prepares the next frame.
+    Args:
+        spec: the frame source. polygons_m: [n, nv, 2] reference outlines (m).
+        calib: calibration (its fps gives t = k / fps). cfg: tracker settings.
+        workers: processes; the units are split between them.
+        reference: image file of the reference configuration (None: the first frame).
+        block: frames per result block. max_frames: stop after this many (0: all).
+        progress: show a progress bar. threads: numba threads per worker (0: all cores shared
+            out between the workers), while a reader thread decodes and prepares frames.
 
-    Ctrl-C (KeyboardInterrupt) returns what every worker finished, with complete = False.
+    Returns:
+        The trajectory [n_t frames, n units] and bad [n_t]: True for frames that could not be
+        used at all (every unit lost). Ctrl-C (KeyboardInterrupt) returns what every worker
+        finished, with complete = False.
 
     Raises:
+        OutlineMismatch: the outlines do not match the frames (checked before tracking).
         SourceError: the source or the reference frame cannot be read.
     """
     from tqdm import tqdm
 
     n = polygons_m.shape[0]
+    check_outlines(DICTracker(polygons_m, calib, cfg), reference_image(spec, reference))
+    log.info("tracking %d units in %s (%s) with %d worker process(es)", n, spec.path,
+             spec.kind, workers)
     workers = max(1, min(int(workers), n))
     splits = np.array_split(np.arange(n), workers)
     threads = threads or max(1, (os.cpu_count() or 1) // workers)
@@ -278,7 +330,7 @@ def run_tracking(
         log.warning("interrupted: keeping the %d frames every worker finished", done_frames)
     finally:
         bar.close()
-    return _assemble(parts, splits, n, complete)
+    return _assemble(parts, splits, n, calib.fps, complete)
 
 
 def _run_pool(jobs: list[TrackJob], parts: list[list[Block]], advance: Callable) -> bool:
@@ -341,103 +393,7 @@ def _drain(out, parts: list[list[Block]], procs, timeout: float = 10.0) -> None:
             parts[wid].append(payload)
 
 
-def qdot_backward(q: np.ndarray, fps: float) -> np.ndarray:
-    """Backward-difference rates [n_t, n, 3] of q (NaN at k = 0 and next to lost frames)."""
-    qdot = np.full_like(q, np.nan)
-    qdot[1:] = (q[1:] - q[:-1]) * fps
-    return qdot
-
-
-def save_tracks(path: Path, res: TrackResult, fps: float) -> Path:
-    """Write the result as a compressed .npz (keys in the module docstring)."""
-    n_t = res.q.shape[0]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(
-        path, t=np.arange(n_t) / fps, q=res.q, qdot=qdot_backward(res.q, fps),
-        quality=res.quality, lost=res.lost, complete=np.array(res.complete),
-        fps=np.array(float(fps)),
-    )
-    return path
-
-
-def _config(args) -> DICConfig:
-    return DICConfig(margin_px=args.margin_px, min_points=args.min_points,
-                     zncc_lost=args.zncc_lost, zncc_reacquire=max(args.zncc_lost, 0.9)
-                     if args.zncc_reacquire is None else args.zncc_reacquire,
-                     search_radius_px=args.search_radius_px,
-                     prefilter_sigma_px=args.prefilter_sigma_px)
-
-
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="metarig track", description=track_main.__doc__,
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("source", help="folder of *.png frames (name order), a video file or an "
-                   ".mcap recording with sensor_msgs/Image messages")
-    p.add_argument("--units", required=True, help="JSON file with 'polygons_m' (plain units "
-                   "file or a design file)")
-    p.add_argument("--calibration", required=True, help="calibration JSON (fps, m_per_px, "
-                   "origin_px, y_up; optional homography, rectified_size_px)")
-    p.add_argument("--out", default="tracks.npz", help="output .npz")
-    p.add_argument("--topic", default=None, help="MCAP image topic (default: the only one, or "
-                   "the one ending in image_raw)")
-    p.add_argument("--reference", default=None, help="image of the reference configuration "
-                   "(default: the first frame)")
-    p.add_argument("--workers", type=int, default=1,
-                   help="worker processes; units are split between them (each decodes every "
-                   "frame, so this pays off on many cores or slow-to-track scenes)")
-    p.add_argument("--threads", type=int, default=0,
-                   help="numba threads per worker (0: all cores shared out between workers)")
-    p.add_argument("--max-frames", type=int, default=0, help="stop after this many (0: all)")
-    p.add_argument("--block", type=int, default=8, help="frames per result block")
-    p.add_argument("--margin-px", type=float, default=_DEFAULTS.margin_px,
-                   help="subset distance from the unit outline, px")
-    p.add_argument("--min-points", type=int, default=_DEFAULTS.min_points,
-                   help="units with fewer subset pixels are not tracked")
-    p.add_argument("--zncc-lost", type=float, default=_DEFAULTS.zncc_lost,
-                   help="correlation below which a unit is declared lost")
-    p.add_argument("--zncc-reacquire", type=float, default=None,
-                   help="correlation that triggers a search / regains a lost unit "
-                   "(default: max(zncc-lost, 0.9))")
-    p.add_argument("--search-radius-px", type=int, default=_DEFAULTS.search_radius_px,
-                   help="re-acquisition search half-width, px")
-    p.add_argument("--prefilter-sigma-px", type=float, default=0.0,
-                   help="Gaussian smoothing of frames before tracking, px")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
-    return p
-
-
-def track_main(argv: list[str] | None = None) -> int:
-    """Track the planar pose of every unit in recorded frames by digital image correlation."""
-    args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
-    try:
-        calib = load_calibration(args.calibration)
-        polys = load_unit_polygons(args.units)
-        spec = open_source(args.source, args.topic)
-        cfg = _config(args)
-    except (CalibrationError, UnitsError, SourceError, ValueError) as exc:
-        print(f"metarig track: error: {exc}", file=sys.stderr)
-        return 2
-    log.info("tracking %d units in %s (%s) with %d worker process(es)", polys.shape[0],
-             spec.path, spec.kind, args.workers)
-    t0 = time.perf_counter()
-    try:
-        res = run_tracking(spec, polys, calib, cfg, args.workers, args.reference, args.block,
-                           args.max_frames, progress=not args.quiet and sys.stderr.isatty(),
-                           threads=args.threads)
-    except SourceError as exc:
-        print(f"metarig track: error: {exc}", file=sys.stderr)
-        return 2
-    dt = time.perf_counter() - t0
-    n_t = res.q.shape[0]
-    out = save_tracks(Path(args.out), res, calib.fps)
-    lost_frac = float(res.lost.mean()) if res.lost.size else 0.0
-    log.info("%d frames in %.1f s (%.1f frames/s); %.2f %% unit-frames lost, %d unusable "
-             "frames -> %s", n_t, dt, n_t / max(dt, 1e-9), 100 * lost_frac,
-             int(res.bad.sum()), out)
-    if not res.complete:
-        log.warning("incomplete: interrupted after %d frames; %s holds those (complete=False)",
-                    n_t, out)
-        return 130
-    return 0
+def save_tracks(path: Path, traj: Trajectory, fps: float) -> Path:
+    """Write the trajectory atomically as a compressed .npz: t, q, qdot, quality, lost,
+    complete (the `Trajectory` keys) and fps."""
+    return traj.save_npz(path, fps=np.array(float(fps)))

@@ -3,7 +3,7 @@
 The camera callback hands frames to `LivePreview.offer`, which only swaps a reference under a
 lock and returns: it never waits for tracking, so the camera is never blocked. A worker thread
 takes the newest frame at most `rate_hz` times per second, tracks it with the same
-`ros_nodes.logic.dic` code as `metarig track`, and hands the poses to a publish callback.
+`tracking.dic` code as `metarig track`, and hands the poses to a publish callback.
 Frames that arrive while the worker is busy are replaced (counted as skipped), which is the
 decimation. The first frame tracked after `start` or `reset_reference` becomes the reference
 configuration.
@@ -13,56 +13,14 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
-from ros_nodes.logic.calibration import Calibration, calibration_from_dict, load_calibration
-from ros_nodes.logic.dic import DICConfig, DICTracker, FrameError, FramePoses, init_state
-from ros_nodes.logic.dic import track_frame as _track_frame
+from tracking.dic import DICTracker, FrameError, FramePoses, init_state
+from tracking.dic import track_frame as _track_frame
 
 log = logging.getLogger(__name__)
-
-
-def _p(default, desc, lo=None, hi=None):
-    return field(default=default, metadata={"description": desc, "min": lo, "max": hi})
-
-
-@dataclass(frozen=True, slots=True)
-class DICNodeConfig:
-    """Parameters of the live DIC tracker node (ROS parameters of the same names)."""
-
-    image_topic: str = _p("/camera/image_raw", "camera frames (sensor_msgs/Image mono8/16)")
-    poses_topic: str = _p("/dic/poses", "per-unit poses out (metarig_msgs/UnitPose2DArray)")
-    units_path: str = _p("", "JSON with polygons_m; empty: the latched /rig/design topic")
-    calibration_path: str = _p("", "calibration JSON; empty: fps, m_per_px, origin_* below")
-    fps: float = _p(1000.0, "camera frame rate (without calibration_path), Hz", 0.1, 1e6)
-    m_per_px: float = _p(6.0e-4, "image scale (without calibration_path), m/px", 1e-7, 1.0)
-    origin_col: float = _p(0.0, "pixel column of the sample origin (without calibration_path)")
-    origin_row: float = _p(0.0, "pixel row of the sample origin (without calibration_path)")
-    y_up: bool = _p(True, "sample y points up the image (without calibration_path)")
-    preview_rate_hz: float = _p(20.0, "most pose messages per second (decimated preview)",
-                                0.1, 10000.0)
-    threads: int = _p(1, "numba threads for tracking (leave cores to the camera)", 1, 256)
-    margin_px: float = _p(2.5, "subset distance from the unit outline, px", 0.0, 50.0)
-    min_points: int = _p(50, "units with fewer subset pixels are not tracked", 4, 100000)
-    zncc_lost: float = _p(0.8, "correlation below which a unit is lost", 0.0, 1.0)
-    search_radius_px: int = _p(24, "re-acquisition window half-width, px", 1, 1000)
-
-    def calibration(self) -> Calibration:
-        """The calibration from `calibration_path`, or from the inline parameters."""
-        if self.calibration_path:
-            return load_calibration(self.calibration_path)
-        return calibration_from_dict(
-            {"fps": self.fps, "m_per_px": self.m_per_px,
-             "origin_px": [self.origin_col, self.origin_row], "y_up": self.y_up},
-            where="node parameters")
-
-    def dic_config(self) -> DICConfig:
-        return DICConfig(margin_px=self.margin_px, min_points=self.min_points,
-                         zncc_lost=self.zncc_lost, zncc_reacquire=max(self.zncc_lost, 0.9),
-                         search_radius_px=self.search_radius_px,
-                         lost_search_radius_px=2 * self.search_radius_px)
 
 
 @dataclass(frozen=True, slots=True)
@@ -185,9 +143,3 @@ class LivePreview:
             log.warning("frame unusable, all units flagged lost: %s", poses.error)
         return poses
 
-
-def absolute_poses(centroids_m: np.ndarray, poses: FramePoses) -> tuple[np.ndarray, ...]:
-    """Pose message fields, as the camera's ground truth: x, y [n] (m) = reference centroid
-    [n, 2] + displacement, theta [n] (rad); NaN where lost."""
-    return (centroids_m[:, 0] + poses.q[:, 0], centroids_m[:, 1] + poses.q[:, 1],
-            poses.q[:, 2])

@@ -10,7 +10,7 @@ IC-GN then polishes the result.
 import cv2
 import numpy as np
 
-from ros_nodes.logic.dic_reference import RefSet
+from tracking.reference import RefSet
 
 
 def _rotation(alpha: float) -> np.ndarray:

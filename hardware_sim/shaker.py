@@ -11,9 +11,11 @@ and a displacement sensor reports x and x' with white noise. Device contract:
 """
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
+
+from metarig.fields import param
 
 WAVEFORMS = ("pulse", "burst", "samples")
 
@@ -22,24 +24,20 @@ class LimitError(ValueError):
     """A request outside the configured safety limits (the message says which and why)."""
 
 
-def _f(default, desc, lo=None, hi=None):
-    return field(default=default, metadata={"description": desc, "min": lo, "max": hi})
-
-
 @dataclass(frozen=True, slots=True)
 class ShakerConfig:
     """Physical constants and safety limits of the shaker (SI)."""
 
-    natural_frequency_hz: float = _f(250.0, "actuator natural frequency wn/2pi, Hz", 1.0, 5000.0)
-    damping_ratio: float = _f(0.7, "actuator damping ratio zeta", 0.05, 5.0)
-    max_amplitude_m: float = _f(0.012, "largest accepted peak displacement, m", 0.0, 0.05)
-    min_frequency_hz: float = _f(1.0, "lowest accepted waveform frequency, Hz", 0.01, 1000.0)
-    max_frequency_hz: float = _f(200.0, "highest accepted waveform frequency, Hz", 0.01, 1000.0)
-    max_velocity_m_s: float = _f(2.0, "largest accepted peak commanded velocity, m/s", 0.0, 20.0)
-    max_duration_s: float = _f(10.0, "longest accepted waveform, s", 0.0, 600.0)
-    noise_std_m: float = _f(2e-6, "displacement sensor noise (1 sigma), m", 0.0, 1e-3)
-    noise_std_m_s: float = _f(1e-3, "velocity sensor noise (1 sigma), m/s", 0.0, 1.0)
-    max_substep_s: float = _f(2e-5, "largest internal integration step, s", 1e-7, 1e-3)
+    natural_frequency_hz: float = param(250.0, "actuator natural frequency wn/2pi, Hz", 1.0, 5000.0)
+    damping_ratio: float = param(0.7, "actuator damping ratio zeta", 0.05, 5.0)
+    max_amplitude_m: float = param(0.012, "largest accepted peak displacement, m", 0.0, 0.05)
+    min_frequency_hz: float = param(1.0, "lowest accepted waveform frequency, Hz", 0.01, 1000.0)
+    max_frequency_hz: float = param(200.0, "highest accepted waveform frequency, Hz", 0.01, 1000.0)
+    max_velocity_m_s: float = param(2.0, "largest accepted peak commanded velocity, m/s", 0.0, 20.0)
+    max_duration_s: float = param(10.0, "longest accepted waveform, s", 0.0, 600.0)
+    noise_std_m: float = param(2e-6, "displacement sensor noise (1 sigma), m", 0.0, 1e-3)
+    noise_std_m_s: float = param(1e-3, "velocity sensor noise (1 sigma), m/s", 0.0, 1.0)
+    max_substep_s: float = param(2e-5, "largest internal integration step, s", 1e-7, 1e-3)
 
     def __post_init__(self):
         if self.min_frequency_hz >= self.max_frequency_hz:

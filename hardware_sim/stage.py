@@ -10,16 +10,14 @@ puts it in FAULT until a reset. Device contract: `init(cfg, rng) -> StageState`,
 """
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from enum import Enum
 
 import numpy as np
 
+from metarig.fields import param
+
 from hardware_sim.shaker import LimitError
-
-
-def _f(default, desc, lo=None, hi=None):
-    return field(default=default, metadata={"description": desc, "min": lo, "max": hi})
 
 
 class StageMode(str, Enum):
@@ -33,19 +31,19 @@ class StageMode(str, Enum):
 class StageConfig:
     """Constants and limits of the stage pair (SI)."""
 
-    sample_height_m: float = _f(0.225, "undeformed sample height that strain refers to, m",
+    sample_height_m: float = param(0.225, "undeformed sample height that strain refers to, m",
                                 1e-3, 10.0)
-    closing_speed_m_s: float = _f(0.05625, "total closing speed while moving, m/s", 1e-6, 1.0)
-    max_strain_rate_per_s: float = _f(0.25, "largest allowed closing speed / height, 1/s",
+    closing_speed_m_s: float = param(0.05625, "total closing speed while moving, m/s", 1e-6, 1.0)
+    max_strain_rate_per_s: float = param(0.25, "largest allowed closing speed / height, 1/s",
                                       1e-6, 10.0)
-    max_strain: float = _f(0.09, "largest accepted compressive strain", 0.0, 0.5)
-    min_strain: float = _f(0.0, "smallest accepted strain (negative: tension)", -0.5, 0.5)
-    position_tolerance_m: float = _f(2e-6, "distance at which a move counts as arrived, m",
+    max_strain: float = param(0.09, "largest accepted compressive strain", 0.0, 0.5)
+    min_strain: float = param(0.0, "smallest accepted strain (negative: tension)", -0.5, 0.5)
+    position_tolerance_m: float = param(2e-6, "distance at which a move counts as arrived, m",
                                      0.0, 1e-2)
-    following_error_m: float = _f(5e-4, "command-position mismatch that trips a fault, m",
+    following_error_m: float = param(5e-4, "command-position mismatch that trips a fault, m",
                                   1e-6, 1e-1)
-    noise_std_m: float = _f(1e-6, "encoder noise (1 sigma), m", 0.0, 1e-3)
-    jam_closing_m: float = _f(math.inf, "simulated jam: the stages cannot close beyond this, m",
+    noise_std_m: float = param(1e-6, "encoder noise (1 sigma), m", 0.0, 1e-3)
+    jam_closing_m: float = param(math.inf, "simulated jam: the stages cannot close beyond this, m",
                               0.0, math.inf)
 
     def __post_init__(self):

@@ -1,6 +1,7 @@
 """`metarig rig` (run an experiment on the simulated rig) and `metarig recover FILE`."""
 
 import argparse
+import dataclasses
 import json
 import logging
 import sys
@@ -9,10 +10,26 @@ from pathlib import Path
 log = logging.getLogger("metarig.rig")
 
 
+# plan field -> flag, where the flag is not the field name with dashes (kept for compatibility)
+FLAG_NAMES = {"amplitude_m": "amplitude", "frequency_hz": "frequency", "real_time_factor": "rtf"}
+# plan fields set by the experiment, not from the command line
+NO_FLAG = ("clock_step_s",)
+
+
+def plan_flags(p: argparse.ArgumentParser, plan_cls) -> None:
+    """One flag per plan field, from its metadata (default, description, choices)."""
+    for f in dataclasses.fields(plan_cls):
+        if f.name in NO_FLAG:
+            continue
+        default = getattr(plan_cls(), f.name)
+        flag = "--" + FLAG_NAMES.get(f.name, f.name).replace("_", "-")
+        p.add_argument(flag, dest=f.name, type=type(default), default=default,
+                       choices=f.metadata.get("choices"), help=f.metadata.get("description"))
+
+
 def _parser() -> argparse.ArgumentParser:
     from ros_nodes.logic.sequence import ExperimentPlan
 
-    d = ExperimentPlan()
     p = argparse.ArgumentParser(
         prog="metarig rig", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
         description="Run one experiment on the simulated rig: pre-compress, settle, record, fire "
@@ -25,55 +42,29 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--params", type=Path, default=None,
                    help="ROS 2 YAML parameter file applied to the nodes (node_name: "
                         "ros__parameters: ...)")
-    p.add_argument("--scene", default=d.scene, help="sample scene (design_engine preset)")
-    p.add_argument("--nx", type=int, default=d.nx, help="units along x")
-    p.add_argument("--ny", type=int, default=d.ny, help="units along y")
-    p.add_argument("--strain", type=float, default=d.strain, help="pre-compression strain")
-    p.add_argument("--settle-s", type=float, default=d.settle_s, help="settle time, s")
-    p.add_argument("--pre-trigger-s", type=float, default=d.pre_trigger_s,
-                   help="recording before the pulse, s")
-    p.add_argument("--record-s", type=float, default=d.record_s, help="capture length, s")
-    p.add_argument("--waveform", choices=("pulse", "burst"), default=d.waveform)
-    p.add_argument("--amplitude", type=float, default=d.amplitude_m, help="amplitude, m")
-    p.add_argument("--frequency", type=float, default=d.frequency_hz, help="frequency, Hz")
-    p.add_argument("--cycles", type=float, default=d.cycles, help="burst periods")
-    p.add_argument("--fps", type=float, default=d.fps, help="camera frame rate, Hz")
-    p.add_argument("--width", type=int, default=d.width, help="frame width, px")
-    p.add_argument("--height", type=int, default=d.height, help="frame height, px")
-    p.add_argument("--m-per-px", type=float, default=d.m_per_px, help="image scale, m/px")
-    p.add_argument("--perturb", type=float, default=d.perturb,
-                   help="relative spread of the specimen's true stiffness/damping")
-    p.add_argument("--seed", type=int, default=d.seed, help="seed of all simulated noise")
-    p.add_argument("--rtf", type=float, default=d.real_time_factor,
-                   help="simulated seconds per wall second while devices run (0: max speed)")
     p.add_argument("--compression", choices=("none", "lz4", "zstd"), default="none",
                    help="MCAP chunk compression")
-    p.add_argument("--timeout-s", type=float, default=d.timeout_s,
-                   help="wall-time limit of any single wait, s")
+    plan_flags(p, ExperimentPlan)
     return p
 
 
 def _plan(args):
     from ros_nodes.logic.sequence import ExperimentPlan
 
-    return ExperimentPlan(
-        scene=args.scene, nx=args.nx, ny=args.ny, strain=args.strain, settle_s=args.settle_s,
-        pre_trigger_s=args.pre_trigger_s, record_s=args.record_s, waveform=args.waveform,
-        amplitude_m=args.amplitude, frequency_hz=args.frequency, cycles=args.cycles, fps=args.fps,
-        width=args.width, height=args.height, m_per_px=args.m_per_px, perturb=args.perturb,
-        seed=args.seed, real_time_factor=args.rtf, timeout_s=args.timeout_s)
+    return ExperimentPlan(**{f.name: getattr(args, f.name)
+                             for f in dataclasses.fields(ExperimentPlan) if f.name not in NO_FLAG})
 
 
 def _node_params(plan, out: Path, params_file: Path | None,
                  compression: str = "none") -> dict[str, dict]:
     from ros_nodes import params as P
     from ros_nodes.logic.sequence import node_parameters
+    from ros_nodes.registry import NODES
 
     node_params = node_parameters(plan, out)
     node_params["recorder"]["compression"] = compression
-    classes = {"shaker": P.ShakerNodeConfig, "stage": P.StageNodeConfig,
-               "camera": P.CameraNodeConfig, "recorder": P.RecorderNodeConfig}
-    for name, cls in classes.items():
+    for name in node_params:
+        cls = NODES[name].config()
         if params_file is not None:
             node_params[name].update(P.load_yaml(params_file, name))
         values = {k: v for k, v in node_params[name].items() if k != "use_sim_time"}
@@ -105,6 +96,12 @@ def rig_main(argv: list[str] | None = None) -> int:
     from ros_nodes.nodes._rig import run_rig
 
     return run_rig(plan, node_params, args.out.resolve(), processes=args.processes)
+
+
+def sequencer_main(argv: list[str] | None = None) -> int:
+    """`metarig-sequencer`: the sequencer with every node in its own process
+    (= `metarig rig --processes`)."""
+    return rig_main(["--processes", *(sys.argv[1:] if argv is None else argv)])
 
 
 def recover_main(argv: list[str] | None = None) -> int:

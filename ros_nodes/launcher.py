@@ -12,13 +12,49 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ros_nodes.registry import NODES, STOP_ORDER
+
 log = logging.getLogger("metarig.launcher")
-SCRIPTS = {"shaker": "metarig-shaker", "stage": "metarig-stage", "camera": "metarig-camera",
-           "recorder": "metarig-recorder"}
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+def stop_on_signals() -> None:
+    """Make Ctrl-C and SIGTERM raise KeyboardInterrupt in the main thread.
+
+    Set explicitly, not inherited: a non-interactive shell starts background jobs with SIGINT
+    ignored, and Python then keeps ignoring it (a `metarig rig ... &` never stopped on SIGINT).
+    """
+    if threading.current_thread() is threading.main_thread():
+        for sig in STOP_SIGNALS:
+            signal.signal(sig, signal.default_int_handler)
+
+
+@contextmanager
+def deferred_stop() -> Iterator[None]:
+    """Hold Ctrl-C/SIGTERM until the block is done, then raise KeyboardInterrupt.
+
+    Around start-up steps that must not be cut in half: a KeyboardInterrupt inside `Popen`
+    (after the fork) would leave a node process that nobody stops.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    got: list[int] = []
+    old = {sig: signal.signal(sig, lambda n, _f: got.append(n)) for sig in STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+    if got:
+        raise KeyboardInterrupt
 
 
 def ros_value(v) -> str:
@@ -34,7 +70,7 @@ def ros_value(v) -> str:
 
 def command_line(node: str, params: dict, params_file: Path | None = None) -> list[str]:
     """argv of one node's console script with its parameters."""
-    exe = Path(sys.prefix) / "bin" / SCRIPTS[node]
+    exe = Path(sys.prefix) / "bin" / NODES[node].script
     argv = [str(exe), "--ros-args"]
     if params_file is not None:
         argv += ["--params-file", str(params_file)]
@@ -52,10 +88,10 @@ class ProcessGroup:
 
     def start(self, node: str, argv: list[str]) -> None:
         self.logs_dir.mkdir(parents=True, exist_ok=True)
-        out = open(self.logs_dir / f"{node}.log", "w")
-        # own process group: a terminal Ctrl-C reaches us first, and we stop nodes in order
-        self.procs[node] = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT,
-                                            env=dict(os.environ), start_new_session=True)
+        with open(self.logs_dir / f"{node}.log", "w") as out, deferred_stop():
+            # own process group: a terminal Ctrl-C reaches us first, and we stop nodes in order
+            self.procs[node] = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT,
+                                                env=dict(os.environ), start_new_session=True)
         log.info("started %s (pid %d)", node, self.procs[node].pid)
 
     def check(self) -> None:
@@ -64,10 +100,11 @@ class ProcessGroup:
                 tail = (self.logs_dir / f"{name}.log").read_text()[-2000:]
                 raise RuntimeError(f"node {name} exited with {p.returncode}:\n{tail}")
 
-    def stop(self, order: list[str] | None = None, timeout_s: float = 10.0) -> dict[str, int]:
-        """SIGINT each node (in `order`), escalate after `timeout_s`; returns exit codes."""
+    def stop(self, order=STOP_ORDER, timeout_s: float = 10.0) -> dict[str, int]:
+        """SIGINT each node (`order` first, then any other), escalate after `timeout_s`;
+        returns exit codes."""
         codes = {}
-        for name in order or list(self.procs):
+        for name in [*order, *(n for n in self.procs if n not in order)]:
             p = self.procs.get(name)
             if p is None:
                 continue

@@ -9,7 +9,7 @@ side (descriptors with ranges, the on-set callback) is `ros_nodes.nodes._params`
 
 import dataclasses
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +17,8 @@ import yaml
 
 from hardware_sim.shaker import ShakerConfig
 from hardware_sim.stage import StageConfig
+from metarig.fields import param
+from ros_nodes.topics import IMAGE, RECORDED
 
 SOURCES = ("sim", "mcap", "folder", "video", "pattern")
 
@@ -25,94 +27,82 @@ class ConfigError(ValueError):
     """A parameter value that is out of range or inconsistent (the message says which)."""
 
 
-def _p(default, desc, lo=None, hi=None, choices=None, **kw):
-    meta = {"description": desc, "min": lo, "max": hi, "choices": choices}
-    if callable(default) and not isinstance(default, (int, float, str)):
-        return field(default_factory=default, metadata=meta, **kw)
-    return field(default=default, metadata=meta, **kw)
-
-
 @dataclass(frozen=True, slots=True)
 class ShakerNodeConfig:
     """Parameters of the shaker command node."""
 
-    device: ShakerConfig = _p(ShakerConfig, "shaker physics and safety limits")
-    rate_hz: float = _p(1000.0, "device step and joint-state rate (node clock), Hz", 1.0, 20000.0)
-    command_rate_hz: float = _p(2000.0, "sample rate of the published commanded waveform, Hz",
+    device: ShakerConfig = param(ShakerConfig, "shaker physics and safety limits")
+    rate_hz: float = param(1000.0, "device step and joint-state rate (node clock), Hz",
+                           1.0, 20000.0)
+    command_rate_hz: float = param(2000.0, "sample rate of the published commanded waveform, Hz",
                                 10.0, 100000.0)
-    seed: int = _p(0, "seed of the simulated sensor noise", 0, 2**31 - 1)
-    hardware: str = _p("sim", "device backend (only the simulator exists here)",
+    seed: int = param(0, "seed of the simulated sensor noise", 0, 2**31 - 1)
+    hardware: str = param("sim", "device backend (only the simulator exists here)",
                        choices=("sim",))
-    autostart: bool = _p(True, "configure and activate on start-up (the launcher drives it)")
+    autostart: bool = param(True, "configure and activate on start-up (the launcher drives it)")
 
 
 @dataclass(frozen=True, slots=True)
 class StageNodeConfig:
     """Parameters of the linear stage node."""
 
-    device: StageConfig = _p(StageConfig, "stage physics and safety limits")
-    rate_hz: float = _p(500.0, "device step and joint-state rate (node clock), Hz", 1.0, 10000.0)
-    seed: int = _p(1, "seed of the simulated encoder noise", 0, 2**31 - 1)
-    hardware: str = _p("sim", "device backend (only the simulator exists here)",
+    device: StageConfig = param(StageConfig, "stage physics and safety limits")
+    rate_hz: float = param(500.0, "device step and joint-state rate (node clock), Hz", 1.0, 10000.0)
+    seed: int = param(1, "seed of the simulated encoder noise", 0, 2**31 - 1)
+    hardware: str = param("sim", "device backend (only the simulator exists here)",
                        choices=("sim",))
-    autostart: bool = _p(True, "configure and activate on start-up (the launcher drives it)")
+    autostart: bool = param(True, "configure and activate on start-up (the launcher drives it)")
 
 
 @dataclass(frozen=True, slots=True)
 class CameraNodeConfig:
     """Parameters of the camera source node."""
 
-    source: str = _p("pattern", "frame source", choices=SOURCES)
-    path: str = _p("", "recording (.mcap), image folder or video file to replay")
-    image_topic: str = _p("/camera/image_raw", "topic of the frames inside an MCAP replay")
-    fps: float = _p(1000.0, "frame rate (pattern, folder, video; sim: capture rate), Hz",
+    source: str = param("pattern", "frame source", choices=SOURCES)
+    path: str = param("", "recording (.mcap), image folder or video file to replay")
+    image_topic: str = param(IMAGE.name, "topic of the frames inside an MCAP replay")
+    fps: float = param(1000.0, "frame rate (pattern, folder, video; sim: capture rate), Hz",
                     0.1, 100000.0)
-    rate_factor: float = _p(1.0, "publish speed relative to real time (0: as fast as possible)",
+    rate_factor: float = param(1.0, "publish speed relative to real time (0: as fast as possible)",
                             0.0, 100.0)
-    width: int = _p(640, "frame width (pattern, sim), px", 8, 8192)
-    height: int = _p(480, "frame height (pattern, sim), px", 8, 8192)
-    m_per_px: float = _p(6.0e-4, "image scale (sim, camera info), m/px", 1e-7, 1.0)
-    n_frames: int = _p(0, "frames to publish then stop (0: all / unlimited)", 0, 10**9)
-    loop: bool = _p(False, "restart a replay at its end")
-    publish_clock: bool = _p(False, "publish /clock from the frame stamps (replay)")
-    frame_id: str = _p("camera", "frame_id of the images")
-    queue_depth: int = _p(1000, "frames the image publisher keeps for slow readers (reliable "
+    width: int = param(640, "frame width (pattern, sim), px", 8, 8192)
+    height: int = param(480, "frame height (pattern, sim), px", 8, 8192)
+    m_per_px: float = param(6.0e-4, "image scale (sim, camera info), m/px", 1e-7, 1.0)
+    n_frames: int = param(0, "frames to publish then stop (0: all / unlimited)", 0, 10**9)
+    loop: bool = param(False, "restart a replay at its end")
+    publish_clock: bool = param(False, "publish /clock from the frame stamps (replay)")
+    frame_id: str = param("camera", "frame_id of the images")
+    queue_depth: int = param(1000, "frames the image publisher keeps for slow readers (reliable "
                           "keep-last: older unacknowledged frames are dropped, and counted by "
                           "the recorder)", 1, 100000)
-    scene: str = _p("precompression-24x18", "sim: design_engine scene name")
-    nx: int = _p(24, "sim: units along x", 2, 200)
-    ny: int = _p(16, "sim: units along y", 2, 200)
-    perturb: float = _p(0.0, "sim: relative spread of the specimen's true stiffnesses", 0.0, 0.5)
-    noise_std: float = _p(0.01, "sim: read noise, fraction of full scale", 0.0, 0.5)
-    lighting_gradient: float = _p(0.15, "sim: left-right lighting gradient", 0.0, 0.9)
-    exposure_samples: int = _p(3, "sim: sub-exposures for motion blur", 1, 16)
-    supersample: int = _p(2, "sim: sub-pixel samples per pixel side", 1, 8)
-    seed: int = _p(0, "seed of noise and speckle", 0, 2**31 - 1)
+    scene: str = param("precompression-24x18", "sim: design_engine scene name")
+    nx: int = param(24, "sim: units along x", 2, 200)
+    ny: int = param(16, "sim: units along y", 2, 200)
+    perturb: float = param(0.0, "sim: relative spread of the specimen's true stiffnesses", 0.0, 0.5)
+    noise_std: float = param(0.01, "sim: read noise, fraction of full scale", 0.0, 0.5)
+    lighting_gradient: float = param(0.15, "sim: left-right lighting gradient", 0.0, 0.9)
+    exposure_samples: int = param(3, "sim: sub-exposures for motion blur", 1, 16)
+    supersample: int = param(2, "sim: sub-pixel samples per pixel side", 1, 8)
+    seed: int = param(0, "seed of noise and speckle", 0, 2**31 - 1)
 
 
 @dataclass(frozen=True, slots=True)
 class RecorderNodeConfig:
     """Parameters of the MCAP recorder node."""
 
-    path: str = _p("recording.mcap", "output MCAP file")
-    topics: tuple[str, ...] = _p(lambda: ("/clock", "/rig/stop", "/rig/phase", "/rig/design",
-                                          "/rig/config", "/shaker/fire_request",
-                                          "/shaker/command", "/shaker/joint_states",
-                                          "/stage/joint_states", "/stage/target_strain",
-                                          "/stage/state", "/camera/image_raw",
-                                          "/camera/camera_info", "/camera/ground_truth",
-                                          "/diagnostics", "/dic/poses"),
+    path: str = param("recording.mcap", "output MCAP file")
+    topics: tuple[str, ...] = param(lambda: RECORDED,
                                  "topics to record (those that appear; types discovered)")
-    autostart: bool = _p(False, "start recording immediately instead of on ~/start")
-    chunk_size: int = _p(1 << 20, "MCAP chunk size, bytes (a killed writer loses <= 1 chunk)",
+    autostart: bool = param(False, "start recording immediately instead of on ~/start")
+    chunk_size: int = param(1 << 20, "MCAP chunk size, bytes (a killed writer loses <= 1 chunk)",
                          1024, 1 << 28)
-    compression: str = _p("none", "MCAP chunk compression", choices=("none", "lz4", "zstd"))
-    queue_depth: int = _p(2000, "subscription queue depth (keep-last)", 1, 100000)
-    write_queue: int = _p(4000, "messages waiting for the writer thread at most (more: dropped "
+    compression: str = param("none", "MCAP chunk compression", choices=("none", "lz4", "zstd"))
+    queue_depth: int = param(2000, "subscription queue depth (keep-last)", 1, 100000)
+    write_queue: int = param(4000, "messages waiting for the writer thread at most (more: dropped "
                           "and counted as queue_overflow)", 1, 1000000)
-    gap_factor: float = _p(1.5, "a stamp step above this many median periods is a gap",
+    gap_factor: float = param(1.5, "a stamp step above this many median periods is a gap",
                            1.01, 100.0)
-    discovery_period_s: float = _p(0.2, "how often new topics are looked for, s", 0.01, 10.0)
+    discovery_period_s: float = param(0.2, "how often new topics are looked for, s", 0.01, 10.0)
 
 
 @dataclass(frozen=True, slots=True)

@@ -8,14 +8,17 @@ plan into the parameters of every node; `Phase` names the steps (published on `/
 
 import json
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from enum import Enum
 from pathlib import Path
+
+from metarig.fields import param
+from ros_nodes import topics
 
 RECORDING_NAME = "recording.mcap"
 SUMMARY_NAME = "run.json"
 DESIGN_NAME = "design.json"
-IMAGE_TOPIC = "/camera/image_raw"
+IMAGE_TOPIC = topics.IMAGE.name
 
 
 class Phase(str, Enum):
@@ -30,35 +33,32 @@ class Phase(str, Enum):
     ABORTED = "aborted"
 
 
-def _p(default, desc, lo=None, hi=None):
-    return field(default=default, metadata={"description": desc, "min": lo, "max": hi})
-
-
 @dataclass(frozen=True, slots=True)
 class ExperimentPlan:
     """The numbers of one experiment (SI)."""
 
-    scene: str = _p("precompression-24x18", "design_engine scene of the sample")
-    nx: int = _p(24, "units along x", 2, 200)
-    ny: int = _p(16, "units along y", 2, 200)
-    strain: float = _p(0.02, "pre-compression strain", 0.0, 0.09)
-    settle_s: float = _p(0.02, "hold after pre-compression before recording, s", 0.0, 60.0)
-    pre_trigger_s: float = _p(0.005, "recording before the pulse starts, s", 0.0, 10.0)
-    record_s: float = _p(0.1, "camera capture length from the start of recording, s", 0.001, 60.0)
-    waveform: str = _p("pulse", "shaker waveform (pulse, burst)")
-    amplitude_m: float = _p(0.0075, "shaker amplitude A, m", 0.0, 0.05)
-    frequency_hz: float = _p(30.0, "shaker frequency f, Hz", 0.1, 1000.0)
-    cycles: float = _p(1.0, "burst length, periods", 0.0, 1000.0)
-    fps: float = _p(1000.0, "camera frame rate, Hz", 1.0, 100000.0)
-    width: int = _p(640, "frame width, px", 8, 8192)
-    height: int = _p(480, "frame height, px", 8, 8192)
-    m_per_px: float = _p(6.0e-4, "image scale, m/px", 1e-7, 1.0)
-    perturb: float = _p(0.0, "relative spread of the specimen's true parameters", 0.0, 0.5)
-    seed: int = _p(0, "seed of all simulated noise", 0, 2**31 - 1)
-    clock_step_s: float = _p(0.001, "simulated clock step, s", 1e-5, 0.1)
-    real_time_factor: float = _p(0.5, "simulated seconds per wall second (0: as fast as "
+    scene: str = param("precompression-24x18", "design_engine scene of the sample")
+    nx: int = param(24, "units along x", 2, 200)
+    ny: int = param(16, "units along y", 2, 200)
+    strain: float = param(0.02, "pre-compression strain", 0.0, 0.09)
+    settle_s: float = param(0.02, "hold after pre-compression before recording, s", 0.0, 60.0)
+    pre_trigger_s: float = param(0.005, "recording before the pulse starts, s", 0.0, 10.0)
+    record_s: float = param(0.1, "camera capture length from the start of recording, s",
+                            0.001, 60.0)
+    waveform: str = param("pulse", "shaker waveform", choices=("pulse", "burst"))
+    amplitude_m: float = param(0.0075, "shaker amplitude A, m", 0.0, 0.05)
+    frequency_hz: float = param(30.0, "shaker frequency f, Hz", 0.1, 1000.0)
+    cycles: float = param(1.0, "burst length, periods", 0.0, 1000.0)
+    fps: float = param(1000.0, "camera frame rate, Hz", 1.0, 100000.0)
+    width: int = param(640, "frame width, px", 8, 8192)
+    height: int = param(480, "frame height, px", 8, 8192)
+    m_per_px: float = param(6.0e-4, "image scale, m/px", 1e-7, 1.0)
+    perturb: float = param(0.0, "relative spread of the specimen's true parameters", 0.0, 0.5)
+    seed: int = param(0, "seed of all simulated noise", 0, 2**31 - 1)
+    clock_step_s: float = param(0.001, "simulated clock step, s", 1e-5, 0.1)
+    real_time_factor: float = param(0.5, "simulated seconds per wall second (0: as fast as "
                                       "possible)", 0.0, 100.0)
-    timeout_s: float = _p(600.0, "wall-time limit of any one wait, s", 1.0, 86400.0)
+    timeout_s: float = param(600.0, "wall-time limit of any one wait, s", 1.0, 86400.0)
 
     def __post_init__(self):
         for name in ("strain", "settle_s", "pre_trigger_s", "record_s", "amplitude_m",

@@ -1,7 +1,5 @@
 """Shared QoS profiles and the uniform `main()` of every node."""
 
-import signal
-import threading
 from collections.abc import Callable
 
 import rclpy
@@ -10,26 +8,31 @@ from rclpy.executors import (ExternalShutdownException, MultiThreadedExecutor,
                               SingleThreadedExecutor)
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-# commands and set-points: reliable, a short queue
-COMMAND = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
-                     history=HistoryPolicy.KEEP_LAST)
-# latched: the sample layout, rig configuration, current targets (late joiners get the last one)
-LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                     durability=DurabilityPolicy.TRANSIENT_LOCAL, history=HistoryPolicy.KEEP_LAST)
-# measured streams (joint states, frames, poses): reliable publishers with a deep queue; live
-# viewers may subscribe best-effort (`rclpy.qos.qos_profile_sensor_data`)
-STREAM = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
-                    history=HistoryPolicy.KEEP_LAST)
-CLOCK = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
-                   history=HistoryPolicy.KEEP_LAST)
+from ros_nodes import topics
+from ros_nodes.launcher import stop_on_signals
 
+
+def qos_profile(q: topics.Qos, depth: int | None = None) -> QoSProfile:
+    """The rclpy `QoSProfile` of a `topics.Qos` (keep-last; `depth` overrides its depth)."""
+    return QoSProfile(
+        depth=q.depth if depth is None else depth, history=HistoryPolicy.KEEP_LAST,
+        reliability=ReliabilityPolicy.RELIABLE if q.reliable else ReliabilityPolicy.BEST_EFFORT,
+        durability=(DurabilityPolicy.TRANSIENT_LOCAL if q.latched
+                    else DurabilityPolicy.VOLATILE))
+
+
+# the shared profiles (meaning: `ros_nodes.topics`)
+COMMAND = qos_profile(topics.COMMAND)
+LATCHED = qos_profile(topics.LATCHED)
+STREAM = qos_profile(topics.STREAM)
+CLOCK = qos_profile(topics.CLOCK_QOS)
 
 def run_node(make: Callable[..., object], args=None, threads: int = 2, **node_kwargs) -> int:
     """Init rclpy, build one node, spin it until Ctrl-C/shutdown (multi-threaded executor with
     `threads` threads; 1: the cheaper single-threaded executor)."""
-    # SIGTERM stops a node like Ctrl-C does (files are finished, devices brought to rest)
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGTERM, signal.default_int_handler)
+    # SIGTERM stops a node like Ctrl-C does (files are finished, devices brought to rest), and
+    # SIGINT does even where the node was started with it ignored (a shell's background job)
+    stop_on_signals()
     # This rclpy (Jazzy 7.1) has no context-manager form of init(); try_shutdown is the `with`.
     try:
         rclpy.init(args=args)

@@ -5,6 +5,7 @@
 # simulated time took 6-7 s of wall time instead of 0.2 s); 0.5 ms lets it keep its pace.
 GIL_SWITCH_INTERVAL_S = 0.0005
 
+import logging
 import sys
 import threading
 
@@ -12,6 +13,10 @@ import rclpy
 from rclpy.context import Context
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.parameter import Parameter
+
+from ros_nodes.registry import NODES
+
+log = logging.getLogger("metarig.rig")
 
 
 def overrides(params: dict) -> list[Parameter]:
@@ -22,23 +27,17 @@ class InProcessRig:
     """Nodes of `node_params` (name -> parameters) spinning in a background thread."""
 
     def __init__(self, node_params: dict[str, dict], args=None):
-        from ros_nodes.nodes.camera_node import CameraNode
-        from ros_nodes.nodes.recorder_node import RecorderNode
-        from ros_nodes.nodes.shaker_node import ShakerNode
-        from ros_nodes.nodes.stage_node import StageNode
-
-        classes = {"shaker": ShakerNode, "stage": StageNode, "camera": CameraNode,
-                   "recorder": RecorderNode}
         sys.setswitchinterval(min(sys.getswitchinterval(), GIL_SWITCH_INTERVAL_S))
         self.context = Context()
         rclpy.init(args=args, context=self.context)
         self.executor = MultiThreadedExecutor(num_threads=4, context=self.context)
         self.nodes = {}
         for name, params in node_params.items():
-            node = classes[name](context=self.context, parameter_overrides=overrides(params))
+            node = NODES[name].node()(context=self.context, parameter_overrides=overrides(params))
             self.nodes[name] = node
             self.executor.add_node(node)
         self._thread = threading.Thread(target=self._spin, daemon=True)
+        self._closing = False  # set by shutdown(): the executor may then fail under its nodes
 
     def add(self, node) -> None:
         self.nodes[node.get_name()] = node
@@ -47,13 +46,15 @@ class InProcessRig:
     def _spin(self) -> None:
         try:
             self.executor.spin()
-        except Exception:  # noqa: BLE001 - the context is shut down under the executor
-            pass
+        except Exception:  # expected when the context is shut down under it
+            if not self._closing:  # a callback failed: nothing answers any more, say why
+                log.exception("executor stopped")
 
     def start(self) -> None:
         self._thread.start()
 
     def shutdown(self) -> None:
+        self._closing = True
         for node in self.nodes.values():
             close = getattr(node, "close", None)
             if close is not None:

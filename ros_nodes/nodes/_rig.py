@@ -6,7 +6,6 @@ recorder finishes its file before the nodes go down, and `run.json` says how the
 
 import json
 import logging
-import signal
 import threading
 import time
 from pathlib import Path
@@ -15,43 +14,48 @@ import rclpy
 from rclpy.context import Context
 from rclpy.executors import MultiThreadedExecutor
 
-from ros_nodes.launcher import ProcessGroup, command_line
-from ros_nodes.logic.sequence import DESIGN_NAME, Phase, summary, write_summary
+from ros_nodes.launcher import ProcessGroup, command_line, deferred_stop, stop_on_signals
+from ros_nodes.logic.experiment import Experiment, RigError
+from ros_nodes.logic.sequence import DESIGN_NAME, summary, write_summary
 from ros_nodes.nodes._launch import InProcessRig
-from ros_nodes.nodes.sequencer_node import RigError, SequencerNode
+from ros_nodes.nodes.sequencer_node import SequencerNode
 
 log = logging.getLogger("metarig.rig")
 
 
 def run_rig(plan, node_params: dict[str, dict], out: Path, processes: bool = False) -> int:
+    """Run `plan` on the nodes of `node_params` (name -> parameters); writes `out`/run.json.
+
+    Returns the exit code: 0 completed, 130 interrupted (Ctrl-C/SIGTERM), 1 failed.
+    """
     wall0 = time.monotonic()
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGTERM, signal.default_int_handler)
+    stop_on_signals()
     config = {"plan": plan.as_dict(), "node_parameters": node_params}
-    group, rig, ctx, ex, spin = None, None, None, None, None
+    group, rig, ctx, ex, seq, exp = None, None, None, None, None, None
     status, report, timings, code = "failed", None, {}, 1
-    seq = None
     try:
         if processes:
             group = ProcessGroup(out / "logs")
             for name, params in node_params.items():
                 group.start(name, command_line(name, params))
-            ctx = Context()
-            rclpy.init(context=ctx)
-            seq = SequencerNode(plan, config, context=ctx,
-                                parameter_overrides=[rclpy.parameter.Parameter("use_sim_time",
-                                                                                value=False)])
-            ex = MultiThreadedExecutor(num_threads=2, context=ctx)
-            ex.add_node(seq)
-            spin = threading.Thread(target=ex.spin, daemon=True)
-            spin.start()
+            with deferred_stop():  # a Ctrl-C now is acted on once everything exists
+                ctx = Context()
+                rclpy.init(context=ctx)
+                seq = SequencerNode(plan, config, context=ctx, parameter_overrides=[
+                    rclpy.parameter.Parameter("use_sim_time", value=False)])
+                exp = Experiment(plan, seq)
+                ex = MultiThreadedExecutor(num_threads=2, context=ctx)
+                ex.add_node(seq)
+                threading.Thread(target=ex.spin, daemon=True).start()
             group.wait_started(2.0)
         else:
-            rig = InProcessRig(node_params)
-            seq = SequencerNode(plan, config, context=rig.context)
-            rig.add(seq)
-            rig.start()
-        timings = seq.run()
+            with deferred_stop():
+                rig = InProcessRig(node_params)
+                seq = SequencerNode(plan, config, context=rig.context)
+                exp = Experiment(plan, seq)
+                rig.add(seq)
+                rig.start()
+        timings = exp.run()
         status, code = "completed", 0
     except KeyboardInterrupt:
         log.warning("interrupted: stopping the rig and finishing the recording")
@@ -61,20 +65,16 @@ def run_rig(plan, node_params: dict[str, dict], out: Path, processes: bool = Fal
         status = f"failed: {e}"
     finally:
         try:
-            if seq is not None:
-                seq.phase(Phase.STOP)
-                seq.pause_clock()
-                seq.stop_devices()
-                report = seq.stop_recorder()
-                seq.phase(Phase.DONE if code == 0 else Phase.ABORTED)
-                design = seq.latest.get("design")
+            if exp is not None:
+                report = exp.finish(completed=code == 0)
+                design = seq.design()
                 if design is not None:
                     (out / DESIGN_NAME).write_text(json.dumps(design))
         except KeyboardInterrupt:
             log.warning("second interrupt: skipping the orderly stop")
         finally:
             if group is not None:
-                group.stop(["shaker", "stage", "camera", "recorder"])
+                group.stop()
             if seq is not None:
                 seq.close()
             if rig is not None:
@@ -82,9 +82,10 @@ def run_rig(plan, node_params: dict[str, dict], out: Path, processes: bool = Fal
             if ex is not None:
                 ex.shutdown(timeout_sec=2.0)
                 seq.destroy_node()
+            if ctx is not None:
                 rclpy.try_shutdown(context=ctx)
     timings["total_wall"] = time.monotonic() - wall0
-    data = summary(plan, node_params, report, timings, seq.events if seq else [], status)
+    data = summary(plan, node_params, report, timings, exp.events if exp else [], status)
     path = write_summary(out, data)
     if report is not None:
         lost = report.get("dropped", 0)

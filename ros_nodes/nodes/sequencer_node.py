@@ -1,16 +1,16 @@
-"""Experiment sequencer node: owns simulated time and runs the procedure of `logic.sequence`.
+"""Experiment sequencer node: owns simulated time; the rclpy port of `logic.experiment`.
 
 Node name `sequencer`. Publishes `/clock` (simulated time, `clock_step_s` steps at
 `real_time_factor`), `/rig/phase` and `/rig/config` (latched strings), `/rig/stop` (on abort).
-Calls the stage, shaker, camera and recorder services; waits on their status topics with
-deadlines. `Sequencer.run()` is called by `metarig rig` with the executor spinning elsewhere.
+Calls the stage, shaker, camera and recorder services; keeps their last status. The procedure
+itself is `ros_nodes.logic.experiment.Experiment`, which `metarig rig` runs against this node
+(`RigPort`) with the executor spinning elsewhere.
 """
 
 import json
 import logging
 import threading
 import time
-from pathlib import Path
 
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
@@ -19,26 +19,37 @@ from std_srvs.srv import Trigger
 
 from metarig_msgs.srv import FirePulse, SetStrain
 from ros_nodes import convert
+from ros_nodes import topics as T
+from ros_nodes.logic.experiment import RigError
 from ros_nodes.logic.sequence import ExperimentPlan, Phase
-from ros_nodes.nodes._common import CLOCK, COMMAND, LATCHED
+from ros_nodes.nodes._common import qos_profile
 
 log = logging.getLogger("metarig.rig")
+NAME = "sequencer"
+__all__ = ["NAME", "RigError", "SequencerNode"]
 
-
-class RigError(RuntimeError):
-    """The experiment could not proceed (a refusal, a fault or a timeout); message says why."""
+# client name -> (service, type); the procedure waits for all of them before it starts
+_SERVICES = {"set_strain": (T.STAGE_SET_STRAIN, SetStrain), "stage_stop": (T.STAGE_STOP, Trigger),
+             "fire": (T.SHAKER_FIRE, FirePulse), "shaker_stop": (T.SHAKER_STOP, Trigger),
+             "cam_start": (T.CAMERA_START, Trigger), "cam_stop": (T.CAMERA_STOP, Trigger),
+             "rec_start": (T.RECORDER_START, Trigger), "rec_stop": (T.RECORDER_STOP, Trigger)}
+# status topic -> key of `latest`
+_WATCHED = {T.STAGE_STATE: "stage", T.CAMERA_STATUS: "camera", T.RECORDER_STATUS: "recorder",
+            T.RIG_DESIGN: "design"}
 
 
 class SequencerNode(Node):
-    """Clock owner and procedure runner (see module docstring)."""
+    """Clock owner and `RigPort` over ROS (see module docstring)."""
 
     def __init__(self, plan: ExperimentPlan, config: dict, **kwargs):
-        super().__init__("sequencer", **kwargs)
+        super().__init__(NAME, **kwargs)
         self.plan = plan
-        self._clock_pub = self.create_publisher(Clock, "/clock", CLOCK)
-        self._phase_pub = self.create_publisher(String, "/rig/phase", LATCHED)
-        self._config_pub = self.create_publisher(String, "/rig/config", LATCHED)
-        self._stop_pub = self.create_publisher(Empty, "/rig/stop", COMMAND)
+        self._clock_pub = self.create_publisher(Clock, T.CLOCK.name, qos_profile(T.CLOCK.qos))
+        self._phase_pub = self.create_publisher(String, T.RIG_PHASE.name,
+                                                qos_profile(T.RIG_PHASE.qos))
+        self._config_pub = self.create_publisher(String, T.RIG_CONFIG.name,
+                                                 qos_profile(T.RIG_CONFIG.qos))
+        self._stop_pub = self.create_publisher(Empty, T.RIG_STOP.name, qos_profile(T.RIG_STOP.qos))
         self._config_pub.publish(String(data=json.dumps(config, default=str)))
         self.sim_ns = 0
         self._limit_ns = 2**62
@@ -46,21 +57,10 @@ class SequencerNode(Node):
         self._quit = threading.Event()
         self._clock_thread = threading.Thread(target=self._clock_loop, daemon=True)
         self.latest: dict[str, object] = {}
-        self.events: list[tuple[str, float]] = []
-        for topic, key in (("/stage/state", "stage"), ("/camera/status", "camera"),
-                           ("/recorder/status", "recorder"), ("/rig/design", "design")):
-            qos = LATCHED if key in ("stage", "camera", "design") else COMMAND
-            self.create_subscription(String, topic, self._keep(key), qos)
-        self.clients_ = {
-            "set_strain": self.create_client(SetStrain, "/stage/set_strain"),
-            "stage_stop": self.create_client(Trigger, "/stage/stop"),
-            "fire": self.create_client(FirePulse, "/shaker/fire"),
-            "shaker_stop": self.create_client(Trigger, "/shaker/stop"),
-            "cam_start": self.create_client(Trigger, "/camera/start"),
-            "cam_stop": self.create_client(Trigger, "/camera/stop"),
-            "rec_start": self.create_client(Trigger, "/recorder/start"),
-            "rec_stop": self.create_client(Trigger, "/recorder/stop"),
-        }
+        for topic, key in _WATCHED.items():
+            self.create_subscription(String, topic.name, self._keep(key), qos_profile(topic.qos))
+        self.clients_ = {name: self.create_client(srv_type, srv.name)
+                         for name, (srv, srv_type) in _SERVICES.items()}
         self._publish_clock()
         self._clock_thread.start()
 
@@ -102,104 +102,90 @@ class SequencerNode(Node):
                 self.latest[key] = msg.data
         return cb
 
-    def _until(self, predicate, what: str, timeout_s: float | None = None) -> None:
-        deadline = time.monotonic() + (timeout_s or self.plan.timeout_s)
+    def _until(self, predicate, what: str, timeout_s: float) -> None:
+        deadline = time.monotonic() + timeout_s
         while not predicate():
             if time.monotonic() > deadline:
                 raise RigError(f"timed out waiting for {what}")
             time.sleep(0.005)
 
     def call(self, name: str, request, timeout_s: float = 30.0):
+        """Call service `name` and wait for the answer; `RigError` after `timeout_s`."""
         client = self.clients_[name]
         self._until(client.service_is_ready, f"service {client.srv_name}", timeout_s)
         fut = client.call_async(request)
         self._until(fut.done, f"the answer of {client.srv_name}", timeout_s)
         return fut.result()
 
-    def phase(self, p: Phase) -> None:
-        self.events.append((p.value, self.sim_s))
-        self._phase_pub.publish(String(data=p.value))
-        log.info("phase %-11s t_sim = %.4f s", p.value, self.sim_s)
+    # RigPort ----------------------------------------------------------------------------------
+    def now(self) -> float:
+        return time.monotonic()
 
-    def run_clock_until(self, t_s: float) -> None:
-        """Run simulated time up to exactly t_s (rounded to the clock step), then hold it."""
+    def sleep(self, dt_s: float) -> None:
+        time.sleep(dt_s)
+
+    def sim_time(self) -> float:
+        return self.sim_s
+
+    def announce(self, p: Phase) -> None:
+        self._phase_pub.publish(String(data=p.value))
+
+    def start_clock(self, until_s: float | None) -> None:
         step = int(round(self.plan.clock_step_s * 1e9))
-        self._limit_ns = int(round(t_s * 1e9 / step)) * step
+        self._limit_ns = 2**62 if until_s is None else int(round(until_s * 1e9 / step)) * step
         self._run_clock.set()
-        self._until(lambda: self.sim_ns >= self._limit_ns, f"simulated time {t_s:.4f} s")
-        self._run_clock.clear()
+
+    def clock_reached(self) -> bool:
+        return self.sim_ns >= self._limit_ns
 
     def pause_clock(self) -> None:
         self._run_clock.clear()
 
-    # the procedure ----------------------------------------------------------------------------
-    def run(self) -> dict:
-        """Run the experiment; returns timings. Raises RigError (devices are stopped by caller)."""
-        p = self.plan
-        w0 = time.monotonic()
-        self.phase(Phase.STARTING)
-        self._until(lambda: "design" in self.latest or
-                    (self.latest.get("camera") or {}).get("state") == "error",
-                    "the specimen to be built (/rig/design)")
-        if (self.latest.get("camera") or {}).get("state") == "error":
-            raise RigError(f"camera: {self.latest['camera'].get('message')}")
-        for name in self.clients_:
-            self._until(self.clients_[name].service_is_ready, f"service {name}", 60.0)
-        timings = {"startup": time.monotonic() - w0}
+    def service_names(self) -> tuple[str, ...]:
+        return tuple(self.clients_)
 
-        w = time.monotonic()
-        self.phase(Phase.PRECOMPRESS)
-        r = self.call("set_strain", SetStrain.Request(strain=p.strain))
-        if not r.accepted:
-            raise RigError(f"stage: {r.message}")
-        self._limit_ns = 2**62
-        self._run_clock.set()
-        self._until(lambda: str(self.latest.get("stage", "")).startswith(("holding", "fault"))
-                    or (p.strain == 0 and self.sim_s > 0.005), "the stages to reach the strain")
-        if str(self.latest.get("stage")).startswith("fault"):
-            raise RigError(f"stage {self.latest['stage']}")
-        self.phase(Phase.SETTLE)
-        self.run_clock_until(self.sim_s + p.settle_s)
-        timings["precompress_settle"] = time.monotonic() - w
+    def service_ready(self, name: str) -> bool:
+        return self.clients_[name].service_is_ready()
 
-        w = time.monotonic()
-        self.pause_clock()
-        self.phase(Phase.RECORD)
-        self.call("rec_start", Trigger.Request())
-        # recording, and subscribed to every rig topic: a sample sent before the match is lost
-        self._until(lambda: (self.latest.get("recorder") or {}).get("recording") and
-                    (self.latest.get("recorder") or {}).get("matched", True),
-                    "the recorder to start and match every topic", 30.0)
-        t_rec = self.sim_s
-        if not self.call("cam_start", Trigger.Request()).success:
-            raise RigError("camera refused to start")
-        r = self.call("fire", FirePulse.Request(waveform=p.waveform, amplitude_m=p.amplitude_m,
-                                                frequency_hz=p.frequency_hz, cycles=p.cycles,
-                                                delay_s=p.pre_trigger_s))
-        if not r.accepted:
-            raise RigError(f"shaker: {r.message}")
-        self.phase(Phase.PULSE)
-        self.run_clock_until(t_rec + p.record_s)
-        self.pause_clock()
-        timings["record_live"] = time.monotonic() - w
+    def design(self) -> dict | None:
+        return self.latest.get("design")
 
-        w = time.monotonic()
-        self.phase(Phase.DEVELOP)
+    def camera(self) -> dict:
+        return self.latest.get("camera") or {}
+
+    def stage_state(self) -> str:
+        return str(self.latest.get("stage", ""))
+
+    def recorder(self) -> dict:
+        return self.latest.get("recorder") or {}
+
+    def set_strain(self, strain: float) -> tuple[bool, str]:
+        r = self.call("set_strain", SetStrain.Request(strain=strain))
+        return r.accepted, r.message
+
+    def fire(self, waveform: str, amplitude_m: float, frequency_hz: float, cycles: float,
+             delay_s: float) -> tuple[bool, str]:
+        r = self.call("fire", FirePulse.Request(waveform=waveform, amplitude_m=amplitude_m,
+                                                frequency_hz=frequency_hz, cycles=cycles,
+                                                delay_s=delay_s))
+        return r.accepted, r.message
+
+    def camera_start(self) -> bool:
+        return self.call("cam_start", Trigger.Request()).success
+
+    def camera_stop(self) -> None:
         self.call("cam_stop", Trigger.Request())
-        self._until(lambda: (self.latest.get("camera") or {}).get("state") in ("done", "error"),
-                    "the camera footage")
-        cam = self.latest["camera"]
-        if cam["state"] == "error":
-            raise RigError(f"camera: {cam['message']}")
-        n = int(cam["frames"])
+
+    def recorder_start(self) -> None:
+        self.call("rec_start", Trigger.Request())
+
+    def recorder_stop(self, timeout_s: float = 30.0) -> dict | None:
         try:
-            self._until(lambda: (self.latest.get("recorder") or {}).get("counts", {})
-                        .get("/camera/image_raw", 0) >= n, f"the recorder to write {n} frames", 30.0)
+            r = self.call("rec_stop", Trigger.Request(), timeout_s=timeout_s)
         except RigError as e:
-            log.warning("%s; finishing with what arrived (the report counts the loss)", e)
-        timings["develop_publish"] = time.monotonic() - w
-        timings["frames"] = n
-        return timings
+            log.warning("%s", e)
+            return None
+        return json.loads(r.message) if r.success else None
 
     def stop_devices(self) -> None:
         """Bring the rig to rest: broadcast /rig/stop, then the stop services (best effort)."""
@@ -209,24 +195,3 @@ class SequencerNode(Node):
                 self.call(name, Trigger.Request(), timeout_s=5.0)
             except RigError as e:
                 log.warning("%s", e)
-
-    def stop_recorder(self, timeout_s: float = 30.0) -> dict | None:
-        try:
-            r = self.call("rec_stop", Trigger.Request(), timeout_s=timeout_s)
-        except RigError as e:
-            log.warning("%s", e)
-            return None
-        return json.loads(r.message) if r.success else None
-
-
-def main(args=None) -> int:
-    """The sequencer alone (`metarig-sequencer`): same as `metarig rig --processes`."""
-    import sys
-
-    from ros_nodes.cli_rig import rig_main
-
-    return rig_main(["--processes", *(sys.argv[1:] if args is None else args)])
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

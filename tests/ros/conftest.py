@@ -8,6 +8,7 @@ by the tests inherit both through `ros_env`.
 import os
 
 import pytest
+from rostools import node_command, popen
 
 DOMAIN_ID = str(1 + (os.getpid() * 7 + int(os.environ.get("PYTEST_XDIST_WORKER", "gw0")[2:] or 0))
                 % 200)
@@ -36,3 +37,38 @@ def ros_context():
     yield ctx
     if ctx.ok():
         rclpy.shutdown(context=ctx)
+
+
+@pytest.fixture
+def ros_node(ros_context):
+    """A client node and its single-threaded executor on the test's context: (node, executor)."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+
+    node = rclpy.create_node("test_client", context=ros_context)
+    ex = SingleThreadedExecutor(context=ros_context)
+    ex.add_node(node)
+    yield node, ex
+    ex.shutdown()
+    node.destroy_node()
+
+
+@pytest.fixture
+def start_node(ros_env):
+    """`start_node(cmd, *ros_args, env=None)`: start a node entry point (console script name
+    or argv) in the isolated domain, output in one text pipe; any process still running at
+    the end of the test is killed."""
+    procs = []
+
+    def start(cmd, *ros_args, env=None):
+        proc = popen(node_command(cmd, *ros_args), ros_env if env is None else env)
+        procs.append(proc)
+        return proc
+
+    yield start
+    for proc in procs:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+        if proc.stdout is not None and not proc.stdout.closed:
+            proc.stdout.close()

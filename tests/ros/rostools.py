@@ -1,7 +1,25 @@
-"""Waiting helpers for real-node tests: spin until a condition holds or a deadline passes."""
+"""Helpers for real-node tests: start node processes, spin until a condition holds or a
+deadline passes, stop processes."""
 
 import subprocess
+import sys
 import time
+from pathlib import Path
+
+BIN = Path(sys.prefix) / "bin"
+
+
+def node_command(cmd: str | list[str], *ros_args: str) -> list[str]:
+    """argv of a console script (`metarig-shaker`: from this venv) or of an explicit argv, with
+    `--ros-args ros_args...` appended when there are any."""
+    argv = [str(BIN / cmd)] if isinstance(cmd, str) else [str(a) for a in cmd]
+    return [*argv, "--ros-args", *ros_args] if ros_args else argv
+
+
+def popen(argv: list[str], env: dict[str, str]) -> subprocess.Popen:
+    """Start a process with stdout and stderr combined into one text pipe."""
+    return subprocess.Popen(argv, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
 
 
 def spin_until(executor, predicate, timeout_s: float, what: str) -> None:

@@ -1,8 +1,6 @@
 """Camera source node for real: the sample recordings and an image folder replay through it."""
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import cv2
@@ -11,24 +9,10 @@ import pytest
 
 from rostools import call, spin_until, stop_process, wait_matched
 
-BIN = sys.prefix + "/bin/"
 RECORDINGS = sorted((Path(__file__).resolve().parents[2] / "recordings").glob("*/recording.mcap"))
 
 
-@pytest.fixture
-def viewer(ros_context):
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-
-    node = rclpy.create_node("test_viewer", context=ros_context)
-    ex = SingleThreadedExecutor(context=ros_context)
-    ex.add_node(node)
-    yield node, ex
-    ex.shutdown()
-    node.destroy_node()
-
-
-def _replay(viewer, ros_env, *params):
+def _replay(viewer, start_node, *params):
     from rosgraph_msgs.msg import Clock
     from sensor_msgs.msg import Image
     from std_msgs.msg import String
@@ -42,12 +26,10 @@ def _replay(viewer, ros_env, *params):
     clock_sub = node.create_subscription(Clock, "/clock", clock.append, 100)
     node.create_subscription(String, "/camera/status", lambda m: status.append(json.loads(m.data)),
                              LATCHED)
-    args = [BIN + "metarig-camera", "--ros-args", "-p", "rate_factor:=0.0",
-            "-p", "publish_clock:=true"]
+    args = ["-p", "rate_factor:=0.0", "-p", "publish_clock:=true"]
     for p in params:
         args += ["-p", p]
-    proc = subprocess.Popen(args, env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            text=True)
+    proc = start_node("metarig-camera", *args)
     try:
         wait_matched(sub, ex)
         wait_matched(clock_sub, ex)
@@ -61,12 +43,12 @@ def _replay(viewer, ros_env, *params):
 
 
 @pytest.mark.parametrize("path", RECORDINGS, ids=[p.parent.name for p in RECORDINGS])
-def test_sample_recordings_replay(viewer, ros_env, path):
-    from ros_nodes.logic.replay import mcap_frames
+def test_sample_recordings_replay(ros_node, start_node, path):
+    from tracking.frame_sources import mcap_frames
 
     frames = list(mcap_frames(path, "/camera/image_raw"))
     assert len(frames) >= 40
-    got, clock = _replay(viewer, ros_env, "source:=mcap", f"path:={path}")
+    got, clock = _replay(ros_node, start_node, "source:=mcap", f"path:={path}")
     assert len(got) == len(frames)
     for (t, f), m in zip(frames, got):
         assert m.header.stamp.sec * 10**9 + m.header.stamp.nanosec == t
@@ -78,27 +60,25 @@ def test_sample_recordings_replay(viewer, ros_env, path):
     assert len(ct) > len(frames) // 2
 
 
-def test_image_folder_replays_in_name_order(viewer, ros_env, tmp_path):
+def test_image_folder_replays_in_name_order(ros_node, start_node, tmp_path):
     for k in range(12):
         cv2.imwrite(str(tmp_path / f"f{k:03d}.png"), np.full((30, 40), 10 * k, np.uint8))
-    got, _ = _replay(viewer, ros_env, "source:=folder", f"path:={tmp_path}", "fps:=500.0")
+    got, _ = _replay(ros_node, start_node, "source:=folder", f"path:={tmp_path}", "fps:=500.0")
     assert [int(m.data[0]) for m in got] == [10 * k for k in range(12)]
     assert got[1].header.stamp.nanosec - got[0].header.stamp.nanosec == 2_000_000
 
 
-def test_bad_source_is_reported_not_crashed(viewer, ros_env, tmp_path):
+def test_bad_source_is_reported_not_crashed(ros_node, start_node, tmp_path):
     from std_msgs.msg import String
     from std_srvs.srv import Trigger
 
     from ros_nodes.nodes._common import LATCHED
 
-    node, ex = viewer
+    node, ex = ros_node
     status = []
     node.create_subscription(String, "/camera/status", lambda m: status.append(json.loads(m.data)),
                              LATCHED)
-    proc = subprocess.Popen([BIN + "metarig-camera", "--ros-args", "-p", "source:=folder",
-                             "-p", f"path:={tmp_path}"], env=ros_env, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
+    proc = start_node("metarig-camera", "-p", "source:=folder", "-p", f"path:={tmp_path}")
     try:
         assert call(node.create_client(Trigger, "/camera/start"), Trigger.Request(), ex).success
         spin_until(ex, lambda: status and status[-1]["state"] == "error", 30, "the error status")

@@ -55,10 +55,7 @@ def test_colcon_installs_the_package_into_the_ament_index(workspace):
         assert (site / pkg / "__init__.py").is_file(), pkg
 
 
-def test_installed_shaker_node_runs_like_ros2_run(workspace, ros_context, ros_env):
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-
+def test_installed_shaker_node_runs_like_ros2_run(workspace, ros_node, start_node, ros_env):
     from metarig_msgs.srv import FirePulse
 
     prefix = workspace / "install" / "metarig_ros"
@@ -71,11 +68,8 @@ def test_installed_shaker_node_runs_like_ros2_run(workspace, ros_context, ros_en
     probe = subprocess.run([str(exe.with_name("metarig")), "--help"], env=env, capture_output=True,
                            text=True, timeout=120)
     assert probe.returncode == 0 and "simulate" in probe.stdout, probe.stderr
-    proc = subprocess.Popen([str(exe), "--ros-args", "-p", "device.max_amplitude_m:=0.008"],
-                            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    node = rclpy.create_node("colcon_probe", context=ros_context)
-    ex = SingleThreadedExecutor(context=ros_context)
-    ex.add_node(node)
+    proc = start_node([exe], "-p", "device.max_amplitude_m:=0.008", env=env)
+    node, ex = ros_node
     try:
         fire = node.create_client(FirePulse, "/shaker/fire")
         r = call(fire, FirePulse.Request(waveform="pulse", amplitude_m=0.010, frequency_hz=30.0), ex)
@@ -84,8 +78,6 @@ def test_installed_shaker_node_runs_like_ros2_run(workspace, ros_context, ros_en
     finally:
         if proc.poll() is None:
             proc.kill()
-        ex.shutdown()
-        node.destroy_node()
     assert proc.returncode == 0, out
     # the node ran the workspace's copy of the code, not the repository's
     check = subprocess.run([sys.executable, "-c", "import ros_nodes; print(ros_nodes.__file__)"],

@@ -1,38 +1,12 @@
 """Shaker and stage lifecycle nodes, started for real as console scripts on an isolated domain."""
 
-import subprocess
-import sys
-
 import numpy as np
 import pytest
 
 from rostools import call, spin_until, stop_process, wait_matched
 
-BIN = sys.prefix + "/bin/"
-
-
-@pytest.fixture
-def client(ros_context):
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-
-    node = rclpy.create_node("test_client", context=ros_context)
-    ex = SingleThreadedExecutor(context=ros_context)
-    ex.add_node(node)
-    yield node, ex
-    ex.shutdown()
-    node.destroy_node()
-
-
-def _start(script, ros_env, *ros_args):
-    args = [BIN + script]
-    if ros_args:
-        args += ["--ros-args", *ros_args]
-    return subprocess.Popen(args, env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            text=True)
-
-
-def test_shaker_refuses_out_of_limits_then_plays_a_pulse_and_stops(client, ros_env, tmp_path):
+def test_shaker_refuses_out_of_limits_then_plays_a_pulse_and_stops(ros_node, start_node,
+                                                                    tmp_path):
     from sensor_msgs.msg import JointState
     from std_srvs.srv import Trigger
     from trajectory_msgs.msg import JointTrajectory
@@ -42,8 +16,8 @@ def test_shaker_refuses_out_of_limits_then_plays_a_pulse_and_stops(client, ros_e
 
     params = tmp_path / "shaker.yaml"
     params.write_text("shaker:\n  ros__parameters:\n    device:\n      max_amplitude_m: 0.008\n")
-    proc = _start("metarig-shaker", ros_env, "--params-file", str(params))
-    node, ex = client
+    proc = start_node("metarig-shaker", "--params-file", str(params))
+    node, ex = ros_node
     try:
         states, cmds = [], []
         node.create_subscription(JointState, "/shaker/joint_states", states.append, STREAM)
@@ -81,7 +55,7 @@ def test_shaker_refuses_out_of_limits_then_plays_a_pulse_and_stops(client, ros_e
         print(stop_process(proc))
 
 
-def test_stage_moves_holds_refuses_and_validates_parameters(client, ros_env):
+def test_stage_moves_holds_refuses_and_validates_parameters(ros_node, start_node):
     from rcl_interfaces.msg import Parameter as ParamMsg
     from rcl_interfaces.msg import ParameterType, ParameterValue
     from rcl_interfaces.srv import SetParameters
@@ -91,8 +65,8 @@ def test_stage_moves_holds_refuses_and_validates_parameters(client, ros_env):
     from metarig_msgs.srv import SetStrain
     from ros_nodes.nodes._common import LATCHED, STREAM
 
-    proc = _start("metarig-stage", ros_env)
-    node, ex = client
+    proc = start_node("metarig-stage")
+    node, ex = ros_node
     try:
         states, modes = [], []
         node.create_subscription(JointState, "/stage/joint_states", states.append, STREAM)

@@ -7,28 +7,14 @@ import time
 from pathlib import Path
 
 import numpy as np
-import pytest
 from rostools import call, spin_until, stop_process, wait_matched
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from dic_synth import make_scene
 
-from ros_nodes.logic.dic_units import polygon_centroids
+from metarig.polygon import area_centroids as polygon_centroids
 
 NODE = [sys.executable, "-m", "ros_nodes.nodes.dic_tracker_node"]
-
-
-@pytest.fixture
-def client(ros_context):
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-
-    node = rclpy.create_node("test_dic_client", context=ros_context)
-    ex = SingleThreadedExecutor(context=ros_context)
-    ex.add_node(node)
-    yield node, ex
-    ex.shutdown()
-    node.destroy_node()
 
 
 def _scene_files(tmp_path):
@@ -38,7 +24,7 @@ def _scene_files(tmp_path):
     return scene
 
 
-def test_node_tracks_a_burst_at_the_preview_rate(client, ros_env, tmp_path):
+def test_node_tracks_a_burst_at_the_preview_rate(ros_node, start_node, tmp_path):
     from metarig_msgs.msg import UnitPose2DArray
     from sensor_msgs.msg import Image
     from std_srvs.srv import Trigger
@@ -46,7 +32,7 @@ def test_node_tracks_a_burst_at_the_preview_rate(client, ros_env, tmp_path):
     from ros_nodes import convert
     from ros_nodes.nodes._common import STREAM
 
-    node, ex = client
+    node, ex = ros_node
     scene = _scene_files(tmp_path)
     rng = np.random.default_rng(0)
     n_t = 60
@@ -57,10 +43,9 @@ def test_node_tracks_a_burst_at_the_preview_rate(client, ros_env, tmp_path):
     got: list = []
     pub = node.create_publisher(Image, "/camera/image_raw", STREAM)
     sub = node.create_subscription(UnitPose2DArray, "/dic/poses", got.append, STREAM)
-    proc = subprocess.Popen(
-        [*NODE, "--ros-args", "-p", f"units_path:={tmp_path / 'units.json'}",
-         "-p", f"calibration_path:={tmp_path / 'cal.json'}", "-p", "preview_rate_hz:=20.0"],
-        env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    proc = start_node(NODE, "-p", f"units_path:={tmp_path / 'units.json'}",
+                      "-p", f"calibration_path:={tmp_path / 'cal.json'}",
+                      "-p", "preview_rate_hz:=20.0")
     try:
         wait_matched(pub, ex, timeout_s=60)
         wait_matched(sub, ex, timeout_s=60)
@@ -96,7 +81,8 @@ def test_node_tracks_a_burst_at_the_preview_rate(client, ros_env, tmp_path):
     np.testing.assert_allclose(np.asarray(after.x) - c0[:, 0], 0.0, atol=1e-9)
 
 
-def test_node_waits_for_the_design_topic_and_refuses_bad_files(client, ros_env, tmp_path):
+def test_node_waits_for_the_design_topic_and_refuses_bad_files(ros_node, start_node, ros_env,
+                                                               tmp_path):
     from metarig_msgs.msg import UnitPose2DArray
     from sensor_msgs.msg import Image
     from std_msgs.msg import String
@@ -104,7 +90,7 @@ def test_node_waits_for_the_design_topic_and_refuses_bad_files(client, ros_env, 
     from ros_nodes import convert
     from ros_nodes.nodes._common import LATCHED, STREAM
 
-    node, ex = client
+    node, ex = ros_node
     scene = _scene_files(tmp_path)
     (tmp_path / "bad.json").write_text("{}")
     bad = subprocess.run([*NODE, "--ros-args", "-p", f"units_path:={tmp_path / 'bad.json'}"],
@@ -117,11 +103,9 @@ def test_node_waits_for_the_design_topic_and_refuses_bad_files(client, ros_env, 
     got: list = []
     sub = node.create_subscription(UnitPose2DArray, "/dic/poses", got.append, STREAM)
     cal = scene.calib
-    proc = subprocess.Popen(
-        [*NODE, "--ros-args", "-p", f"m_per_px:={cal.m_per_px}",
-         "-p", f"origin_col:={cal.origin_px[0]}", "-p", f"origin_row:={cal.origin_px[1]}",
-         "-p", f"fps:={cal.fps}"],
-        env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    proc = start_node(NODE, "-p", f"m_per_px:={cal.m_per_px}",
+                      "-p", f"origin_col:={cal.origin_px[0]}",
+                      "-p", f"origin_row:={cal.origin_px[1]}", "-p", f"fps:={cal.fps}")
     try:
         wait_matched(sub, ex, timeout_s=60)
         wait_matched(pub, ex, timeout_s=60)

@@ -15,24 +15,9 @@ from rostools import call, spin_until, stop_process, wait_matched
 BIN = sys.prefix + "/bin/"
 
 
-@pytest.fixture
-def pub_node(ros_context):
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-
-    node = rclpy.create_node("test_camera", context=ros_context)
-    ex = SingleThreadedExecutor(context=ros_context)
-    ex.add_node(node)
-    yield node, ex
-    ex.shutdown()
-    node.destroy_node()
-
-
-def _recorder(ros_env, path, *extra):
-    args = [BIN + "metarig-recorder", "--ros-args", "-p", f"path:={path}",
-            "-p", "topics:=[/camera/image_raw,/rig/design]", *extra]
-    return subprocess.Popen(args, env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            text=True)
+def _recorder(start_node, path, *extra):
+    return start_node("metarig-recorder", "-p", f"path:={path}",
+                      "-p", "topics:=[/camera/image_raw,/rig/design]", *extra)
 
 
 def _frames(pub, ex, ks, shape=(48, 64)):
@@ -43,7 +28,7 @@ def _frames(pub, ex, ks, shape=(48, 64)):
         ex.spin_once(timeout_sec=0)
 
 
-def test_recording_reads_back_in_rosbags_and_reports_a_gap(pub_node, ros_env, tmp_path):
+def test_recording_reads_back_in_rosbags_and_reports_a_gap(ros_node, start_node, tmp_path):
     from rosbags.highlevel import AnyReader
     from sensor_msgs.msg import Image
     from std_msgs.msg import String
@@ -51,12 +36,12 @@ def test_recording_reads_back_in_rosbags_and_reports_a_gap(pub_node, ros_env, tm
 
     from ros_nodes.nodes._common import LATCHED, STREAM
 
-    node, ex = pub_node
+    node, ex = ros_node
     path = tmp_path / "rec.mcap"
     design = node.create_publisher(String, "/rig/design", LATCHED)
     design.publish(String(data=json.dumps({"polygons_m": [[[0, 0], [1, 0], [0, 1]]]})))
     pub = node.create_publisher(Image, "/camera/image_raw", STREAM)
-    proc = _recorder(ros_env, path, "-p", "autostart:=true")
+    proc = _recorder(start_node, path, "-p", "autostart:=true")
     try:
         wait_matched(pub, ex, 20.0)
         wait_matched(design, ex, 20.0)
@@ -97,16 +82,16 @@ def test_recording_reads_back_in_rosbags_and_reports_a_gap(pub_node, ros_env, tm
     assert "polygons_m" in meta["design"]["json"] and "recording_report" in meta
 
 
-def test_kill_minus_9_then_recover(pub_node, ros_env, tmp_path):
+def test_kill_minus_9_then_recover(ros_node, start_node, ros_env, tmp_path):
     from rosbags.rosbag2 import Reader
     from sensor_msgs.msg import Image
 
     from ros_nodes.nodes._common import STREAM
 
-    node, ex = pub_node
+    node, ex = ros_node
     path = tmp_path / "killed.mcap"
     pub = node.create_publisher(Image, "/camera/image_raw", STREAM)
-    proc = _recorder(ros_env, path, "-p", "autostart:=true", "-p", "chunk_size:=32768")
+    proc = _recorder(start_node, path, "-p", "autostart:=true", "-p", "chunk_size:=32768")
     try:
         wait_matched(pub, ex, 20.0)
         n = 400

@@ -1,0 +1,188 @@
+"""The experiment procedure as pure logic behind a small port (no rclpy).
+
+`Experiment.run()` pre-compresses, settles, arms the recorder, starts the camera, fires the
+pulse, records for `record_s` and waits for the developed frames; `Experiment.finish()`
+brings the rig to rest and closes the recording whatever happened. The rig is reached only
+through a `RigPort`: `ros_nodes.nodes.sequencer_node.SequencerNode` implements it over ROS
+services and topics, tests implement it with a fake rig. Every wait has a wall-time deadline.
+"""
+
+import logging
+from collections.abc import Callable
+from typing import Protocol
+
+from ros_nodes.logic.sequence import IMAGE_TOPIC, ExperimentPlan, Phase
+
+log = logging.getLogger("metarig.rig")
+POLL_S = 0.005  # how often a wait re-checks its condition, s (wall)
+
+
+class RigError(RuntimeError):
+    """The experiment could not proceed (a refusal, a fault or a timeout); message says why."""
+
+
+class RigPort(Protocol):
+    """What the procedure needs from the rig. Calls that wait for an answer raise `RigError`
+    on timeout; `(accepted, message)` pairs carry a device's refusal and its reason."""
+
+    def now(self) -> float:
+        """Wall time (monotonic), s."""
+
+    def sleep(self, dt_s: float) -> None:
+        """Wait `dt_s` of wall time."""
+
+    def sim_time(self) -> float:
+        """Current simulated time, s."""
+
+    def announce(self, phase: Phase) -> None:
+        """Publish the phase the experiment entered."""
+
+    def start_clock(self, until_s: float | None) -> None:
+        """Run simulated time up to `until_s` (rounded to the clock step; None: no limit)."""
+
+    def clock_reached(self) -> bool:
+        """Whether simulated time has reached the limit of the last `start_clock`."""
+
+    def pause_clock(self) -> None:
+        """Hold simulated time."""
+
+    def service_names(self) -> tuple[str, ...]:
+        """Names of the rig services the procedure calls."""
+
+    def service_ready(self, name: str) -> bool:
+        """Whether service `name` is available."""
+
+    def design(self) -> dict | None:
+        """The specimen's design (`/rig/design`) once the camera has built it."""
+
+    def camera(self) -> dict:
+        """The camera's last status (`state`, `frames`, `message`; {} before the first)."""
+
+    def stage_state(self) -> str:
+        """The stage's last state string (`idle`, `moving`, `holding`, `fault: why`; '')."""
+
+    def recorder(self) -> dict:
+        """The recorder's last status (`recording`, `matched`, `counts`; {} before the first)."""
+
+    def set_strain(self, strain: float) -> tuple[bool, str]: ...
+
+    def fire(self, waveform: str, amplitude_m: float, frequency_hz: float, cycles: float,
+             delay_s: float) -> tuple[bool, str]: ...
+
+    def camera_start(self) -> bool: ...
+
+    def camera_stop(self) -> None: ...
+
+    def recorder_start(self) -> None: ...
+
+    def recorder_stop(self, timeout_s: float) -> dict | None:
+        """Finish the recording; its loss report (None: no answer or not recording)."""
+
+    def stop_devices(self) -> None:
+        """Broadcast the rig stop and call the devices' stop services (best effort)."""
+
+
+class Experiment:
+    """One run of `plan` against `port`; `events` lists (phase, simulated time s)."""
+
+    def __init__(self, plan: ExperimentPlan, port: RigPort):
+        self.plan = plan
+        self.port = port
+        self.events: list[tuple[str, float]] = []
+
+    # helpers ----------------------------------------------------------------------------------
+    def phase(self, p: Phase) -> None:
+        t = self.port.sim_time()
+        self.events.append((p.value, t))
+        self.port.announce(p)
+        log.info("phase %-11s t_sim = %.4f s", p.value, t)
+
+    def until(self, predicate: Callable[[], object], what: str,
+              timeout_s: float | None = None) -> None:
+        """Wait until `predicate()` is true; `RigError` after `timeout_s` (plan default)."""
+        port = self.port
+        deadline = port.now() + (timeout_s or self.plan.timeout_s)
+        while not predicate():
+            if port.now() > deadline:
+                raise RigError(f"timed out waiting for {what}")
+            port.sleep(POLL_S)
+
+    def run_clock_until(self, t_s: float) -> None:
+        """Run simulated time up to exactly `t_s` (rounded to the clock step), then hold it."""
+        self.port.start_clock(t_s)
+        self.until(self.port.clock_reached, f"simulated time {t_s:.4f} s")
+        self.port.pause_clock()
+
+    # the procedure ----------------------------------------------------------------------------
+    def run(self) -> dict:
+        """Run the experiment; returns wall timings (s) and `frames`. Raises `RigError`
+        (call `finish` in any case)."""
+        p, port = self.plan, self.port
+        w0 = port.now()
+        self.phase(Phase.STARTING)
+        self.until(lambda: port.design() is not None or port.camera().get("state") == "error",
+                   "the specimen to be built (/rig/design)")
+        if port.camera().get("state") == "error":
+            raise RigError(f"camera: {port.camera().get('message')}")
+        for name in port.service_names():
+            self.until(lambda n=name: port.service_ready(n), f"service {name}", 60.0)
+        timings = {"startup": port.now() - w0}
+
+        w = port.now()
+        self.phase(Phase.PRECOMPRESS)
+        ok, why = port.set_strain(p.strain)
+        if not ok:
+            raise RigError(f"stage: {why}")
+        port.start_clock(None)
+        self.until(lambda: port.stage_state().startswith(("holding", "fault"))
+                   or (p.strain == 0 and port.sim_time() > 0.005),
+                   "the stages to reach the strain")
+        if port.stage_state().startswith("fault"):
+            raise RigError(f"stage {port.stage_state()}")
+        self.phase(Phase.SETTLE)
+        self.run_clock_until(port.sim_time() + p.settle_s)
+        timings["precompress_settle"] = port.now() - w
+
+        w = port.now()
+        port.pause_clock()
+        self.phase(Phase.RECORD)
+        port.recorder_start()
+        # recording, and subscribed to every rig topic: a sample sent before the match is lost
+        self.until(lambda: port.recorder().get("recording") and
+                   port.recorder().get("matched", True),
+                   "the recorder to start and match every topic", 30.0)
+        t_rec = port.sim_time()
+        if not port.camera_start():
+            raise RigError("camera refused to start")
+        ok, why = port.fire(p.waveform, p.amplitude_m, p.frequency_hz, p.cycles, p.pre_trigger_s)
+        if not ok:
+            raise RigError(f"shaker: {why}")
+        self.phase(Phase.PULSE)
+        self.run_clock_until(t_rec + p.record_s)
+        timings["record_live"] = port.now() - w
+
+        w = port.now()
+        self.phase(Phase.DEVELOP)
+        port.camera_stop()
+        self.until(lambda: port.camera().get("state") in ("done", "error"), "the camera footage")
+        cam = port.camera()
+        if cam["state"] == "error":
+            raise RigError(f"camera: {cam.get('message')}")
+        n = int(cam["frames"])
+        try:
+            self.until(lambda: port.recorder().get("counts", {}).get(IMAGE_TOPIC, 0) >= n,
+                       f"the recorder to write {n} frames", 30.0)
+        except RigError as e:
+            log.warning("%s; finishing with what arrived (the report counts the loss)", e)
+        timings["develop_publish"] = port.now() - w
+        timings["frames"] = n
+        return timings
+
+    def finish(self, completed: bool, recorder_timeout_s: float = 30.0) -> dict | None:
+        """Stop the devices, finish the recording; returns the recorder's report (or None)."""
+        self.phase(Phase.STOP)
+        self.port.pause_clock()
+        self.port.stop_devices()
+        report = self.port.recorder_stop(recorder_timeout_s)
+        self.phase(Phase.DONE if completed else Phase.ABORTED)
+        return report

@@ -1,0 +1,183 @@
+"""The experiment procedure (`ros_nodes.logic.experiment`) against a fake rig: no ROS."""
+
+import math
+
+import pytest
+
+from ros_nodes.logic.experiment import Experiment, RigError
+from ros_nodes.logic.sequence import IMAGE_TOPIC, ExperimentPlan, Phase
+
+STEP_S = 0.001  # simulated clock step of the fake rig, s
+
+
+class FakeRig:
+    """A `RigPort` on a fake wall clock: each `sleep` is one simulated clock step while the
+    clock runs; the stage holds `eta_s` after a set-point, the camera films at `plan.fps`."""
+
+    def __init__(self, plan: ExperimentPlan, *, eta_s=0.08, refuse_strain="", fault="",
+                 design=True, lose_frames=0):
+        self.plan, self.eta_s, self.refuse_strain, self.fault = plan, eta_s, refuse_strain, fault
+        self.wall, self.sim, self.limit, self.running = 0.0, 0.0, math.inf, False
+        self.calls: list[tuple] = []
+        self._design = {"polygons_m": []} if design else None
+        self._camera = {"state": "idle", "frames": 0}
+        self._recorder: dict = {}
+        self._stage, self._t_set, self._t_cam = "idle", None, None
+        self.lose_frames = lose_frames
+
+    # time
+    def now(self):
+        return self.wall
+
+    def sleep(self, dt_s):
+        self.wall += dt_s
+        if self.running and self.sim + STEP_S <= self.limit + 1e-12:
+            self.sim = round(self.sim + STEP_S, 9)
+        if self._t_set is not None and self.sim >= self._t_set + self.eta_s:
+            self._stage = self.fault or "holding"
+
+    def sim_time(self):
+        return self.sim
+
+    def announce(self, phase):
+        self.calls.append(("announce", phase.value))
+
+    def start_clock(self, until_s):
+        self.limit = math.inf if until_s is None else round(until_s / STEP_S) * STEP_S
+        self.running = True
+
+    def clock_reached(self):
+        return self.sim >= self.limit - 1e-12
+
+    def pause_clock(self):
+        self.running = False
+
+    # status
+    def service_names(self):
+        return ("set_strain", "fire")
+
+    def service_ready(self, name):
+        return True
+
+    def design(self):
+        return self._design
+
+    def camera(self):
+        return self._camera
+
+    def stage_state(self):
+        return self._stage
+
+    def recorder(self):
+        return self._recorder
+
+    # commands
+    def set_strain(self, strain):
+        self.calls.append(("set_strain", strain))
+        if self.refuse_strain:
+            return False, self.refuse_strain
+        self._stage, self._t_set = "moving", self.sim
+        return True, ""
+
+    def fire(self, waveform, amplitude_m, frequency_hz, cycles, delay_s):
+        self.calls.append(("fire", waveform, amplitude_m, frequency_hz, cycles, delay_s))
+        return True, ""
+
+    def camera_start(self):
+        self.calls.append(("camera_start", self.sim))
+        self._t_cam = self.sim
+        self._camera = {"state": "capturing", "frames": 0}
+        return True
+
+    def camera_stop(self):
+        self.calls.append(("camera_stop", self.sim))
+        n = self.plan.expected_frames(self._t_cam)
+        self._camera = {"state": "done", "frames": n}
+        self._recorder["counts"] = {IMAGE_TOPIC: n - self.lose_frames}
+
+    def recorder_start(self):
+        self.calls.append(("recorder_start",))
+        self._recorder = {"recording": True, "matched": True, "counts": {}}
+
+    def recorder_stop(self, timeout_s):
+        self.calls.append(("recorder_stop",))
+        return {"messages": 1, "dropped": 0}
+
+    def stop_devices(self):
+        self.calls.append(("stop_devices",))
+
+    def names(self):
+        return [c[0] for c in self.calls if c[0] != "announce"]
+
+
+PLAN = ExperimentPlan(nx=4, ny=4, record_s=0.04, settle_s=0.01, fps=1000.0, timeout_s=5.0)
+
+
+def test_runs_the_steps_in_order_on_simulated_time():
+    rig = FakeRig(PLAN)
+    exp = Experiment(PLAN, rig)
+    timings = exp.run()
+    assert rig.names() == ["set_strain", "recorder_start", "camera_start", "fire", "camera_stop"]
+    assert ("set_strain", PLAN.strain) in rig.calls
+    fire = next(c for c in rig.calls if c[0] == "fire")
+    assert fire[1:] == (PLAN.waveform, PLAN.amplitude_m, PLAN.frequency_hz, PLAN.cycles,
+                        PLAN.pre_trigger_s)
+    phases = dict(exp.events)
+    assert [p for p, _ in exp.events] == ["starting", "precompress", "settle", "record", "pulse",
+                                         "develop"]
+    # settle starts once the stage holds; recording after settle_s; capture lasts record_s
+    assert phases["settle"] == pytest.approx(0.081, abs=1.5e-3)
+    assert phases["record"] == pytest.approx(phases["settle"] + PLAN.settle_s, abs=1e-9)
+    assert phases["develop"] == pytest.approx(phases["record"] + PLAN.record_s, abs=1e-9)
+    t_cam = next(c for c in rig.calls if c[0] == "camera_start")[1]
+    assert t_cam == phases["record"]
+    assert timings["frames"] == PLAN.expected_frames(t_cam) == 41
+    assert set(timings) == {"startup", "precompress_settle", "record_live", "develop_publish",
+                            "frames"}
+    assert [c[1] for c in rig.calls if c[0] == "announce"] == [p for p, _ in exp.events]
+
+
+def test_finish_stops_the_devices_before_closing_the_recording():
+    rig = FakeRig(PLAN)
+    exp = Experiment(PLAN, rig)
+    exp.run()
+    assert exp.finish(completed=True) == {"messages": 1, "dropped": 0}
+    assert rig.names()[-2:] == ["stop_devices", "recorder_stop"]
+    assert [p for p, _ in exp.events][-2:] == ["stop", "done"]
+    assert not rig.running
+
+
+def test_a_refused_strain_stops_the_run_with_the_reason():
+    rig = FakeRig(PLAN, refuse_strain="strain 0.02 outside [0, 0.01]")
+    exp = Experiment(PLAN, rig)
+    with pytest.raises(RigError, match=r"stage: strain 0.02 outside"):
+        exp.run()
+    exp.finish(completed=False)
+    assert rig.names() == ["set_strain", "stop_devices", "recorder_stop"]
+    assert [p for p, _ in exp.events] == ["starting", "precompress", "stop", "aborted"]
+
+
+def test_a_stage_fault_during_precompression_is_an_error():
+    rig = FakeRig(PLAN, fault="fault: encoder lost")
+    with pytest.raises(RigError, match="stage fault: encoder lost"):
+        Experiment(PLAN, rig).run()
+
+
+def test_every_wait_has_a_deadline():
+    rig = FakeRig(PLAN, design=False)  # the camera never builds the specimen
+    with pytest.raises(RigError, match=r"timed out waiting for the specimen"):
+        Experiment(PLAN, rig).run()
+    assert rig.wall == pytest.approx(PLAN.timeout_s, abs=0.01)
+    assert rig.names() == []  # nothing was commanded
+
+
+def test_frames_missing_from_the_recording_are_reported_not_fatal(caplog):
+    rig = FakeRig(PLAN, lose_frames=3)
+    timings = Experiment(PLAN, rig).run()
+    assert timings["frames"] == 41  # the camera's count; the summary compares it with the file
+    assert "the recorder to write 41 frames" in caplog.text
+
+
+def test_phase_values_are_the_published_names():
+    assert [p.value for p in Phase][:6] == ["starting", "precompress", "settle", "record",
+                                            "pulse", "develop"]

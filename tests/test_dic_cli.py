@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from dic_synth import errors_px, make_scene
 
+from ros_nodes import topics as T
 from ros_nodes.logic.msgdefs import schema_text
 from tracking.batch import run_tracking, save_tracks
 from tracking.cli import track_main
@@ -95,7 +96,7 @@ def _write_mcap(path, frames, bad_index=None):
             msg = {"header": {"stamp": {"sec": 0, "nanosec": k * 1000}, "frame_id": "cam"},
                    "height": img.shape[0], "width": img.shape[1], "encoding": "mono8",
                    "is_bigendian": 0, "step": img.shape[1], "data": data}
-            w.write_message("/camera/image_raw", schema, msg, log_time=k * 1_000_000,
+            w.write_message(T.IMAGE.name, schema, msg, log_time=k * 1_000_000,
                             publish_time=k * 1_000_000)
         w.finish()
 
@@ -104,7 +105,7 @@ def test_track_mcap_recording(recording, tmp_path):
     path = tmp_path / "rec.mcap"
     _write_mcap(path, recording["frames"], bad_index=5)
     spec = open_source(path)
-    assert spec.kind == "mcap" and spec.topic == "/camera/image_raw"
+    assert spec.kind == "mcap" and spec.topic == T.IMAGE.name
     assert count_frames(spec) == N_T
     items = list(iter_frames(spec))
     assert isinstance(items[5][1], BadFrame)

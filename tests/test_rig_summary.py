@@ -2,12 +2,13 @@
 
 import pytest
 
+from ros_nodes import topics as T
 from ros_nodes.logic.sequence import ExperimentPlan, summary
 
 
 def _report(recorded: int, dropped: int = 0) -> dict:
     return {"messages": recorded, "dropped": dropped,
-            "topics": {"/camera/image_raw": {"count": recorded, "missing_by_sequence": dropped}}}
+            "topics": {T.IMAGE.name: {"count": recorded, "missing_by_sequence": dropped}}}
 
 
 def test_trailing_frames_missing_from_the_recording_are_counted_as_lost():

@@ -9,8 +9,12 @@ and the snapshot is unchanged.
 import math
 from collections.abc import Callable
 
-from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
-                                SetParametersResult)
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    SetParametersResult,
+)
 from rclpy.parameter import Parameter
 
 from ros_nodes.params import ConfigError, flat_fields, from_flat

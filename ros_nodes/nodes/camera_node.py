@@ -19,18 +19,18 @@ import threading
 import time
 
 import numpy as np
+from metarig_msgs.msg import UnitPose2DArray
 from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
+from rclpy.serialization import serialize_message
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo, Image, JointState
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from metarig_msgs.msg import UnitPose2DArray
-from rclpy.serialization import serialize_message
-
 from ros_nodes import convert
+from ros_nodes import topics as T
 from ros_nodes.logic.cdr import ImageEncoder, restamp
 from ros_nodes.nodes._common import CLOCK, LATCHED, STREAM, run_node
 from ros_nodes.nodes._params import TypedParams
@@ -50,12 +50,12 @@ class CameraNode(Node):
         cfg = self._params.config
         frames_qos = QoSProfile(depth=cfg.queue_depth, reliability=STREAM.reliability,
                                 history=STREAM.history)
-        self._img = self.create_publisher(Image, "/camera/image_raw", frames_qos)
-        self._info = self.create_publisher(CameraInfo, "/camera/camera_info", STREAM)
-        self._status_pub = self.create_publisher(String, "~/status", LATCHED)
-        self._clock_pub = self.create_publisher(Clock, "/clock", CLOCK) if cfg.publish_clock else None
-        self.create_service(Trigger, "~/start", self._on_start)
-        self.create_service(Trigger, "~/stop", self._on_stop)
+        self._img = self.create_publisher(Image, T.IMAGE.name, frames_qos)
+        self._info = self.create_publisher(CameraInfo, T.CAMERA_INFO.name, STREAM)
+        self._status_pub = self.create_publisher(String, T.CAMERA_STATUS.name, LATCHED)
+        self._clock_pub = self.create_publisher(Clock, T.CLOCK.name, CLOCK) if cfg.publish_clock else None
+        self.create_service(Trigger, T.CAMERA_START.name, self._on_start)
+        self.create_service(Trigger, T.CAMERA_STOP.name, self._on_stop)
         self._stop_evt = threading.Event()
         self._thread: threading.Thread | None = None
         self._published = 0
@@ -67,10 +67,10 @@ class CameraNode(Node):
         self._enc: ImageEncoder | None = None
         self._info_cdr = b""
         if cfg.source == "sim":
-            self._truth = self.create_publisher(UnitPose2DArray, "/camera/ground_truth", STREAM)
-            self._design = self.create_publisher(String, "/rig/design", LATCHED)
-            self.create_subscription(JointState, "/shaker/joint_states", self._on_shaker, STREAM)
-            self._stage_sub = self.create_subscription(JointState, "/stage/joint_states",
+            self._truth = self.create_publisher(UnitPose2DArray, T.GROUND_TRUTH.name, STREAM)
+            self._design = self.create_publisher(String, T.RIG_DESIGN.name, LATCHED)
+            self.create_subscription(JointState, T.SHAKER_JOINTS.name, self._on_shaker, STREAM)
+            self._stage_sub = self.create_subscription(JointState, T.STAGE_JOINTS.name,
                                                        self._on_stage, STREAM)
             threading.Thread(target=self._build_specimen, daemon=True).start()
         self._status("idle", "ready")
@@ -155,8 +155,13 @@ class CameraNode(Node):
 
     def _develop(self) -> None:
         from hardware_sim import camera as cam
-        from hardware_sim.rig import (MotionRecord, capture_times, centred_origin, film,
-                                      specimen_motion)
+        from hardware_sim.rig import (
+            MotionRecord,
+            capture_times,
+            centred_origin,
+            film,
+            specimen_motion,
+        )
 
         cfg = self._params.config
         try:

@@ -23,9 +23,9 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from ros_nodes import convert
 from metarig.polygon import area_centroids
-from ros_nodes import topics
+from ros_nodes import convert, topics
+from ros_nodes import topics as T
 from ros_nodes.dic_params import DICNodeConfig
 from ros_nodes.nodes._common import LATCHED, STREAM, run_node
 from ros_nodes.nodes._params import TypedParams
@@ -54,7 +54,7 @@ class DICTrackerNode(Node):
         self._warned_no_units = False
         self._pub = self.create_publisher(UnitPose2DArray, cfg.poses_topic, STREAM)
         self.create_subscription(Image, cfg.image_topic, self._on_image, STREAM)
-        self.create_service(Trigger, "~/reset_reference", self._on_reset)
+        self.create_service(Trigger, T.DIC_RESET.name, self._on_reset)
         if cfg.units_path:
             try:
                 self._start(load_unit_polygons(cfg.units_path))

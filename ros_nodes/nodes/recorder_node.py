@@ -21,13 +21,14 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from ros_nodes import convert
+from ros_nodes import topics as T
 from ros_nodes.logic.recorder import McapRecorder, QueuedRecorder, cdr_string
 from ros_nodes.nodes._common import COMMAND, LATCHED, run_node
 from ros_nodes.nodes._params import TypedParams
 from ros_nodes.params import RecorderNodeConfig
 
 NAME = "recorder"
-METADATA_TOPICS = {"/rig/design": "design", "/rig/config": "rig_config"}
+METADATA_TOPICS = {T.RIG_DESIGN.name: "design", T.RIG_CONFIG.name: "rig_config"}
 
 
 def _qos_yaml(qos: QoSProfile) -> str:
@@ -49,13 +50,13 @@ class RecorderNode(Node):
         self._latched: dict[str, tuple[bytes, int, int | None]] = {}
         self._qos: dict[str, QoSProfile] = {}
         self._registered: set[str] = set()  # topics whose channel is (being) registered
-        self._report_pub = self.create_publisher(String, "~/report", LATCHED)
-        self._status_pub = self.create_publisher(String, "~/status", COMMAND)
+        self._report_pub = self.create_publisher(String, T.RECORDER_REPORT.name, LATCHED)
+        self._status_pub = self.create_publisher(String, T.RECORDER_STATUS.name, COMMAND)
         # wall-clock timers: they must run while simulated time is paused
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._status_timer = self.create_timer(0.2, self._status, clock=steady)
-        self.create_service(Trigger, "~/start", self._on_start)
-        self.create_service(Trigger, "~/stop", self._on_stop)
+        self.create_service(Trigger, T.RECORDER_START.name, self._on_start)
+        self.create_service(Trigger, T.RECORDER_STOP.name, self._on_stop)
         self._timer = self.create_timer(self._params.config.discovery_period_s, self._discover,
                                         clock=steady)
         if self._params.config.autostart:

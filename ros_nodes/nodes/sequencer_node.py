@@ -12,12 +12,12 @@ import logging
 import threading
 import time
 
+from metarig_msgs.srv import FirePulse, SetStrain
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Empty, String
 from std_srvs.srv import Trigger
 
-from metarig_msgs.srv import FirePulse, SetStrain
 from ros_nodes import convert
 from ros_nodes import topics as T
 from ros_nodes.logic.experiment import RigError

@@ -13,13 +13,14 @@ deactivate stops any program; cleanup releases everything.
 """
 
 import numpy as np
+from metarig_msgs.srv import FirePulse
 from rclpy.lifecycle import LifecycleNode, State, TransitionCallbackReturn
 from std_msgs.msg import Empty
 from std_srvs.srv import Trigger
 
 from hardware_sim import shaker as sh
-from metarig_msgs.srv import FirePulse
 from ros_nodes import convert
+from ros_nodes import topics as T
 from ros_nodes.logic.sampling import due_samples
 from ros_nodes.nodes._common import COMMAND, LATCHED, STREAM, run_node
 from ros_nodes.nodes._params import TypedParams
@@ -39,9 +40,9 @@ class ShakerNode(LifecycleNode):
         self._state: sh.ShakerState | None = None
         self._timer = None
         self._pubs: dict = {}
-        self.create_service(FirePulse, "~/fire", self._on_fire)
-        self.create_service(Trigger, "~/stop", self._on_stop)
-        self.create_subscription(Empty, "/rig/stop", lambda _m: self._stop("rig stop"), COMMAND)
+        self.create_service(FirePulse, T.SHAKER_FIRE.name, self._on_fire)
+        self.create_service(Trigger, T.SHAKER_STOP.name, self._on_stop)
+        self.create_subscription(Empty, T.RIG_STOP.name, lambda _m: self._stop("rig stop"), COMMAND)
         if self._params.config.autostart:
             self.trigger_configure()
             self.trigger_activate()
@@ -51,9 +52,9 @@ class ShakerNode(LifecycleNode):
         cfg = self._params.config
         self._rng = np.random.default_rng(cfg.seed)
         self._pubs = {
-            "js": self.create_publisher(convert.JointState, "~/joint_states", STREAM),
-            "cmd": self.create_publisher(convert.JointTrajectory, "~/command", LATCHED),
-            "diag": self.create_publisher(convert.DiagnosticArray, "/diagnostics", COMMAND),
+            "js": self.create_publisher(convert.JointState, T.SHAKER_JOINTS.name, STREAM),
+            "cmd": self.create_publisher(convert.JointTrajectory, T.SHAKER_COMMAND.name, LATCHED),
+            "diag": self.create_publisher(convert.DiagnosticArray, T.DIAGNOSTICS.name, COMMAND),
         }
         self._state = sh.init(cfg.device, self._rng)
         self._report("ok", "configured")

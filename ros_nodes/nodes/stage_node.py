@@ -11,14 +11,15 @@ Interfaces (node name `stage`):
 """
 
 import numpy as np
+from metarig_msgs.srv import SetStrain
 from rclpy.lifecycle import LifecycleNode, State, TransitionCallbackReturn
 from std_msgs.msg import Empty, Float64, String
 from std_srvs.srv import Trigger
 
 from hardware_sim import stage as sg
 from hardware_sim.shaker import LimitError
-from metarig_msgs.srv import SetStrain
 from ros_nodes import convert
+from ros_nodes import topics as T
 from ros_nodes.logic.sampling import due_samples
 from ros_nodes.nodes._common import COMMAND, LATCHED, STREAM, run_node
 from ros_nodes.nodes._params import TypedParams
@@ -39,10 +40,10 @@ class StageNode(LifecycleNode):
         self._timer = None
         self._pubs: dict = {}
         self._last_mode = None
-        self.create_service(SetStrain, "~/set_strain", self._on_set_strain)
-        self.create_service(Trigger, "~/stop", self._on_stop)
-        self.create_service(Trigger, "~/reset", self._on_reset)
-        self.create_subscription(Empty, "/rig/stop", lambda _m: self._stop(), COMMAND)
+        self.create_service(SetStrain, T.STAGE_SET_STRAIN.name, self._on_set_strain)
+        self.create_service(Trigger, T.STAGE_STOP.name, self._on_stop)
+        self.create_service(Trigger, T.STAGE_RESET.name, self._on_reset)
+        self.create_subscription(Empty, T.RIG_STOP.name, lambda _m: self._stop(), COMMAND)
         if self._params.config.autostart:
             self.trigger_configure()
             self.trigger_activate()
@@ -51,10 +52,10 @@ class StageNode(LifecycleNode):
         cfg = self._params.config
         self._rng = np.random.default_rng(cfg.seed)
         self._pubs = {
-            "js": self.create_publisher(convert.JointState, "~/joint_states", STREAM),
-            "target": self.create_publisher(Float64, "~/target_strain", LATCHED),
-            "state": self.create_publisher(String, "~/state", LATCHED),
-            "diag": self.create_publisher(convert.DiagnosticArray, "/diagnostics", COMMAND),
+            "js": self.create_publisher(convert.JointState, T.STAGE_JOINTS.name, STREAM),
+            "target": self.create_publisher(Float64, T.STAGE_TARGET.name, LATCHED),
+            "state": self.create_publisher(String, T.STAGE_STATE.name, LATCHED),
+            "diag": self.create_publisher(convert.DiagnosticArray, T.DIAGNOSTICS.name, COMMAND),
         }
         self._state = sg.init(cfg.device, self._rng)
         self._publish_mode(force=True)

@@ -6,8 +6,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-
 from rostools import call, spin_until, stop_process, wait_matched
+
+from ros_nodes import topics as T
 
 RECORDINGS = sorted((Path(__file__).resolve().parents[2] / "recordings").glob("*/recording.mcap"))
 
@@ -22,7 +23,7 @@ def _replay(viewer, start_node, *params):
 
     node, ex = viewer
     got, clock, status = [], [], []
-    sub = node.create_subscription(Image, "/camera/image_raw", got.append, STREAM)
+    sub = node.create_subscription(Image, T.IMAGE.name, got.append, STREAM)
     clock_sub = node.create_subscription(Clock, "/clock", clock.append, 100)
     node.create_subscription(String, "/camera/status", lambda m: status.append(json.loads(m.data)),
                              LATCHED)
@@ -46,7 +47,7 @@ def _replay(viewer, start_node, *params):
 def test_sample_recordings_replay(ros_node, start_node, path):
     from tracking.frame_sources import mcap_frames
 
-    frames = list(mcap_frames(path, "/camera/image_raw"))
+    frames = list(mcap_frames(path, T.IMAGE.name))
     assert len(frames) >= 40
     got, clock = _replay(ros_node, start_node, "source:=mcap", f"path:={path}")
     assert len(got) == len(frames)

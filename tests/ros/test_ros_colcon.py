@@ -14,7 +14,6 @@ import sys
 from pathlib import Path
 
 import pytest
-
 from rostools import call, stop_process
 
 ROOT = Path(__file__).resolve().parents[2]

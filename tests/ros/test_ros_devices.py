@@ -2,16 +2,16 @@
 
 import numpy as np
 import pytest
+from rostools import call, spin_until, stop_process
 
-from rostools import call, spin_until, stop_process, wait_matched
 
 def test_shaker_refuses_out_of_limits_then_plays_a_pulse_and_stops(ros_node, start_node,
                                                                     tmp_path):
+    from metarig_msgs.srv import FirePulse
     from sensor_msgs.msg import JointState
     from std_srvs.srv import Trigger
     from trajectory_msgs.msg import JointTrajectory
 
-    from metarig_msgs.srv import FirePulse
     from ros_nodes.nodes._common import LATCHED, STREAM
 
     params = tmp_path / "shaker.yaml"
@@ -56,13 +56,13 @@ def test_shaker_refuses_out_of_limits_then_plays_a_pulse_and_stops(ros_node, sta
 
 
 def test_stage_moves_holds_refuses_and_validates_parameters(ros_node, start_node):
+    from metarig_msgs.srv import SetStrain
     from rcl_interfaces.msg import Parameter as ParamMsg
     from rcl_interfaces.msg import ParameterType, ParameterValue
     from rcl_interfaces.srv import SetParameters
     from sensor_msgs.msg import JointState
     from std_msgs.msg import String
 
-    from metarig_msgs.srv import SetStrain
     from ros_nodes.nodes._common import LATCHED, STREAM
 
     proc = start_node("metarig-stage")

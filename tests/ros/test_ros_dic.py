@@ -13,6 +13,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from dic_synth import make_scene
 
 from metarig.polygon import area_centroids as polygon_centroids
+from ros_nodes import topics as T
 
 NODE = [sys.executable, "-m", "ros_nodes.nodes.dic_tracker_node"]
 
@@ -41,7 +42,7 @@ def test_node_tracks_a_burst_at_the_preview_rate(ros_node, start_node, tmp_path)
     truth[..., 2] = 0.001 * np.arange(n_t)[:, None]
     frames = [scene.render(p, rng) for p in truth]
     got: list = []
-    pub = node.create_publisher(Image, "/camera/image_raw", STREAM)
+    pub = node.create_publisher(Image, T.IMAGE.name, STREAM)
     sub = node.create_subscription(UnitPose2DArray, "/dic/poses", got.append, STREAM)
     proc = start_node(NODE, "-p", f"units_path:={tmp_path / 'units.json'}",
                       "-p", f"calibration_path:={tmp_path / 'cal.json'}",
@@ -99,7 +100,7 @@ def test_node_waits_for_the_design_topic_and_refuses_bad_files(ros_node, start_n
     design = node.create_publisher(String, "/rig/design", LATCHED)
     design.publish(String(data=json.dumps({"scene": "x",
                                            "polygons_m": scene.polygons_m.tolist()})))
-    pub = node.create_publisher(Image, "/camera/image_raw", STREAM)
+    pub = node.create_publisher(Image, T.IMAGE.name, STREAM)
     got: list = []
     sub = node.create_subscription(UnitPose2DArray, "/dic/poses", got.append, STREAM)
     cal = scene.calib

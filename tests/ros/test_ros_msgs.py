@@ -1,7 +1,6 @@
 """The project's interface package `metarig_msgs`: built by the install step, usable over DDS."""
 
 import numpy as np
-
 from rostools import spin_until, wait_matched
 
 
@@ -16,10 +15,9 @@ def test_build_is_idempotent_and_installed():
 
 def test_unit_pose_array_round_trip_over_dds(ros_context):
     import rclpy
+    from metarig_msgs.msg import UnitPose2DArray
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import QoSProfile, ReliabilityPolicy
-
-    from metarig_msgs.msg import UnitPose2DArray
 
     qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
     a = rclpy.create_node("pose_pub", context=ros_context)

@@ -5,12 +5,12 @@ import os
 import signal
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
-
 from rostools import call, spin_until, stop_process, wait_matched
+
+from ros_nodes import topics as T
 
 BIN = sys.prefix + "/bin/"
 
@@ -40,7 +40,7 @@ def test_recording_reads_back_in_rosbags_and_reports_a_gap(ros_node, start_node,
     path = tmp_path / "rec.mcap"
     design = node.create_publisher(String, "/rig/design", LATCHED)
     design.publish(String(data=json.dumps({"polygons_m": [[[0, 0], [1, 0], [0, 1]]]})))
-    pub = node.create_publisher(Image, "/camera/image_raw", STREAM)
+    pub = node.create_publisher(Image, T.IMAGE.name, STREAM)
     proc = _recorder(start_node, path, "-p", "autostart:=true")
     try:
         wait_matched(pub, ex, 20.0)
@@ -51,23 +51,23 @@ def test_recording_reads_back_in_rosbags_and_reports_a_gap(ros_node, start_node,
         # wait until the recorder says it has written every frame, then ask for the report
         status = []
         node.create_subscription(String, "/recorder/status", lambda m: status.append(
-            json.loads(m.data)["counts"].get("/camera/image_raw", 0)), 10)
+            json.loads(m.data)["counts"].get(T.IMAGE.name, 0)), 10)
         spin_until(ex, lambda: status and status[-1] >= len(sent), 20.0, "all frames written")
         res = call(stop, Trigger.Request(), ex)
         assert res.success
         report = json.loads(res.message)
-        t = report["topics"]["/camera/image_raw"]
+        t = report["topics"][T.IMAGE.name]
         assert t["count"] == len(sent)
         assert t["gaps"] == 1 and t["missing_by_stamp"] == 1 and t["missing_by_sequence"] == 0
         assert t["period_s"] == pytest.approx(1e-3)
     finally:
         print(stop_process(proc))
     with AnyReader([path]) as reader:
-        assert {c.topic for c in reader.connections} == {"/camera/image_raw", "/rig/design"}
+        assert {c.topic for c in reader.connections} == {T.IMAGE.name, "/rig/design"}
         stamps, values = [], []
         for con, t_ns, raw in reader.messages():
             msg = reader.deserialize(raw, con.msgtype)
-            if con.topic == "/camera/image_raw":
+            if con.topic == T.IMAGE.name:
                 stamps.append(t_ns)
                 values.append(int(msg.data[0]))
                 assert t_ns == msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
@@ -90,7 +90,7 @@ def test_kill_minus_9_then_recover(ros_node, start_node, ros_env, tmp_path):
 
     node, ex = ros_node
     path = tmp_path / "killed.mcap"
-    pub = node.create_publisher(Image, "/camera/image_raw", STREAM)
+    pub = node.create_publisher(Image, T.IMAGE.name, STREAM)
     proc = _recorder(start_node, path, "-p", "autostart:=true", "-p", "chunk_size:=32768")
     try:
         wait_matched(pub, ex, 20.0)

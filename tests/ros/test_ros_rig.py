@@ -12,6 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from ros_nodes import topics as T
+
 BIN = sys.prefix + "/bin/"
 
 
@@ -47,12 +49,12 @@ def _check_experiment(out: Path, record_s: float = 0.04, fps: float = 1000.0) ->
     assert run["status"] == "completed", run["status"]
     assert [p.name for p in out.glob("*.mcap")] == ["recording.mcap"]
     msgs = _read(out / "recording.mcap")
-    for topic in ("/camera/image_raw", "/camera/camera_info", "/camera/ground_truth",
+    for topic in (T.IMAGE.name, "/camera/camera_info", "/camera/ground_truth",
                   "/shaker/joint_states", "/stage/joint_states", "/shaker/command", "/clock",
                   "/rig/design", "/rig/config"):
         assert msgs.get(topic), f"{topic} missing from the recording"
     # counts: every rendered frame recorded once, with calibration and ground truth
-    frames = msgs["/camera/image_raw"]
+    frames = msgs[T.IMAGE.name]
     phases = {p["phase"]: p["sim_time_s"] for p in run["phases"]}
     t_rec = phases["record"]
     expected = int(np.floor((t_rec + record_s) * fps + 1e-9)) - int(np.ceil(t_rec * fps - 1e-9)) + 1
@@ -60,7 +62,7 @@ def _check_experiment(out: Path, record_s: float = 0.04, fps: float = 1000.0) ->
     assert run["frames"] == {"published": expected, "recorded": expected, "lost": 0}
     assert len(msgs["/camera/camera_info"]) == len(msgs["/camera/ground_truth"]) == expected
     assert run["recording"]["dropped"] == 0
-    cam = run["recording"]["topics"]["/camera/image_raw"]
+    cam = run["recording"]["topics"][T.IMAGE.name]
     assert cam["gaps"] == 0 and cam["missing_by_sequence"] == 0
     # stamps: monotone, on the camera period, log_time == header stamp
     stamps = np.array([_ns(m.header.stamp) for _, m in frames])

@@ -10,25 +10,24 @@ has something real to find.
 """
 
 import json
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-
-def _f(default, desc, lo=None, hi=None):
-    return field(default=default, metadata={"description": desc, "min": lo, "max": hi})
+from metarig.fields import param
 
 
 @dataclass(frozen=True, slots=True)
 class SpecimenConfig:
     """Which sample is on the rig."""
 
-    scene: str = _f("precompression-24x18", "design_engine scene name")
-    nx: int = _f(24, "units along x", 2, 200)
-    ny: int = _f(16, "units along y", 2, 200)
-    bias_angle_deg: float = _f(25.0, "bias angle of the periodic design, deg", -45.0, 45.0)
-    perturb: float = _f(0.0, "relative (1 sigma) spread of true stiffnesses and damping", 0.0, 0.5)
-    seed: int = _f(0, "seed of the perturbation", 0, 2**31 - 1)
+    scene: str = param("precompression-24x18", "design_engine scene name")
+    nx: int = param(24, "units along x", 2, 200)
+    ny: int = param(16, "units along y", 2, 200)
+    bias_angle_deg: float = param(25.0, "bias angle of the periodic design, deg", -45.0, 45.0)
+    perturb: float = param(0.0, "relative (1 sigma) spread of true stiffnesses and damping",
+                           0.0, 0.5)
+    seed: int = param(0, "seed of the perturbation", 0, 2**31 - 1)
 
 
 @dataclass(frozen=True)
@@ -46,7 +45,7 @@ class Specimen:
 
     def centroids_m(self) -> np.ndarray:
         """[n_units, 2] reference area centroids, m."""
-        from hardware_sim.camera import area_centroids
+        from metarig.polygon import area_centroids
 
         return area_centroids(self.polygons_m)
 
@@ -100,9 +99,12 @@ def simulate(specimen: Specimen, times_s, shaker_t_s, shaker_u_m, stage_t_s=None
         `design_engine.Trajectory` (t [n_t], q and qdot [n_t, n_units, 3], SI).
     """
     import design_engine as de
+    from design_engine.auto import contact_config
 
     has_stages = len(specimen.scene.stage_units_top) > 0
+    # the rig's physics: the full model at the reference tolerances (not the fast default,
+    # whose error a chaotic large-amplitude scene amplifies into a different motion)
     return de.simulate_rig(specimen.scene, np.asarray(times_s, np.float64),
                            np.asarray(shaker_t_s, np.float64), np.asarray(shaker_u_m, np.float64),
                            stage_t_s if has_stages else None,
-                           stage_closing_m if has_stages else None)
+                           stage_closing_m if has_stages else None, config=contact_config())

@@ -44,6 +44,13 @@ def _parser() -> argparse.ArgumentParser:
                         "ros__parameters: ...)")
     p.add_argument("--compression", choices=("none", "lz4", "zstd"), default="none",
                    help="MCAP chunk compression")
+    p.add_argument("--no-compare", action="store_true",
+                   help="only record: skip tracking the frames and the comparison")
+    p.add_argument("--live-dic", action="store_true",
+                   help="also run the live DIC node (decimated preview on /dic/poses); the "
+                   "run's MCAP gets the full-rate offline tracking in its place")
+    p.add_argument("--workers", type=int, default=None,
+                   help="tracker processes after the capture (default: all cores)")
     plan_flags(p, ExperimentPlan)
     return p
 
@@ -93,9 +100,64 @@ def rig_main(argv: list[str] | None = None) -> int:
     stale = args.out / "recording.mcap"
     if stale.exists():
         stale.unlink()
+    calibration = write_calibration(plan, args.out)
+    if args.live_dic:
+        node_params["dic_tracker"] = {"use_sim_time": True, "calibration_path": str(calibration)}
     from ros_nodes.nodes._rig import run_rig
 
-    return run_rig(plan, node_params, args.out.resolve(), processes=args.processes)
+    code = run_rig(plan, node_params, args.out.resolve(), processes=args.processes)
+    if code != 0 or args.no_compare:
+        return code
+    return compare_run(args.out, args.workers)
+
+
+CALIBRATION_NAME = "calibration.json"
+
+
+def write_calibration(plan, out: Path) -> Path:
+    """The simulated camera's calibration (`tracking.calibration` format) for the run's sample:
+    its pixel scale, frame rate and the origin that centres the sample in the frame."""
+    from hardware_sim.rig import centred_origin
+    from hardware_sim.specimen import SpecimenConfig, build
+
+    polygons = build(SpecimenConfig(scene=plan.scene, nx=plan.nx, ny=plan.ny)).polygons_m
+    origin = centred_origin(polygons, plan.width, plan.height, plan.m_per_px)
+    path = out / CALIBRATION_NAME
+    path.write_text(json.dumps({"fps": plan.fps, "m_per_px": plan.m_per_px,
+                                "origin_px": [float(origin[0]), float(origin[1])],
+                                "y_up": True}))
+    return path
+
+
+def compare_run(out: Path, workers: int | None) -> int:
+    """Track the recorded frames (all cores), compare with the simulation, report; the run
+    folder gains the comparison files and `run.json` its summary and timings."""
+    import time
+
+    from ros_nodes.cli_compare import CompareError, compare_recording
+    from ros_nodes.logic.sequence import SUMMARY_NAME
+
+    t0 = time.perf_counter()
+    try:
+        s = compare_recording(out, out, poses="track", workers=workers,
+                              progress=sys.stderr.isatty())
+    except CompareError as e:
+        print(f"metarig rig: the recording is kept, but the comparison failed: {e}",
+              file=sys.stderr)
+        return 1
+    run = json.loads((out / SUMMARY_NAME).read_text())
+    run["comparison"] = {k: s[k] for k in ("velocity_nrmse", "energy_map_correlation",
+                                           "target_peak_ke_rel_err", "max_displacement_error_m",
+                                           "lost_units", "onset_s", "mcap", "rrd")}
+    run.setdefault("timings_s", {})["track_and_compare"] = time.perf_counter() - t0
+    run["timings_s"]["total_with_comparison"] = (run["timings_s"].get("total_wall", 0.0)
+                                                 + run["timings_s"]["track_and_compare"])
+    (out / SUMMARY_NAME).write_text(json.dumps(run, indent=2, default=str))
+    log.info("compared in %.1f s: velocity NRMSE %.2f %%, target peak KE %+.1f %%, %d lost "
+             "units; open with: rerun %s", run["timings_s"]["track_and_compare"],
+             100 * s["velocity_nrmse"], 100 * s["target_peak_ke_rel_err"], s["lost_units"],
+             s["rrd"])
+    return 0
 
 
 def sequencer_main(argv: list[str] | None = None) -> int:

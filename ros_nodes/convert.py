@@ -14,7 +14,8 @@ from sensor_msgs.msg import CameraInfo, Image, JointState
 from std_msgs.msg import Float64, String
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from metarig_msgs.msg import UnitPose2DArray
+from metarig.trajectory import to_absolute
+from metarig_msgs.msg import ComparisonResult, UnitPose2DArray
 
 SHAKER_JOINT = "shaker"
 STAGE_JOINTS = ("stage_bottom", "stage_top")
@@ -100,12 +101,11 @@ def image(ns: int, frame: np.ndarray, frame_id: str = "camera") -> Image:
 
 
 def image_array(msg: Image) -> np.ndarray:
-    """mono8 / mono16 Image -> [H, W] array (a view on the message buffer)."""
-    if msg.encoding not in ENCODINGS:
-        raise ValueError(f"unsupported encoding {msg.encoding!r} (mono8, mono16)")
-    dt = np.dtype(ENCODINGS[msg.encoding]).newbyteorder(">" if msg.is_bigendian else "<")
-    a = np.frombuffer(msg.data, dt)
-    return a.reshape(msg.height, msg.step // dt.itemsize)[:, : msg.width]
+    """mono8 / mono16 Image -> [H, W] array (a view on the message buffer); colour encodings ->
+    [H, W, C] BGR. The one decoder: `tracking.frame_sources.image_from_msg`."""
+    from tracking.frame_sources import image_from_msg
+
+    return image_from_msg(msg)
 
 
 def camera_info(ns: int, width: int, height: int, m_per_px: float,
@@ -123,26 +123,50 @@ def camera_info(ns: int, width: int, height: int, m_per_px: float,
     return m
 
 
-def unit_poses(ns: int, ids, x, y, theta, quality=None, lost=None,
+def unit_poses(ns: int, q: np.ndarray, reference_m: np.ndarray, quality=None, lost=None,
                frame_id: str = "sample") -> UnitPose2DArray:
-    """Flat per-unit poses (sample frame, m, rad)."""
-    n = len(ids)
+    """One frame of a `Trajectory` -> message: displacements q [n, 3] (m, rad) from the
+    reference centroids [n, 2] (sample frame, m) become absolute poses; quality, lost [n].
+    The way back, for any number of frames: `metarig.trajectory.from_pose_messages`."""
+    q = np.asarray(q, np.float64)
+    n = q.shape[0]
+    x, y, theta = to_absolute(q, reference_m)
     m = UnitPose2DArray()
     m.header.stamp = stamp(ns)
     m.header.frame_id = frame_id
-    m.ids = np.asarray(ids, np.uint32)
-    m.x = np.asarray(x, np.float64)
-    m.y = np.asarray(y, np.float64)
-    m.theta = np.asarray(theta, np.float64)
+    m.ids = np.arange(n, dtype=np.uint32)
+    m.x, m.y, m.theta = x, y, np.asarray(theta, np.float64)
     m.quality = np.ones(n, np.float32) if quality is None else np.asarray(quality, np.float32)
     m.lost = [False] * n if lost is None else [bool(v) for v in lost]
     return m
 
 
-def unit_pose_arrays(msg: UnitPose2DArray) -> dict[str, np.ndarray | int]:
-    return {"t_ns": to_ns(msg.header.stamp), "ids": np.asarray(msg.ids),
-            "x": np.asarray(msg.x), "y": np.asarray(msg.y), "theta": np.asarray(msg.theta),
-            "quality": np.asarray(msg.quality), "lost": np.asarray(msg.lost, bool)}
+def comparison_result(onset_ns: int, comparison, summary: dict) -> ComparisonResult:
+    """A `comparison.metrics.Comparison` and its run summary -> the typed result message."""
+    m = comparison.metrics
+    r = ComparisonResult(
+        velocity_nrmse=float(m["velocity_nrmse"]),
+        energy_map_correlation=float(m["energy_map_correlation"]),
+        target_peak_ke_rel_err=float(m["target_peak_ke_rel_err"]),
+        max_displacement_error_m=float(m["max_displacement_error_m"]),
+        target_peak_ke_exp=float(m["target_peak_ke_exp_J"]),
+        target_peak_ke_sim=float(m["target_peak_ke_sim_J"]),
+        lost_units=int(m["lost_units"]), units_compared=int(m["units_compared"]),
+        input_source=str(summary.get("input_source", "")),
+        precompression_m=float(summary.get("precompression_m", 0.0)))
+    r.header.stamp = stamp(onset_ns)
+    r.t = np.asarray(comparison.t, np.float64)
+    r.target_ke_exp = np.asarray(comparison.target_ke_exp, np.float64)
+    r.target_ke_sim = np.asarray(comparison.target_ke_sim, np.float64)
+    r.velocity_error = np.asarray(comparison.velocity_error_t, np.float64)
+    return r
+
+
+def serialize(msg) -> bytes:
+    """CDR bytes of a message (what the recorder writes), without a running context."""
+    from rclpy.serialization import serialize_message
+
+    return serialize_message(msg)
 
 
 def text(s: str) -> String:

@@ -83,12 +83,23 @@ RECORDER_REPORT = Topic("/recorder/report", "std_msgs/msg/String", LATCHED, "rec
 DIAGNOSTICS = Topic("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", COMMAND,
                     "shaker, stage", "device diagnostics")
 POSES = Topic("/dic/poses", "metarig_msgs/msg/UnitPose2DArray", STREAM, "dic_tracker",
-              "tracked unit poses (decimated preview)")
+              "tracked unit poses (live: decimated preview; in a run's MCAP: every frame, "
+              "tracked after the capture)")
+IMAGE_PREVIEW = Topic("/camera/image_raw/compressed", "sensor_msgs/msg/CompressedImage", STREAM,
+                      "recorder", "lossless PNG copies of the frames, written into the MCAP "
+                      "only, so that Rerun shows them as images (it shows mono8 as depth)")
+COMPARE_RESULT = Topic("/compare/result", "metarig_msgs/msg/ComparisonResult", LATCHED,
+                       "comparison", "experiment against simulation: errors and energy series")
+COMPARE_SUMMARY = Topic("/compare/summary", "std_msgs/msg/String", LATCHED, "comparison",
+                        "the comparison's summary.json")
+COMPARE_SIMULATED = Topic("/compare/simulated_poses", "metarig_msgs/msg/UnitPose2DArray",
+                          STREAM, "comparison", "simulated unit poses at the frame times")
 
 TOPICS: tuple[Topic, ...] = (
     CLOCK, RIG_STOP, RIG_PHASE, RIG_DESIGN, RIG_CONFIG, SHAKER_COMMAND, SHAKER_JOINTS,
     STAGE_JOINTS, STAGE_TARGET, STAGE_STATE, IMAGE, CAMERA_INFO, GROUND_TRUTH, CAMERA_STATUS,
-    RECORDER_STATUS, RECORDER_REPORT, DIAGNOSTICS, POSES)
+    RECORDER_STATUS, RECORDER_REPORT, DIAGNOSTICS, POSES, IMAGE_PREVIEW, COMPARE_RESULT,
+    COMPARE_SUMMARY, COMPARE_SIMULATED)
 BY_NAME: dict[str, Topic] = {t.name: t for t in TOPICS}
 
 # what the recorder writes by default (status/report topics are bookkeeping, not data)
@@ -96,7 +107,7 @@ RECORDED: tuple[str, ...] = (
     CLOCK.name, RIG_STOP.name, RIG_PHASE.name, RIG_DESIGN.name, RIG_CONFIG.name,
     SHAKER_COMMAND.name, SHAKER_JOINTS.name, STAGE_JOINTS.name, STAGE_TARGET.name,
     STAGE_STATE.name, IMAGE.name, CAMERA_INFO.name, GROUND_TRUTH.name, DIAGNOSTICS.name,
-    POSES.name)
+    POSES.name, COMPARE_RESULT.name, COMPARE_SUMMARY.name, COMPARE_SIMULATED.name)
 
 # services
 SHAKER_FIRE = Service("/shaker/fire", "metarig_msgs/srv/FirePulse", "shaker")

@@ -1,4 +1,12 @@
-"""Imports flow one way: design_engine <- hardware_sim <- ros_nodes; ROS only at the edge."""
+"""Imports flow one way, ROS only at the edge, and no module imports itself round a circle.
+
+Layers (a package may import only those before it):
+    metarig base (trajectory, polygon, fields, argtypes: numpy only)
+    <- design_engine (JAX)            <- hardware_sim <- ros_nodes
+    <- tracking (DIC, no JAX, no simulator, no ROS)    <- ros_nodes
+    design_engine, tracking <- comparison (experiment against simulation, no ROS) <- ros_nodes
+`metarig.cli` / `metarig.__main__` dispatch to every package and are imported by none.
+"""
 
 import ast
 from pathlib import Path
@@ -6,17 +14,46 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("metarig", "design_engine", "tracking", "comparison", "hardware_sim", "ros_nodes")
 ROS_ALLOWED = ("ros_nodes/nodes/", "ros_nodes/convert.py")
+DISPATCH = ("metarig.cli", "metarig.__main__")
+MAY_IMPORT = {  # package -> project packages it may import (besides itself)
+    "metarig": set(),
+    "design_engine": {"metarig"},
+    "tracking": {"metarig"},
+    "comparison": {"metarig", "design_engine", "tracking"},
+    "hardware_sim": {"metarig", "design_engine"},
+    "ros_nodes": {"metarig", "design_engine", "tracking", "comparison", "hardware_sim"},
+}
 
 
-def _imports(path: Path) -> set[str]:
+def _module_name(path: Path) -> str:
+    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts = parts[:-1]
+    return ".".join(parts)
+
+
+def _imports(path: Path, names: bool = False) -> set[str]:
+    """Every module named by an import anywhere in the file (functions included); with `names`,
+    also `pkg.name` for each `from pkg import name` (which may be a submodule)."""
     tree = ast.parse(path.read_text(), filename=str(path))
+    here = _module_name(path).split(".")
+    if path.name != "__init__.py":
+        here = here[:-1]
     out = set()
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
             out.update(a.name for a in node.names)
-        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-            out.add(node.module)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                pkg = here[: len(here) - node.level + 1]
+                base = ".".join(pkg + ([base] if base else []))
+            if base:
+                out.add(base)
+                if names:
+                    out.update(f"{base}.{a.name}" for a in node.names)
         elif isinstance(node, ast.Call) and getattr(node.func, "attr", "") == "import_module":
             if node.args and isinstance(node.args[0], ast.Constant):
                 out.add(str(node.args[0].value))
@@ -33,23 +70,88 @@ def _files(pkg: str) -> list[Path]:
     return sorted((ROOT / pkg).rglob("*.py"))
 
 
-@pytest.mark.parametrize("pkg", ["design_engine", "hardware_sim", "ros_nodes"])
+def _project_graph() -> dict[str, set[str]]:
+    """Module -> project modules it imports (names resolved to existing modules)."""
+    mods = {_module_name(f): f for pkg in PACKAGES for f in _files(pkg)}
+    graph = {}
+    for name, f in mods.items():
+        graph[name] = {m for m in _imports(f, names=True) if m in mods and m != name}
+    return graph
+
+
+@pytest.mark.parametrize("pkg", PACKAGES)
 def test_layering(pkg):
     bad = []
     for f in _files(pkg):
         rel = f.relative_to(ROOT).as_posix()
-        for mod in _imports(f):
-            top = mod.split(".")[0]
-            if _is_ros(mod) and not rel.startswith(ROS_ALLOWED):
-                bad.append(f"{rel}: imports {mod} (only {', '.join(ROS_ALLOWED)} may)")
-            if pkg == "design_engine" and top in ("hardware_sim", "ros_nodes"):
-                bad.append(f"{rel}: design_engine imports {mod}")
-            if pkg == "hardware_sim" and top == "ros_nodes":
-                bad.append(f"{rel}: hardware_sim imports {mod}")
+        mod = _module_name(f)
+        for imp in _imports(f):
+            top = imp.split(".")[0]
+            if _is_ros(imp) and not rel.startswith(ROS_ALLOWED):
+                bad.append(f"{rel}: imports {imp} (only {', '.join(ROS_ALLOWED)} may)")
+            if mod in DISPATCH:
+                continue
+            if top in PACKAGES and top != pkg and top not in MAY_IMPORT[pkg]:
+                bad.append(f"{rel}: {pkg} imports {imp}")
+            if imp.startswith(DISPATCH):
+                bad.append(f"{rel}: imports the command dispatcher {imp}")
+            if pkg == "metarig" and top not in ("metarig", "numpy", "os", "dataclasses",
+                                                "pathlib", "argparse", "math", "__future__"):
+                bad.append(f"{rel}: the numpy-only base imports {imp}")
     assert not bad, "\n".join(bad)
 
 
-def test_the_walker_sees_ros_imports():
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components with more than one module (Tarjan, iterative)."""
+    index, low, on, stack, out, counter = {}, {}, set(), [], [], [0]
+    for root in graph:
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph[root])))]
+        index[root] = low[root] = counter[0]
+        counter[0] += 1
+        stack.append(root)
+        on.add(root)
+        while work:
+            v, it = work[-1]
+            for w in it:
+                if w not in index:
+                    index[w] = low[w] = counter[0]
+                    counter[0] += 1
+                    stack.append(w)
+                    on.add(w)
+                    work.append((w, iter(sorted(graph[w]))))
+                    break
+                if w in on:
+                    low[v] = min(low[v], index[w])
+            else:
+                work.pop()
+                if work:
+                    low[work[-1][0]] = min(low[work[-1][0]], low[v])
+                if low[v] == index[v]:
+                    comp = []
+                    while True:
+                        w = stack.pop()
+                        on.discard(w)
+                        comp.append(w)
+                        if w == v:
+                            break
+                    if len(comp) > 1:
+                        out.append(sorted(comp))
+    return out
+
+
+def test_no_import_circles():
+    # Importing a package itself (`import design_engine` for its set-up, or a re-export from
+    # its `__init__`) is not counted: a circle is between modules.
+    graph = {m: {d for d in deps if d not in PACKAGES} for m, deps in _project_graph().items()}
+    circles = _cycles(graph)
+    assert not circles, "import circles:\n" + "\n".join(" <-> ".join(c) for c in circles)
+
+
+def test_the_walker_sees_ros_imports_and_circles():
     assert _is_ros("rclpy.node") and _is_ros("sensor_msgs.msg") and _is_ros("metarig_msgs.msg")
     assert _is_ros("std_srvs.srv") and not _is_ros("numpy")
     assert "rclpy" in _imports(ROOT / "ros_nodes/nodes/_common.py")
+    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert _cycles({"a": {"b"}, "b": set()}) == []

@@ -1,0 +1,201 @@
+"""The engine on exactly the measured input: shaker (or driven units) and stage closing.
+
+Times are on the rig clock: s since the rig started at rest (t = 0), as the recording's stamps.
+A recording usually starts after the stages have pre-compressed the sample and settled; the
+stage closing before its first sample is rebuilt as the rig made it: a constant-speed ramp from
+rest that ended when the stages reported `holding` (or at the first sample).
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from metarig.trajectory import Trajectory
+
+
+@dataclass(frozen=True)
+class MeasuredInput:
+    """What drove the sample: the input displacement and the stage closing (SI, rig clock).
+
+    Attributes:
+        t_s, u_m: [n] input displacement into the specimen, m, at times s.
+        source: "tracked" (the driven units' tracked motion) or "shaker" (its joint state).
+        stage_t_s, stage_closing_m: [m] total closing of the two stage rows, or None.
+        precompression_m: the closing reached before the pulse, m (0 without stages).
+    """
+
+    t_s: np.ndarray
+    u_m: np.ndarray
+    source: str
+    stage_t_s: np.ndarray | None
+    stage_closing_m: np.ndarray | None
+    precompression_m: float
+
+
+def input_motion(poses: Trajectory, input_units, shaker_t_s=None, shaker_u_m=None,
+                 frame_t0_s: float = 0.0) -> tuple[np.ndarray, np.ndarray, str]:
+    """The measured input: the driven units' mean tracked u where all of them were tracked in
+    every frame, else the shaker's measured position.
+
+    Args:
+        poses: tracked motion, t relative to the first frame at rig time `frame_t0_s`.
+        input_units: ids of the driven units.
+        shaker_t_s, shaker_u_m: [n] shaker position record on the rig clock (or None).
+
+    Raises:
+        ValueError: the driven units were not tracked and there is no shaker record.
+    """
+    ids = np.asarray(input_units, np.int64)
+    if ids.size and poses.valid[:, ids].all():
+        return poses.t + frame_t0_s, poses.q[:, ids, 0].mean(axis=1), "tracked"
+    if shaker_t_s is None or len(shaker_t_s) < 2:
+        raise ValueError("the driven units were not tracked in every frame and the recording "
+                         "holds no shaker joint states: no measured input")
+    return np.asarray(shaker_t_s, np.float64), np.asarray(shaker_u_m, np.float64), "shaker"
+
+
+def stage_history(stage_t_s, stage_closing_m, closing_speed_m_s: float,
+                  hold_t_s: float | None = None) -> tuple[np.ndarray, np.ndarray, float]:
+    """Stage closing from rest: the measured samples, preceded by the rig's ramp if they start
+    pre-compressed. Returns (t [m'] s, closing [m'] m, closing reached at the first sample m)."""
+    t = np.asarray(stage_t_s, np.float64)
+    c = np.asarray(stage_closing_m, np.float64)
+    reached = float(np.median(c[: max(1, min(10, c.size))]))
+    if abs(reached) < 1e-7 or t[0] <= 0:
+        return t, c, reached
+    end = min(t[0], hold_t_s) if hold_t_s is not None else t[0]
+    start = max(0.0, end - abs(reached) / closing_speed_m_s)
+    head_t, head_c = [start, end], [0.0, reached]
+    if start > 0:
+        head_t, head_c = [0.0, *head_t], [0.0, *head_c]
+    keep = t > end
+    return np.r_[head_t, t[keep]], np.r_[head_c, c[keep]], reached
+
+
+INPUT_DT_S = 1e-4  # the engine interpolates inputs linearly: resample finer than this
+
+
+def smooth_input(t_s, u_m) -> tuple[np.ndarray, np.ndarray]:
+    """A sampled input record made smooth for the engine's linear interpolation: records coarser
+    than `INPUT_DT_S` (camera-rate tracking, 1 kHz joint states) are resampled on a cubic
+    spline, whose velocity is continuous where a polyline's jumps at every sample."""
+    from scipy.interpolate import CubicSpline
+
+    t, u = np.asarray(t_s, np.float64), np.asarray(u_m, np.float64)
+    t, keep = np.unique(t, return_index=True)
+    u = u[keep]
+    if t.size < 4 or np.median(np.diff(t)) <= INPUT_DT_S:
+        return t, u
+    fine = np.linspace(t[0], t[-1], int(np.ceil((t[-1] - t[0]) / INPUT_DT_S)) + 1)
+    return fine, CubicSpline(t, u)(fine)
+
+
+def simulate_measured(scene, frame_t_s: np.ndarray, measured: MeasuredInput,
+                      config=None) -> Trajectory:
+    """The engine's motion of `scene` at the frame times (rig clock, s) under the measured input,
+    from rest at t = 0; q from the undeformed reference, as the engine gives it."""
+    from design_engine.run import simulate_rig
+
+    t_in, u_in = smooth_input(measured.t_s, measured.u_m)
+    if t_in[0] > 0:  # at rest before the record
+        t_in, u_in = np.r_[0.0, t_in], np.r_[0.0, u_in]
+    has_stages = len(scene.stage_units_top) > 0 and measured.stage_t_s is not None
+    return simulate_rig(scene, np.asarray(frame_t_s, np.float64), t_in, u_in,
+                        measured.stage_t_s if has_stages else None,
+                        measured.stage_closing_m if has_stages else None, config=config)
+
+
+def scene_of_design(doc: dict):
+    """The nominal engine scene of a recorded design document (the rig's `/rig/design`).
+
+    The document names the scene preset and lattice size; a `design_m` vector (metres), when
+    present, replaces the preset's periodic design. True-parameter factors of a perturbed
+    simulated specimen are deliberately ignored: the comparison tests the nominal model.
+
+    Raises:
+        ValueError: the document does not describe a scene.
+    """
+    from design_engine.geometry import InvalidDesignError
+    from design_engine.scenes import build_scene
+
+    try:
+        nx, ny = (doc["nx"], doc["ny"]) if "nx" in doc else doc["lattice"]["shape"]
+        scene = build_scene(doc["scene"], nx=int(nx), ny=int(ny),
+                            bias_angle_deg=doc.get("bias_angle_deg"), strain=0.0)
+        if doc.get("design_m") is not None:
+            scene = scene.with_design(np.asarray(doc["design_m"], np.float64) * 1e3)
+    except (KeyError, TypeError) as exc:
+        raise ValueError(f"the design document lacks the scene or lattice size ({exc})") from None
+    except InvalidDesignError as exc:
+        raise ValueError(f"the recorded design is invalid: {exc}") from None
+    return scene
+
+
+@dataclass(frozen=True)
+class ExperimentComparison:
+    """One experiment against its simulation: inputs used, both trajectories and the result.
+
+    Attributes:
+        measured: tracked motion, t from the first frame, q from the first frame.
+        simulated: the engine's motion at the same times, q from the same first frame.
+        simulated_abs: the engine's motion with q from the undeformed design (for drawing).
+        input: what drove the simulation.
+        comparison: fields and errors (`comparison.metrics.Comparison`).
+        frame_t0_s: rig time of the first frame, s.
+    """
+
+    measured: Trajectory
+    simulated: Trajectory
+    simulated_abs: Trajectory
+    input: MeasuredInput
+    comparison: object
+    frame_t0_s: float
+
+
+def compare_experiment(scene, poses: Trajectory, frame_t0_s: float, shaker_t_s=None,
+                       shaker_u_m=None, stage_t_s=None, stage_closing_m=None,
+                       closing_speed_m_s: float | None = None, stage_hold_s: float | None = None,
+                       config=None) -> ExperimentComparison:
+    """Simulate the measured experiment and compare (spec 12.4).
+
+    Args:
+        scene: the nominal scene of the design on the rig (`scene_of_design`).
+        poses: tracked motion, t [n_t] s from the first frame, q from the reference frame.
+        frame_t0_s: rig time of the first frame, s.
+        shaker_t_s, shaker_u_m: measured shaker position record (rig clock), or None.
+        stage_t_s, stage_closing_m: measured total stage closing (rig clock), or None.
+        closing_speed_m_s: the stages' closing speed (rebuilds the ramp before the record).
+        stage_hold_s: rig time the stages reported `holding`, or None.
+
+    Raises:
+        ValueError: inconsistent inputs (the message says which).
+    """
+    from comparison.metrics import compare, pulse_onset
+    from design_engine.regions import row_units
+
+    if poses.n_units != scene.n_units:
+        raise ValueError(f"the recording tracks {poses.n_units} units but the design has "
+                         f"{scene.n_units}: the design does not match the recording")
+    if poses.n_t < 3:
+        raise ValueError(f"the recording holds {poses.n_t} frames; the comparison needs 3 or more")
+    t_in, u_in, source = input_motion(poses, scene.input_units, shaker_t_s, shaker_u_m, frame_t0_s)
+    st = sc = None
+    reached = 0.0
+    if len(scene.stage_units_top) and stage_t_s is not None and len(stage_t_s) >= 2:
+        st, sc, reached = stage_history(stage_t_s, stage_closing_m,
+                                        closing_speed_m_s or 0.25 * scene.sample_height_m,
+                                        stage_hold_s)
+    measured_input = MeasuredInput(t_in, u_in, source, st, sc, reached)
+    sim_abs = simulate_measured(scene, poses.t + frame_t0_s, measured_input, config=config)
+    if not np.all(np.isfinite(sim_abs.q)):
+        raise ValueError("the simulation of the measured experiment did not finish (non-finite)")
+    sim_abs = Trajectory(t=poses.t, q=sim_abs.q, qdot=sim_abs.qdot)
+    simulated = Trajectory.from_positions(poses.t, sim_abs.q - sim_abs.q[0])
+    onset = pulse_onset(t_in - frame_t0_s, u_in)
+    target = np.unique(np.concatenate([np.asarray(v) for v in scene.targets.values()]))
+    row = row_units(scene.lattice, scene.line_row)
+    measured = Trajectory.from_positions(poses.t, poses.q - np.nan_to_num(poses.q[0]),
+                                         quality=poses.quality, lost=poses.lost)
+    result = compare(measured, simulated, scene.unit_masses_kg(), scene.unit_inertias_kgm2(),
+                     target, row, onset)
+    return ExperimentComparison(measured, simulated, sim_abs, measured_input, result, frame_t0_s)

@@ -57,15 +57,16 @@ def _calibration_path(run_dir: Path | None, given: str | None) -> Path | None:
 def track_recording(mcap: Path, polygons_m: np.ndarray, calibration: Path, workers: int,
                     progress: bool, dic=None):
     """Track every frame of the recording with the offline tracker (all cores); `dic`: a
-    `tracking.dic.DICConfig` (default settings when None)."""
+    `tracking.dic.DICConfig` (None: the defaults, fitted to the smallest unit)."""
     from tracking.batch import track_source
     from tracking.calibration import load_calibration
-    from tracking.dic import DICConfig
+    from tracking.dic import settings_for_units
     from tracking.frame_sources import open_source
 
     spec = open_source(mcap, topics.IMAGE.name, kind="mcap")
-    traj, _bad = track_source(spec, polygons_m, load_calibration(calibration),
-                              dic or DICConfig(), workers=workers, progress=progress)
+    calib = load_calibration(calibration)
+    dic = dic or settings_for_units(polygons_m, calib.m_per_px)
+    traj, _bad = track_source(spec, polygons_m, calib, dic, workers=workers, progress=progress)
     return traj
 
 
@@ -235,13 +236,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="calibration JSON for tracking (default: calibration.json beside it)")
     p.add_argument("--workers", type=positive(int), default=None,
                    help="tracker processes (default: cores)")
-    from tracking.dic import DICConfig
+    from tracking.dic import SMALL_UNIT_MARGIN_PX, SMALL_UNIT_MIN_POINTS, DICConfig
 
     d = DICConfig()
-    p.add_argument("--margin-px", type=float, default=d.margin_px,
-                   help="tracking: subset distance from the unit outline, px")
-    p.add_argument("--min-points", type=positive(int), default=d.min_points,
-                   help="tracking: units with fewer subset pixels are not tracked")
+    p.add_argument("--margin-px", type=float, default=None,
+                   help=f"tracking: subset distance from the unit outline, px (default "
+                   f"{d.margin_px}, {SMALL_UNIT_MARGIN_PX} when the smallest unit needs it)")
+    p.add_argument("--min-points", type=positive(int), default=None,
+                   help=f"tracking: units with fewer subset pixels are not tracked (default "
+                   f"{d.min_points}, {SMALL_UNIT_MIN_POINTS} when the smallest unit needs it)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     return p
 
@@ -255,7 +258,12 @@ def compare_main(argv: list[str] | None = None) -> int:
 
         from tracking.dic import DICConfig
 
-        dic = replace(DICConfig(), margin_px=args.margin_px, min_points=args.min_points)
+        dic = None  # defaults fitted to the smallest unit, unless set here
+        if args.margin_px is not None or args.min_points is not None:
+            d = DICConfig()
+            dic = replace(d, margin_px=d.margin_px if args.margin_px is None else args.margin_px,
+                          min_points=d.min_points if args.min_points is None else
+                          args.min_points)
         s = compare_recording(args.source, args.out, args.poses, args.calibration,
                               args.workers, progress=not args.quiet and sys.stderr.isatty(),
                               dic=dic)

@@ -78,6 +78,8 @@ class CameraNodeConfig:
     scene: str = param("precompression-24x18", "sim: design_engine scene name")
     nx: int = param(24, "sim: units along x", 2, 200)
     ny: int = param(16, "sim: units along y", 2, 200)
+    design_path: str = param("", "sim: design file of the sample (empty: the scene's periodic "
+                             "design); its lattice sets nx, ny")
     perturb: float = param(0.0, "sim: relative spread of the specimen's true stiffnesses", 0.0, 0.5)
     noise_std: float = param(0.01, "sim: read noise, fraction of full scale", 0.0, 0.5)
     lighting_gradient: float = param(0.15, "sim: left-right lighting gradient", 0.0, 0.9)
@@ -229,3 +231,13 @@ def load_yaml(path: str | Path, node_name: str) -> dict[str, Any]:
         if isinstance(entry, dict):
             flatten(entry.get("ros__parameters", {}) or {})
     return out
+
+
+@dataclass(frozen=True, slots=True)
+class CompareNodeConfig:
+    """Parameters of the comparison node (experiment against simulation)."""
+
+    out_dir: str = param("", "folder for summary.json, comparison.rrd and the plots "
+                         "(empty: publish only)")
+    auto: bool = param(True, "compare when /rig/phase reports stop or done (poses received)")
+    min_frames: int = param(3, "fewer pose frames than this: refused", 3, 10**9)

@@ -52,6 +52,8 @@ NODES: dict[str, NodeSpec] = {s.name: s for s in (
              "ros_nodes.cli_rig:sequencer_main"),
     NodeSpec("dic_tracker", "metarig-dic", _N + "dic_tracker_node:DICTrackerNode",
              "ros_nodes.dic_params:DICNodeConfig"),
+    NodeSpec("comparison", "metarig-compare", _N + "compare_node:CompareNode",
+             _P + "CompareNodeConfig"),
 )}
 
 # the device nodes `metarig rig` starts, in start order (the sequencer runs in its own process)

@@ -120,10 +120,11 @@ CAMERA_STOP = Service("/camera/stop", "std_srvs/srv/Trigger", "camera")
 RECORDER_START = Service("/recorder/start", "std_srvs/srv/Trigger", "recorder")
 RECORDER_STOP = Service("/recorder/stop", "std_srvs/srv/Trigger", "recorder")
 DIC_RESET = Service("/dic_tracker/reset_reference", "std_srvs/srv/Trigger", "dic_tracker")
+COMPARE_RUN = Service("/compare/run", "std_srvs/srv/Trigger", "comparison")
 
 SERVICES: tuple[Service, ...] = (
     SHAKER_FIRE, SHAKER_STOP, STAGE_SET_STRAIN, STAGE_STOP, STAGE_RESET, CAMERA_START,
-    CAMERA_STOP, RECORDER_START, RECORDER_STOP, DIC_RESET)
+    CAMERA_STOP, RECORDER_START, RECORDER_STOP, DIC_RESET, COMPARE_RUN)
 
 
 def markdown_table() -> str:

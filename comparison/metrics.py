@@ -92,11 +92,14 @@ def frame_rates(t: np.ndarray, q: np.ndarray) -> np.ndarray:
     from scipy.signal import savgol_filter
 
     t, q = np.asarray(t, np.float64), np.asarray(q, np.float64)
+    out = np.gradient(q, t, axis=0) if t.size >= 2 else np.full_like(q, np.nan)
     dt = np.diff(t)
     if t.size >= RATE_WINDOW and np.allclose(dt, dt[0], rtol=1e-6, atol=0):
-        return savgol_filter(q, RATE_WINDOW, 2, deriv=1, delta=float(dt[0]), axis=0,
-                             mode="interp")
-    return np.gradient(q, t, axis=0)
+        flat, rates = q.reshape(t.size, -1), out.reshape(t.size, -1)
+        ok = np.all(np.isfinite(flat), axis=0)  # series with a lost sample keep NaN there
+        rates[:, ok] = savgol_filter(flat[:, ok], RATE_WINDOW, 2, deriv=1, delta=float(dt[0]),
+                                     axis=0, mode="interp")
+    return out
 
 
 def kinetic_energy(qdot: np.ndarray, mass: np.ndarray, inertia: np.ndarray) -> np.ndarray:

@@ -332,3 +332,25 @@ def _update_references(
     log.debug("reference updated for %d units", idx.size)
     return replace(state, refs=replace_refs(state.refs, idx, sub), ref_alpha=ref_alpha,
                    ref_t=ref_t)
+
+
+SMALL_UNIT_MARGIN_PX = 1.5
+SMALL_UNIT_MIN_POINTS = 16
+
+
+def settings_for_units(polygons_m: np.ndarray, m_per_px: float,
+                       cfg: DICConfig | None = None) -> DICConfig:
+    """`cfg` (default settings when None), with a thinner outline margin and a smaller subset
+    floor when the smallest unit would otherwise hold fewer than `min_points` subset pixels
+    (area minus a `margin_px` band along the perimeter, in px^2): small or slender units in a
+    modest image are then tracked instead of lost."""
+    from metarig.polygon import signed_areas
+
+    cfg = cfg or DICConfig()
+    p = np.asarray(polygons_m, np.float64) / m_per_px
+    area = np.abs(signed_areas(p))
+    perimeter = np.linalg.norm(p - np.roll(p, -1, axis=-2), axis=-1).sum(axis=-1)
+    if np.min(area - perimeter * cfg.margin_px) >= cfg.min_points:
+        return cfg
+    return replace(cfg, margin_px=min(cfg.margin_px, SMALL_UNIT_MARGIN_PX),
+                   min_points=min(cfg.min_points, SMALL_UNIT_MIN_POINTS))

@@ -25,6 +25,8 @@ class SpecimenConfig:
     nx: int = param(24, "units along x", 2, 200)
     ny: int = param(16, "units along y", 2, 200)
     bias_angle_deg: float = param(25.0, "bias angle of the periodic design, deg", -45.0, 45.0)
+    design_path: str = param("", "design file (metarig-design/1) of the sample; its lattice "
+                             "sets nx, ny (empty: the periodic design)")
     perturb: float = param(0.0, "relative (1 sigma) spread of true stiffnesses and damping",
                            0.0, 0.5)
     seed: int = param(0, "seed of the perturbation", 0, 2**31 - 1)
@@ -71,8 +73,19 @@ def build(cfg: SpecimenConfig) -> Specimen:
     import design_engine as de
     import equinox as eqx
 
-    scene = de.build_scene(cfg.scene, nx=cfg.nx, ny=cfg.ny, bias_angle_deg=cfg.bias_angle_deg,
+    nx, ny, design = cfg.nx, cfg.ny, None
+    if cfg.design_path:
+        from design_engine.design_io import load_design
+
+        lattice, design = load_design(cfg.design_path)
+        nx, ny = lattice.shape
+    scene = de.build_scene(cfg.scene, nx=nx, ny=ny, bias_angle_deg=cfg.bias_angle_deg,
                            strain=0.0)
+    if design is not None:
+        if scene.lattice.kind != lattice.kind:
+            raise ValueError(f"{cfg.design_path}: a {lattice.kind} design does not fit the "
+                             f"{scene.lattice.kind} scene {cfg.scene}")
+        scene = scene.with_design(design)
     factors = {}
     if cfg.perturb > 0:
         rng = np.random.default_rng(cfg.seed)

@@ -56,10 +56,19 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _plan(args):
+    """The plan of the flags; a `--design` file sets nx, ny from its lattice."""
     from ros_nodes.logic.sequence import ExperimentPlan
 
-    return ExperimentPlan(**{f.name: getattr(args, f.name)
-                             for f in dataclasses.fields(ExperimentPlan) if f.name not in NO_FLAG})
+    values = {f.name: getattr(args, f.name)
+              for f in dataclasses.fields(ExperimentPlan) if f.name not in NO_FLAG}
+    if values.get("design"):
+        path = Path(values["design"])
+        try:
+            values["nx"], values["ny"] = json.loads(path.read_text())["lattice"]["shape"]
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            raise ValueError(f"--design {path}: not a readable design file ({e})") from None
+        values["design"] = str(path.resolve())
+    return ExperimentPlan(**values)
 
 
 def _node_params(plan, out: Path, params_file: Path | None,
@@ -120,7 +129,8 @@ def write_calibration(plan, out: Path) -> Path:
     from hardware_sim.rig import centred_origin
     from hardware_sim.specimen import SpecimenConfig, build
 
-    polygons = build(SpecimenConfig(scene=plan.scene, nx=plan.nx, ny=plan.ny)).polygons_m
+    polygons = build(SpecimenConfig(scene=plan.scene, nx=plan.nx, ny=plan.ny,
+                                    design_path=plan.design)).polygons_m
     origin = centred_origin(polygons, plan.width, plan.height, plan.m_per_px)
     path = out / CALIBRATION_NAME
     path.write_text(json.dumps({"fps": plan.fps, "m_per_px": plan.m_per_px,

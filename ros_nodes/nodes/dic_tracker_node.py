@@ -41,8 +41,8 @@ NAME = "dic_tracker"
 class DICTrackerNode(Node):
     """Adapter: camera frames -> `LivePreview` -> pose messages."""
 
-    def __init__(self):
-        super().__init__(NAME)
+    def __init__(self, **kwargs):
+        super().__init__(NAME, **kwargs)
         self._params = TypedParams(self, DICNodeConfig)
         cfg = self._params.config
         try:

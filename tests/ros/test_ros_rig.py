@@ -110,10 +110,23 @@ def _check_experiment(out: Path, record_s: float = 0.04, fps: float = 1000.0) ->
 def test_full_simulated_experiment_in_process(tmp_path, ros_env):
     out = tmp_path / "run"
     t0 = time.monotonic()
-    r = subprocess.run([BIN + "metarig", "rig", "--out", str(out), *SMALL], env=ros_env,
-                       capture_output=True, text=True, timeout=400)
+    r = subprocess.run([BIN + "metarig", "rig", "--out", str(out), "--live-dic", *SMALL],
+                       env=ros_env, capture_output=True, text=True, timeout=400)
     assert r.returncode == 0, r.stderr[-3000:]
     _check_experiment(out)
+    # tracked after the capture and compared: the run folder and its MCAP hold the results
+    run = json.loads((out / "run.json").read_text())
+    summary = json.loads((out / "summary.json").read_text())
+    assert run["comparison"]["velocity_nrmse"] == summary["velocity_nrmse"] < 0.25
+    assert summary["lost_units"] == 0 and summary["energy_map_correlation"] > 0.99
+    for f in ("comparison.rrd", "velocity_maps.png", "target_ke.png", "row_peak_ke.png",
+              "tracking_quality.png", "tracks.npz", "simulated.npz", "calibration.json"):
+        assert (out / f).stat().st_size > 0, f
+    msgs = _read(out / "recording.mcap")
+    n = len(msgs[T.IMAGE.name])
+    assert len(msgs[T.POSES.name]) == n  # the live preview's poses replaced by every frame's
+    assert len(msgs[T.COMPARE_RESULT.name]) == 1 and len(msgs[T.IMAGE_PREVIEW.name]) == n
+    assert run["recording"]["topics"][T.POSES.name]["count"] > 0  # the live node ran
     print(f"in-process experiment: {time.monotonic() - t0:.1f} s wall")
 
 

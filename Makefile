@@ -11,13 +11,14 @@ $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 	$(BIN)/pip install -q -c constraints.txt -e ".[dev]"
-	$(BIN)/python -m ros_nodes.interfaces.build
+	$(BIN)/python -m ros_nodes.interfaces.build > $(VENV)/interfaces-build.log 2>&1 \
+		|| (tail -n 40 $(VENV)/interfaces-build.log; exit 1)
 	touch $(STAMP)
 
 install: $(STAMP)
 
 demo: install
-	$(BIN)/metarig simulate --out runs/demo
+	$(BIN)/metarig demo --out runs/demo
 
 test: install
 	$(BIN)/python -m pytest

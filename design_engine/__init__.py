@@ -11,6 +11,11 @@ import os
 
 os.environ.setdefault("EQX_ON_ERROR", "nan")
 
+import logging  # noqa: E402
+
+# JAX probes for accelerators at start-up and logs a warning for each one it does not find
+logging.getLogger("jax._src.xla_bridge").setLevel(logging.ERROR)
+
 import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)

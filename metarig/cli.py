@@ -20,6 +20,8 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     "rig": ("ros_nodes.cli_rig", "rig_main", "run an experiment on the simulated (or real) rig"),
     "recover": ("ros_nodes.cli_rig", "recover_main", "salvage an MCAP recording whose writer was killed"),
     "track": ("tracking.cli", "track_main", "track unit poses in frames by DIC"),
+    "demo": ("ros_nodes.cli_demo", "demo_main",
+             "the main job: design a small lattice, test it on the simulated rig, compare"),
     "compare": ("ros_nodes.cli_compare", "compare_main",
                 "compare a recorded experiment with the simulation of its measured input"),
 }

@@ -18,7 +18,7 @@ from pathlib import Path
 
 DEMO_TASK = "focusing-demo"
 RIG_ARGS = ["--scene", "focusing-24x16", "--strain", "0", "--amplitude", "0.002",
-            "--width", "360", "--height", "280", "--m-per-px", "4e-4", "--record-s", "0.08"]
+            "--width", "480", "--height", "360", "--m-per-px", "3e-4", "--record-s", "0.08"]
 
 log = logging.getLogger("metarig.demo")
 

@@ -12,15 +12,18 @@ def test_shaker_refuses_out_of_limits_then_plays_a_pulse_and_stops(ros_node, sta
     from std_srvs.srv import Trigger
     from trajectory_msgs.msg import JointTrajectory
 
-    from ros_nodes.nodes._common import LATCHED, STREAM
+    from ros_nodes import topics as T
+    from ros_nodes.nodes._common import LATCHED, qos_profile
 
+    # a deep reader queue: a node that stalls under load catches up in a burst of samples
+    deep = qos_profile(T.SHAKER_JOINTS.qos, depth=5000)
     params = tmp_path / "shaker.yaml"
     params.write_text("shaker:\n  ros__parameters:\n    device:\n      max_amplitude_m: 0.008\n")
     proc = start_node("metarig-shaker", "--params-file", str(params))
     node, ex = ros_node
     try:
         states, cmds = [], []
-        node.create_subscription(JointState, "/shaker/joint_states", states.append, STREAM)
+        node.create_subscription(JointState, T.SHAKER_JOINTS.name, states.append, deep)
         node.create_subscription(JointTrajectory, "/shaker/command", cmds.append, LATCHED)
         fire = node.create_client(FirePulse, "/shaker/fire")
         # the YAML limit (8 mm) is in force: 10 mm is refused with the reason
@@ -63,13 +66,15 @@ def test_stage_moves_holds_refuses_and_validates_parameters(ros_node, start_node
     from sensor_msgs.msg import JointState
     from std_msgs.msg import String
 
-    from ros_nodes.nodes._common import LATCHED, STREAM
+    from ros_nodes import topics as T
+    from ros_nodes.nodes._common import LATCHED, qos_profile
 
     proc = start_node("metarig-stage")
     node, ex = ros_node
     try:
         states, modes = [], []
-        node.create_subscription(JointState, "/stage/joint_states", states.append, STREAM)
+        node.create_subscription(JointState, T.STAGE_JOINTS.name, states.append,
+                                 qos_profile(T.STAGE_JOINTS.qos, depth=5000))
         node.create_subscription(String, "/stage/state", lambda m: modes.append(m.data), LATCHED)
         setp = node.create_client(SetStrain, "/stage/set_strain")
         r = call(setp, SetStrain.Request(strain=0.15), ex)

@@ -109,8 +109,9 @@ def scene_of_design(doc: dict):
     """The nominal engine scene of a recorded design document (the rig's `/rig/design`).
 
     The document names the scene preset and lattice size; a `design_m` vector (metres), when
-    present, replaces the preset's periodic design. True-parameter factors of a perturbed
-    simulated specimen are deliberately ignored: the comparison tests the nominal model.
+    present, replaces the preset's periodic design; `material_si` (SI values of the sample's
+    material file), when present, replaces the default material. True-parameter factors of a
+    perturbed simulated specimen are deliberately ignored: the comparison tests the nominal model.
 
     Raises:
         ValueError: the document does not describe a scene.
@@ -124,6 +125,10 @@ def scene_of_design(doc: dict):
                             bias_angle_deg=doc.get("bias_angle_deg"), strain=0.0)
         if doc.get("design_m") is not None:
             scene = scene.with_design(np.asarray(doc["design_m"], np.float64) * 1e3)
+        if doc.get("material_si") is not None:
+            from design_engine.material_file import with_material
+
+            scene = with_material(scene, dict(doc["material_si"]))
     except (KeyError, TypeError) as exc:
         raise ValueError(f"the design document lacks the scene or lattice size ({exc})") from None
     except InvalidDesignError as exc:

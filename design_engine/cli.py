@@ -35,6 +35,17 @@ def _scene_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--task", help="task preset or task file: simulate its first scene (with "
                    "--design, that design) and report the task's objectives as `metarig design` "
                    "optimises them")
+    p.add_argument("--material", type=Path, help="material file (TOML, metarig-material/1, SI) "
+                   "replacing the scene's default material (README 'Material files')")
+
+
+def _with_material(args, scene):
+    """The scene with the material of `--material` (if given)."""
+    if getattr(args, "material", None) is None:
+        return scene
+    from design_engine.material_file import with_material
+
+    return with_material(scene, args.material)
 
 
 def _build(args):
@@ -53,9 +64,10 @@ def _build(args):
         return task.scenes[task.terms[0].scene]
     if args.samples is not None and args.samples < 2:
         raise ValueError("--samples must be at least 2")
-    return build_scene(args.preset, nx=nx, ny=ny, bias_angle_deg=args.bias_angle_deg,
-                       amplitude_m=args.amplitude, frequency_hz=args.frequency,
-                       strain=args.precompression, design=design, n_samples=args.samples)
+    return _with_material(args, build_scene(
+        args.preset, nx=nx, ny=ny, bias_angle_deg=args.bias_angle_deg, amplitude_m=args.amplitude,
+        frequency_hz=args.frequency, strain=args.precompression, design=design,
+        n_samples=args.samples))
 
 
 def _task(args, nx, ny, design):
@@ -63,7 +75,7 @@ def _task(args, nx, ny, design):
     from design_engine.task import load_task
 
     task = load_task(args.task, size=(nx, ny) if nx and ny else None,
-                     bias_angle_deg=args.bias_angle_deg)
+                     bias_angle_deg=args.bias_angle_deg, material=getattr(args, "material", None))
     if design is not None:
         if design.size != task.lattice.n_design:
             raise ValueError(f"the design does not fit the task's {task.lattice.kind} lattice")
@@ -171,6 +183,7 @@ def simulate_main(argv: list[str] | None = None) -> int:
                "precompression_strain": float(scene.loading.strain),
                "amplitude_m": float(scene.loading.amplitude) / 1e3,
                "frequency_hz": float(scene.loading.frequency) * 1e3,
+               "material_si": scene.material.to_si(),
                "wall_s": time.perf_counter() - t0, **run.metrics}
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     ke = _block_ke_si(run)

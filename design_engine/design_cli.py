@@ -69,6 +69,8 @@ def design_main(argv: list[str] | None = None) -> int:
                    "seed (periodic design + uniform noise, spec 3.1)")
     p.add_argument("--algorithm", choices=("mma", "nlopt-mma", "nlopt-ccsaq"),
                    help="optimiser (default the task's: mma)")
+    p.add_argument("--material", type=Path, help="material file (TOML, metarig-material/1, SI) "
+                   "for every scene of the task (default: the default material)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out")
     p.add_argument("--list", action="store_true", help="list the task presets and exit")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
@@ -95,7 +97,7 @@ def design_main(argv: list[str] | None = None) -> int:
     try:
         task = load_task(args.task, size=args.size, max_evals=args.max_evals,
                          max_time_s=args.max_time, bias_angle_deg=args.bias_angle_deg,
-                         seed=args.seed, algorithm=args.algorithm)
+                         seed=args.seed, algorithm=args.algorithm, material=args.material)
         out = args.out or Path("runs") / f"design-{task.name}"
         log.info("task %s (%s): %s lattice %dx%d, %d design variables, %d constraints, "
                  "%d scene(s), budget %d evaluations / %.0f s, optimiser %s",
@@ -138,7 +140,9 @@ def write_outputs(task, out: Path, result, plots: bool = True) -> None:
     log.info("time: simulation %.1f s, constraint Jacobians %.1f s, optimiser step %.1f s",
              totals["sim_s"], totals["jac_s"], totals["opt_s"])
     if result.status == "interrupted":
-        log.info("resume with: metarig design %s --out %s --resume", task.source, out)
+        mat = task.document.get("material")
+        log.info("resume with: metarig design %s --out %s --resume%s", task.source, out,
+                 f" --material {mat['file']}" if mat else "")
     if plots:
         try:
             _plots(task, out, result)

@@ -1,13 +1,71 @@
 """Material and damping parameters, internal units (mm, ms, g; force N, energy mJ).
 
-`Material.paper()` gives the defaults of spec section 10; SI constructors convert on the way in.
+`Material.paper()` gives the defaults of spec section 10, read from the default material file
+`design_engine/materials/default.toml` (SI); `Material.from_si` converts SI values on the way in.
+Material files themselves (format, validation, saving) are `design_engine.material_file`.
 """
 
+import functools
 import math
+import tomllib
+from pathlib import Path
 
 import equinox as eqx
 
 from design_engine.lattice import Lattice
+
+DEFAULT_FILE = Path(__file__).resolve().with_name("materials") / "default.toml"
+
+# SI value -> engine (mm, ms, g) value. Exact powers of ten are applied by division or
+# multiplication so that the spec's decimal values land on the same floats as the literals.
+_FROM_SI = {
+    "k_stretch": lambda x: x / 1e3,  # N/m -> N/mm
+    "k_shear": lambda x: x / 1e3,  # N/m -> N/mm
+    "k_bend": lambda x: x * 1e3,  # N m/rad -> N mm/rad
+    "k_contact": lambda x: x * 1e3,  # N m/rad -> N mm/rad
+    "contact_min_deg": math.radians,  # deg -> rad
+    "contact_cutoff_deg": math.radians,  # deg -> rad
+    "density": lambda x: x / 1e3,  # kg/m^2 -> g/mm^2
+    "damping_u": lambda x: x * 1.0,  # N s/m = kg/s -> g/ms (factor 1)
+    "damping_theta": lambda x: x * 1e6,  # N m s = kg m^2/s -> g mm^2/ms
+}
+_TO_SI = {
+    "k_stretch": lambda x: x * 1e3,
+    "k_shear": lambda x: x * 1e3,
+    "k_bend": lambda x: x / 1e3,
+    "k_contact": lambda x: x / 1e3,
+    "contact_min_deg": math.degrees,
+    "contact_cutoff_deg": math.degrees,
+    "density": lambda x: x * 1e3,
+    "damping_u": lambda x: x * 1.0,
+    "damping_theta": lambda x: x / 1e6,
+}
+_FIELD = {"contact_min_deg": "contact_min", "contact_cutoff_deg": "contact_cutoff"}
+
+
+@functools.lru_cache(maxsize=1)
+def _default_items() -> tuple[tuple[str, float], ...]:
+    with DEFAULT_FILE.open("rb") as f:
+        params = tomllib.load(f)["parameters"]
+    return tuple((k, float(p["value"] if isinstance(p, dict) else p)) for k, p in params.items())
+
+
+def default_si() -> dict[str, float]:
+    """Values of the default material file, SI (damping as `damping_ratio`)."""
+    return dict(_default_items())
+
+
+def reference_damping(lattice: Lattice, damping_ratio: float, density: float, k_shear: float,
+                      k_bend: float) -> tuple[float, float]:
+    """Design-independent damping (spec 6.3) from zeta and the lattice's theta0 = 0 reference unit.
+
+    Engine units in and out: density g/mm^2, k_shear N/mm, k_bend N*mm/rad -> (c_u g/ms,
+    c_theta g*mm^2/ms).
+    """
+    s = lattice.spacing
+    c_u = 2.0 * damping_ratio * math.sqrt(density * lattice.unit_area_hat * s**2 * k_shear)
+    c_t = 2.0 * damping_ratio * math.sqrt(density * lattice.unit_inertia_hat * s**4 * k_bend)
+    return c_u, c_t
 
 
 class Material(eqx.Module):
@@ -43,34 +101,53 @@ class Material(eqx.Module):
             )
 
     @classmethod
+    def from_si(cls, values: dict[str, float], lattice: Lattice | None = None) -> "Material":
+        """Material from SI values (names and units of `material_file.SI_UNITS`), unchecked.
+
+        Every stiffness, both contact angles (deg) and the density are required. `damping_u` and
+        `damping_theta` (N s/m, N m s) are used when given; a missing one is derived from
+        `damping_ratio` and `lattice` (spec 6.3) with this material's density and stiffnesses.
+        """
+        e = {_FIELD.get(k, k): f(float(values[k])) for k, f in _FROM_SI.items() if k in values}
+        if "damping_u" not in e or "damping_theta" not in e:
+            if lattice is None or "damping_ratio" not in values:
+                raise ValueError("damping needs damping_u and damping_theta, or damping_ratio and "
+                                 "a lattice")
+            c_u, c_t = reference_damping(lattice, float(values["damping_ratio"]), e["density"],
+                                         e["k_shear"], e["k_bend"])
+            e.setdefault("damping_u", c_u)
+            e.setdefault("damping_theta", c_t)
+        return cls(**e)
+
+    def to_si(self) -> dict[str, float]:
+        """SI values (names of `material_file.SI_UNITS`; damping explicit, no ratio)."""
+        return {k: float(f(getattr(self, _FIELD.get(k, k)))) for k, f in _TO_SI.items()}
+
+    @classmethod
     def paper(
         cls,
         lattice: Lattice,
         *,
-        damping_ratio: float = 0.0186,
-        contact_min_deg: float = -15.0,
-        contact_cutoff_deg: float = -10.0,
+        damping_ratio: float | None = None,
+        contact_min_deg: float | None = None,
+        contact_cutoff_deg: float | None = None,
     ) -> "Material":
-        """Spec defaults: k = (120 N/mm, 1.19 N/mm, 1.5 N*mm), rho = 6.18 kg/m^2, zeta = 0.0186.
+        """Spec defaults (the default material file): k = (120 N/mm, 1.19 N/mm, 1.5 N*mm),
+        rho = 6.18 kg/m^2, zeta = 0.0186, contact -15 / -10 deg; keywords override the file.
 
         Damping is design-independent: derived from zeta and the theta0 = 0 reference unit of the
         lattice kind (spec 6.3).
         """
-        k_s, k_b, rho = 1.19, 1.5, 6.18e-3
-        s = lattice.spacing
-        c_u = 2.0 * damping_ratio * math.sqrt(rho * lattice.unit_area_hat * s**2 * k_s)
-        c_t = 2.0 * damping_ratio * math.sqrt(rho * lattice.unit_inertia_hat * s**4 * k_b)
-        return cls(
-            k_stretch=120.0,
-            k_shear=k_s,
-            k_bend=k_b,
-            k_contact=k_b,
-            contact_min=math.radians(contact_min_deg),
-            contact_cutoff=math.radians(contact_cutoff_deg),
-            density=rho,
-            damping_u=c_u,
-            damping_theta=c_t,
-        )
+        v = default_si()
+        if damping_ratio is not None:
+            v.pop("damping_u", None)
+            v.pop("damping_theta", None)
+            v["damping_ratio"] = damping_ratio
+        if contact_min_deg is not None:
+            v["contact_min_deg"] = contact_min_deg
+        if contact_cutoff_deg is not None:
+            v["contact_cutoff_deg"] = contact_cutoff_deg
+        return cls.from_si(v, lattice)
 
     def undamped(self) -> "Material":
         """Same material with zero damping."""

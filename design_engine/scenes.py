@@ -13,7 +13,7 @@ import numpy as np
 from design_engine.geometry import block_geometry, check_design
 from design_engine.lattice import Lattice, kagome, periodic_design, quads
 from design_engine.loading import CH_INPUT, CH_STAGE, CH_ZERO, Loading, Supports
-from design_engine.material import Material
+from design_engine.material import Material, default_si
 from design_engine.regions import corner_clamps, driven_units, row_units, window
 
 STRAIN_RATE = 2.5e-4  # pre-compression rate, 1/ms (0.25 1/s)
@@ -199,7 +199,8 @@ def build_scene(
     bias = r.get("bias_deg", 25.0) if bias_angle_deg is None else bias_angle_deg
     x = periodic_design(lattice, math.radians(bias)) if design is None else design
     x = check_design(lattice, x)
-    cmin, ccut = r.get("contact_deg", (-15.0, -10.0))
+    d = default_si()  # the default material file (spec 10: -15 / -10 deg)
+    cmin, ccut = r.get("contact_deg", (d["contact_min_deg"], d["contact_cutoff_deg"]))
     if not -90.0 < cmin < ccut < 0.0:
         raise ValueError(f"contact angles need -90 < theta_min < theta_cutoff < 0 deg, got "
                          f"{cmin}, {ccut}")

@@ -279,7 +279,8 @@ def _scaled(offset: tuple[int, int], frm: tuple[int, int], to: tuple[int, int]) 
 def load_task(source: str | Path, *, size: tuple[int, int] | None = None,
               max_evals: int | None = None, max_time_s: float | None = None,
               bias_angle_deg: float | None = None, seed: int | None = None,
-              algorithm: str | None = None, weights: tuple[float, ...] | None = None) -> Task:
+              algorithm: str | None = None, weights: tuple[float, ...] | None = None,
+              material: str | Path | None = None) -> Task:
     """Read and resolve a task preset (by name) or task file, with command-line overrides.
 
     Args:
@@ -292,6 +293,8 @@ def load_task(source: str | Path, *, size: tuple[int, int] | None = None,
             times the spacing, default 0.15, spec 3.1) drawn with this seed.
         algorithm: optimiser override.
         weights: one weight per objective term, replacing the file's (Pareto sweeps).
+        material: material file (metarig-material/1) given to every scene (contact angles the
+            file does not set stay the scene's); recorded in the resolved document.
 
     Raises:
         TaskError: one line naming the file, the key and the problem.
@@ -427,6 +430,16 @@ def load_task(source: str | Path, *, size: tuple[int, int] | None = None,
             )
         except ValueError as exc:
             _fail(w, str(exc))
+    material_doc = {}
+    if material is not None:
+        from design_engine.material_file import MaterialFileError, read_material_file, with_material
+
+        try:
+            given, _ = read_material_file(material)
+            scenes = {k: with_material(v, given) for k, v in scenes.items()}
+        except MaterialFileError as exc:
+            _fail("material", str(exc))
+        material_doc = {"material": {"file": str(material), "si": given}}
     first = next(iter(scenes.values()))
     targets = dict(first.targets)
 
@@ -495,6 +508,7 @@ def load_task(source: str | Path, *, size: tuple[int, int] | None = None,
         "design_window": dict(win_t),
         "pareto": {"weight_rule": rule},
         "n_free": int(free.size),
+        **material_doc,
     }
     return Task(name=name, description=str(doc.get("description", "")), goal=goal, source=label,
                 document=resolved, lattice=lattice, scenes=scenes, targets=targets,

@@ -27,6 +27,8 @@ class SpecimenConfig:
     bias_angle_deg: float = param(25.0, "bias angle of the periodic design, deg", -45.0, 45.0)
     design_path: str = param("", "design file (metarig-design/1) of the sample; its lattice "
                              "sets nx, ny (empty: the periodic design)")
+    material_path: str = param("", "material file (metarig-material/1) of the sample's nominal "
+                               "material (empty: the default)")
     perturb: float = param(0.0, "relative (1 sigma) spread of true stiffnesses and damping",
                            0.0, 0.5)
     seed: int = param(0, "seed of the perturbation", 0, 2**31 - 1)
@@ -34,12 +36,17 @@ class SpecimenConfig:
 
 @dataclass(frozen=True)
 class Specimen:
-    """A built sample: its scene (with true parameters) and reference unit outlines (m)."""
+    """A built sample: its scene (with true parameters) and reference unit outlines (m).
+
+    `material_si` holds the SI values of the sample's material file (`SpecimenConfig.
+    material_path`), recorded in `design_json` so that the comparison uses the same nominal
+    material."""
 
     config: SpecimenConfig
     scene: object
     polygons_m: np.ndarray
     factors: dict
+    material_si: dict | None = None  # SI values the material file gave (None: the default)
 
     @property
     def n_units(self) -> int:
@@ -65,11 +72,14 @@ class Specimen:
             stage_units_bottom=[int(i) for i in s.stage_units_bottom],
             stage_units_top=[int(i) for i in s.stage_units_top],
             true_parameter_factors=self.factors,
+            **({"material_file": self.config.material_path, "material_si": self.material_si}
+               if self.material_si is not None else {}),
         ))
 
 
 def build(cfg: SpecimenConfig) -> Specimen:
-    """Build the scene (strain 0: the stages apply the measured closing) and perturb it."""
+    """Build the scene (strain 0: the stages apply the measured closing), give it the material
+    file's nominal material (if any) and perturb it."""
     import design_engine as de
     import equinox as eqx
 
@@ -86,6 +96,12 @@ def build(cfg: SpecimenConfig) -> Specimen:
             raise ValueError(f"{cfg.design_path}: a {lattice.kind} design does not fit the "
                              f"{scene.lattice.kind} scene {cfg.scene}")
         scene = scene.with_design(design)
+    material_si = None
+    if cfg.material_path:
+        from design_engine.material_file import material_for_scene
+
+        material, material_si = material_for_scene(scene, cfg.material_path)
+        scene = replace(scene, material=material)
     factors = {}
     if cfg.perturb > 0:
         rng = np.random.default_rng(cfg.seed)
@@ -95,7 +111,7 @@ def build(cfg: SpecimenConfig) -> Specimen:
         m = eqx.tree_at(lambda x: tuple(getattr(x, n) for n in names), m,
                         tuple(getattr(m, n) * factors[n] for n in names))
         scene = replace(scene, material=m)
-    return Specimen(cfg, scene, np.asarray(scene.reference_polygons_m()), factors)
+    return Specimen(cfg, scene, np.asarray(scene.reference_polygons_m()), factors, material_si)
 
 
 def simulate(specimen: Specimen, times_s, shaker_t_s, shaker_u_m, stage_t_s=None,

@@ -68,6 +68,11 @@ def _plan(args):
         except (OSError, ValueError, KeyError, TypeError) as e:
             raise ValueError(f"--design {path}: not a readable design file ({e})") from None
         values["design"] = str(path.resolve())
+    if values.get("material"):
+        from design_engine.material_file import read_material_file
+
+        read_material_file(values["material"])  # MaterialFileError (a ValueError) names the key
+        values["material"] = str(Path(values["material"]).resolve())
     return ExperimentPlan(**values)
 
 

@@ -80,6 +80,8 @@ class CameraNodeConfig:
     ny: int = param(16, "sim: units along y", 2, 200)
     design_path: str = param("", "sim: design file of the sample (empty: the scene's periodic "
                              "design); its lattice sets nx, ny")
+    material_path: str = param("", "sim: material file (metarig-material/1) of the sample "
+                               "(empty: the default material)")
     perturb: float = param(0.0, "sim: relative spread of the specimen's true stiffnesses", 0.0, 0.5)
     noise_std: float = param(0.01, "sim: read noise, fraction of full scale", 0.0, 0.5)
     lighting_gradient: float = param(0.15, "sim: left-right lighting gradient", 0.0, 0.9)

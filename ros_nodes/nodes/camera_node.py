@@ -88,6 +88,7 @@ class CameraNode(Node):
         try:
             self._specimen = build(SpecimenConfig(scene=cfg.scene, nx=cfg.nx, ny=cfg.ny,
                                                   design_path=cfg.design_path,
+                                                  material_path=cfg.material_path,
                                                   perturb=cfg.perturb, seed=cfg.seed))
             self._design.publish(String(data=self._specimen.design_json()))
         except Exception as e:  # noqa: BLE001 - reported on the status topic, node stays up

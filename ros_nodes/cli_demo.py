@@ -46,7 +46,9 @@ def run_demo(out: Path) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    _step("design", timings, design_main, [DEMO_TASK, "--out", str(out / "design"), "--quiet"])
+    again = ["--resume"] if (out / "design" / "run.json").exists() else []  # a re-run: resume
+    _step("design", timings, design_main,
+          [DEMO_TASK, "--out", str(out / "design"), "--quiet", *again])
     design = out / "design" / "design.json"  # the rig writes the sample's as DIR/design.json
     if not design.exists():
         raise DemoError("design: no feasible design was found")

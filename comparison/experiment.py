@@ -72,29 +72,11 @@ def stage_history(stage_t_s, stage_closing_m, closing_speed_m_s: float,
     return np.r_[head_t, t[keep]], np.r_[head_c, c[keep]], reached
 
 
-INPUT_DT_S = 1e-4  # the engine interpolates inputs linearly: resample finer than this
-
-
-def smooth_input(t_s, u_m) -> tuple[np.ndarray, np.ndarray]:
-    """A sampled input record made smooth for the engine's linear interpolation: records coarser
-    than `INPUT_DT_S` (camera-rate tracking, 1 kHz joint states) are resampled on a cubic
-    spline, whose velocity is continuous where a polyline's jumps at every sample."""
-    from scipy.interpolate import CubicSpline
-
-    t, u = np.asarray(t_s, np.float64), np.asarray(u_m, np.float64)
-    t, keep = np.unique(t, return_index=True)
-    u = u[keep]
-    if t.size < 4 or np.median(np.diff(t)) <= INPUT_DT_S:
-        return t, u
-    fine = np.linspace(t[0], t[-1], int(np.ceil((t[-1] - t[0]) / INPUT_DT_S)) + 1)
-    return fine, CubicSpline(t, u)(fine)
-
-
 def simulate_measured(scene, frame_t_s: np.ndarray, measured: MeasuredInput,
                       config=None) -> Trajectory:
     """The engine's motion of `scene` at the frame times (rig clock, s) under the measured input,
     from rest at t = 0; q from the undeformed reference, as the engine gives it."""
-    from design_engine.run import simulate_rig
+    from design_engine.run import simulate_rig, smooth_input
 
     t_in, u_in = smooth_input(measured.t_s, measured.u_m)
     if t_in[0] > 0:  # at rest before the record

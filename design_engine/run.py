@@ -186,6 +186,24 @@ def config_summary(config: SolverConfig) -> dict:
     return out
 
 
+INPUT_DT_S = 1e-4  # the engine interpolates inputs linearly: resample finer than this
+
+
+def smooth_input(t_s, u_m) -> tuple[np.ndarray, np.ndarray]:
+    """A sampled input record made smooth for the engine's linear interpolation: records coarser
+    than `INPUT_DT_S` (camera-rate tracking, 1 kHz joint states) are resampled on a cubic
+    spline, whose velocity is continuous where a polyline's jumps at every sample."""
+    from scipy.interpolate import CubicSpline
+
+    t, u = np.asarray(t_s, np.float64), np.asarray(u_m, np.float64)
+    t, keep = np.unique(t, return_index=True)
+    u = u[keep]
+    if t.size < 4 or np.median(np.diff(t)) <= INPUT_DT_S:
+        return t, u
+    fine = np.linspace(t[0], t[-1], int(np.ceil((t[-1] - t[0]) / INPUT_DT_S)) + 1)
+    return fine, CubicSpline(t, u)(fine)
+
+
 def simulate_rig(scene: Scene, times_s, input_t_s, input_u_m, stage_t_s=None, stage_closing_m=None,
                  config: SolverConfig | None = None) -> Trajectory:
     """Simulate the specimen under measured shaker and stage motion, from rest at t = 0.

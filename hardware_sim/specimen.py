@@ -130,7 +130,12 @@ def simulate(specimen: Specimen, times_s, shaker_t_s, shaker_u_m, stage_t_s=None
     import design_engine as de
     from design_engine.auto import contact_config
 
+    from design_engine.run import smooth_input
+
     has_stages = len(specimen.scene.stage_units_top) > 0
+    # the shaker's joint states sample a smooth motion (a 250 Hz second-order drive): the
+    # specimen feels their cubic spline, not the polyline with a velocity jump at every sample
+    shaker_t_s, shaker_u_m = smooth_input(shaker_t_s, shaker_u_m)
     # the rig's physics: the full model at the reference tolerances (not the fast default,
     # whose error a chaotic large-amplitude scene amplifies into a different motion)
     return de.simulate_rig(specimen.scene, np.asarray(times_s, np.float64),

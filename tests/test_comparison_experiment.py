@@ -13,7 +13,8 @@ import equinox as eqx
 import numpy as np
 import pytest
 
-from comparison.experiment import compare_experiment, scene_of_design, smooth_input
+from comparison.experiment import compare_experiment, scene_of_design
+from design_engine.run import smooth_input
 from comparison.metrics import compare
 from design_engine.auto import contact_config
 from hardware_sim import camera as cam

@@ -16,30 +16,37 @@ from design_engine.lattice import Lattice
 
 DEFAULT_FILE = Path(__file__).resolve().with_name("materials") / "default.toml"
 
-# SI value -> engine (mm, ms, g) value. Exact powers of ten are applied by division or
-# multiplication so that the spec's decimal values land on the same floats as the literals.
-_FROM_SI = {
-    "k_stretch": lambda x: x / 1e3,  # N/m -> N/mm
-    "k_shear": lambda x: x / 1e3,  # N/m -> N/mm
-    "k_bend": lambda x: x * 1e3,  # N m/rad -> N mm/rad
-    "k_contact": lambda x: x * 1e3,  # N m/rad -> N mm/rad
-    "contact_min_deg": math.radians,  # deg -> rad
-    "contact_cutoff_deg": math.radians,  # deg -> rad
-    "density": lambda x: x / 1e3,  # kg/m^2 -> g/mm^2
-    "damping_u": lambda x: x * 1.0,  # N s/m = kg/s -> g/ms (factor 1)
-    "damping_theta": lambda x: x * 1e6,  # N m s = kg m^2/s -> g mm^2/ms
+# SI value -> engine (mm, ms, g) value: engine = SI * 10**power for the linear parameters.
+# Exact powers of ten are applied by division or multiplication so that the spec's decimal
+# values land on the same floats as the literals.
+SI_POWER = {
+    "k_stretch": -3,  # N/m -> N/mm
+    "k_shear": -3,  # N/m -> N/mm
+    "k_bend": 3,  # N m/rad -> N mm/rad
+    "k_contact": 3,  # N m/rad -> N mm/rad
+    "density": -3,  # kg/m^2 -> g/mm^2
+    "damping_u": 0,  # N s/m = kg/s -> g/ms
+    "damping_theta": 6,  # N m s = kg m^2/s -> g mm^2/ms
 }
-_TO_SI = {
-    "k_stretch": lambda x: x * 1e3,
-    "k_shear": lambda x: x * 1e3,
-    "k_bend": lambda x: x / 1e3,
-    "k_contact": lambda x: x / 1e3,
-    "contact_min_deg": math.degrees,
-    "contact_cutoff_deg": math.degrees,
-    "density": lambda x: x * 1e3,
-    "damping_u": lambda x: x * 1.0,
-    "damping_theta": lambda x: x / 1e6,
-}
+_ANGLES = ("contact_min_deg", "contact_cutoff_deg")  # deg -> rad
+
+
+def si_to_engine(name: str, x):
+    """Engine value of the SI value `x` of parameter `name` (float or jax array)."""
+    if name in _ANGLES:
+        return math.radians(x)
+    p = SI_POWER[name]
+    return x * 10.0**p if p >= 0 else x / 10.0**-p
+
+
+def engine_to_si(name: str, x):
+    """SI value of the engine value `x` of parameter `name` (float or jax array)."""
+    if name in _ANGLES:
+        return math.degrees(x)
+    p = SI_POWER[name]
+    return x / 10.0**p if p >= 0 else x * 10.0**-p
+
+
 _FIELD = {"contact_min_deg": "contact_min", "contact_cutoff_deg": "contact_cutoff"}
 
 
@@ -60,11 +67,15 @@ def reference_damping(lattice: Lattice, damping_ratio: float, density: float, k_
     """Design-independent damping (spec 6.3) from zeta and the lattice's theta0 = 0 reference unit.
 
     Engine units in and out: density g/mm^2, k_shear N/mm, k_bend N*mm/rad -> (c_u g/ms,
-    c_theta g*mm^2/ms).
+    c_theta g*mm^2/ms). Python floats in, floats out; jax values in (traced), jax values out.
     """
+    import jax.numpy as jnp
+
+    sqrt = math.sqrt if all(isinstance(v, (int, float)) for v in
+                            (damping_ratio, density, k_shear, k_bend)) else jnp.sqrt
     s = lattice.spacing
-    c_u = 2.0 * damping_ratio * math.sqrt(density * lattice.unit_area_hat * s**2 * k_shear)
-    c_t = 2.0 * damping_ratio * math.sqrt(density * lattice.unit_inertia_hat * s**4 * k_bend)
+    c_u = 2.0 * damping_ratio * sqrt(density * lattice.unit_area_hat * s**2 * k_shear)
+    c_t = 2.0 * damping_ratio * sqrt(density * lattice.unit_inertia_hat * s**4 * k_bend)
     return c_u, c_t
 
 
@@ -108,7 +119,8 @@ class Material(eqx.Module):
         `damping_theta` (N s/m, N m s) are used when given; a missing one is derived from
         `damping_ratio` and `lattice` (spec 6.3) with this material's density and stiffnesses.
         """
-        e = {_FIELD.get(k, k): f(float(values[k])) for k, f in _FROM_SI.items() if k in values}
+        e = {_FIELD.get(k, k): si_to_engine(k, float(values[k])) for k in (*SI_POWER, *_ANGLES)
+             if k in values}
         if "damping_u" not in e or "damping_theta" not in e:
             if lattice is None or "damping_ratio" not in values:
                 raise ValueError("damping needs damping_u and damping_theta, or damping_ratio and "
@@ -121,7 +133,7 @@ class Material(eqx.Module):
 
     def to_si(self) -> dict[str, float]:
         """SI values (names of `material_file.SI_UNITS`; damping explicit, no ratio)."""
-        return {k: float(f(getattr(self, _FIELD.get(k, k)))) for k, f in _TO_SI.items()}
+        return {k: float(engine_to_si(k, getattr(self, _FIELD.get(k, k)))) for k in (*SI_POWER, *_ANGLES)}
 
     @classmethod
     def paper(

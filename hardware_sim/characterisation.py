@@ -27,8 +27,14 @@ from pathlib import Path
 
 import numpy as np
 
-from design_engine.calibrate import (HINGE_HEADER, HINGE_TESTS, hinge_sample, make_hinge_forces,
-                                     make_oscillation_model, oscillation_sample)
+from design_engine.calibrate import (
+    HINGE_HEADER,
+    HINGE_TESTS,
+    hinge_sample,
+    make_hinge_forces,
+    make_oscillation_model,
+    oscillation_sample,
+)
 from metarig.trajectory import Trajectory
 
 # Noise levels. The paper states no load-cell noise; 0.02 N is ~0.5-1.5 % of the peak forces
@@ -70,7 +76,9 @@ def hinge_test(material, cfg: HingeTestConfig, sample=None):
     d_max = cfg.max_displacement_m or HINGE_TESTS[cfg.test][2]
     d = np.linspace(0.0, d_max, cfg.n_points)
     k = jnp.asarray([material.k_stretch, material.k_shear, material.k_bend])
-    f = np.asarray(make_hinge_forces(sample, cfg.test)(k, d * 1e3))
+    import jax
+
+    f = np.asarray(jax.jit(make_hinge_forces(sample, cfg.test))(k, d * 1e3))
     f = f + np.random.default_rng(cfg.seed).normal(0.0, cfg.noise_n, f.shape)
     return d / cfg.rate_m_s, d, f
 

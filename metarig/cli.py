@@ -24,6 +24,7 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
              "the main job: design a small lattice, test it on the simulated rig, compare"),
     "compare": ("ros_nodes.cli_compare", "compare_main",
                 "compare a recorded experiment with the simulation of its measured input"),
+    "calibrate": ("ros_nodes.cli_calibrate", "calibrate_main", "fit material constants to a recorded test"),
 }
 
 

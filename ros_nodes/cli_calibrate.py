@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from metarig.argtypes import positive
+
 KINDS = ("auto", "hinge", "oscillation", "pulse")
 HINGE_SUFFIXES = (".csv", ".txt", ".dat")
 
@@ -78,13 +80,37 @@ def _start_material(path, lattice):
 # --- the three kinds -------------------------------------------------------------------------
 
 
-def calibrate_hinge(files, fit, material_path=None):
+class Progress:
+    """A tqdm bar over the model evaluations of a fit (stderr): stage, count, current rms."""
+
+    def __init__(self, enabled: bool = True):
+        self.enabled, self.bar, self.stage = enabled, None, None
+
+    def __call__(self, stage: str, evaluation: int, rms: float):
+        if not self.enabled:
+            return
+        if stage != self.stage:
+            self.close()
+            from tqdm import tqdm
+
+            self.bar, self.stage = tqdm(desc=f"calibrate ({stage})", unit="eval",
+                                        file=sys.stderr, leave=True), stage
+        self.bar.update(1)
+        self.bar.set_postfix_str(f"rms {rms:.4g}")
+
+    def close(self):
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+
+
+def calibrate_hinge(files, fit, material_path=None, progress=None):
     from design_engine import calibrate as cal
 
     sample = cal.hinge_sample()
     records = [cal.read_hinge_file(f) for f in files]
     out = cal.fit_hinge(records, fit or cal.STIFFNESSES,
-                        _start_material(material_path, sample.lattice), sample)
+                        _start_material(material_path, sample.lattice), sample, progress=progress)
     return out, {}
 
 
@@ -111,7 +137,7 @@ def read_oscillation_tracks(path: Path):
     return traj.t[keep], traj.q[keep, unit, 2]
 
 
-def calibrate_oscillation(files, fit, material_path=None):
+def calibrate_oscillation(files, fit, material_path=None, progress=None):
     from design_engine import calibrate as cal
 
     if len(files) != 1:
@@ -119,7 +145,8 @@ def calibrate_oscillation(files, fit, material_path=None):
     t, theta = read_oscillation_tracks(files[0])
     sample = cal.oscillation_sample()
     out = cal.fit_oscillation(t, theta, fit or cal.DEFAULT_OSC_FIT,
-                              _start_material(material_path, sample.lattice), sample)
+                              _start_material(material_path, sample.lattice), sample,
+                              progress=progress)
     return out, {}
 
 
@@ -129,8 +156,9 @@ def pulse_inputs(source: Path, poses_source: str = "auto", calibration: str | No
     folder or .mcap: the poses and measured input as `metarig compare` takes them."""
     import os
 
-    from comparison.experiment import input_motion, smooth_input, stage_history
-    from ros_nodes.cli_compare import _calibration_path, _design, measured_poses
+    from comparison.experiment import input_motion, stage_history
+    from design_engine.run import smooth_input
+    from ros_nodes.cli_compare import camera_calibration_path, measured_poses, recorded_design
     from ros_nodes.logic import comparison_run as run
     from ros_nodes.logic.comparison_run import CompareError
     from ros_nodes.logic.recording import RecordingError, read_recording
@@ -138,9 +166,9 @@ def pulse_inputs(source: Path, poses_source: str = "auto", calibration: str | No
     try:
         rec = read_recording(source)
         run_dir = source if source.is_dir() else None
-        scene, polygons = run.design_scene(_design(rec, run_dir), where=str(rec.path))
+        scene, polygons = run.design_scene(recorded_design(rec, run_dir), where=str(rec.path))
         tracked = measured_poses(rec, poses_source, polygons,
-                                 _calibration_path(run_dir, calibration),
+                                 camera_calibration_path(run_dir, calibration),
                                  workers or os.cpu_count() or 1, progress=False)
         run.check_poses(scene, tracked.poses, where=str(rec.path), min_frames=5)
         t_in, u_in, _ = input_motion(tracked.poses, scene.input_units, rec.shaker_t_s,
@@ -162,7 +190,7 @@ def pulse_inputs(source: Path, poses_source: str = "auto", calibration: str | No
 
 
 def calibrate_pulse(files, fit, material_path=None, poses_source="auto", calibration=None,
-                    workers=None):
+                    workers=None, progress=None):
     from design_engine import calibrate as cal
 
     if len(files) != 1:
@@ -171,8 +199,10 @@ def calibrate_pulse(files, fit, material_path=None, poses_source="auto", calibra
                                                          workers)
     out = cal.fit_pulse(scene, poses.t + t0, poses.q, poses.valid, t_in, u_in,
                         *(stage or (None, None)), fit=fit or cal.DEFAULT_PULSE_FIT,
-                        start=_start_material(material_path, scene.lattice))
-    return out, {"n_frames": poses.n_t, "n_units": poses.n_units}
+                        start=_start_material(material_path, scene.lattice), progress=progress)
+    return out, {"n_frames": poses.n_t, "n_units": poses.n_units,
+                 "solver": out.extra["config"], "windows_frames": out.extra["windows"],
+                 "min_void_margin_rad": out.extra["min_void_margin"]}
 
 
 # --- outputs ----------------------------------------------------------------------------------
@@ -193,10 +223,13 @@ def calibration_document(fit, kind: str, sources, extra: dict) -> dict:
         "undetermined": fit.undetermined,
         "start": {n: float(v) for n, v in fit.start.items()},
         "correlation": np.round(fit.correlation, 6).tolist(),
+        "stderr_gauss_newton": {n: float(v) for n, v in
+                                fit.extra.get("stderr_gauss_newton", {}).items()},
         "iterations": fit.iterations,
         "converged": bool(fit.converged),
         "method": "Levenberg-Marquardt on log(value), Jacobian by jax.jacfwd through the "
-                  "engine; stderr from s^2 (J^T J)^-1 (Gauss-Newton), delta method",
+                  "engine; stderr from s^2 (J^T J)^-1 (Gauss-Newton; pulse: cluster-robust, "
+                  "one cluster per unit), delta method",
         "wall_s": fit.wall_s,
     }
     if "derived" in fit.extra:
@@ -272,7 +305,7 @@ def plot(fit, kind: str, path: Path) -> Path:
 
 
 def calibrate(sources, out: Path, fit=None, kind: str = "auto", material=None,
-              poses: str = "auto", calibration=None, workers=None) -> dict:
+              poses: str = "auto", calibration=None, workers=None, progress=None) -> dict:
     """Run one calibration and write its outputs; returns the calibration document.
 
     Raises:
@@ -281,17 +314,26 @@ def calibrate(sources, out: Path, fit=None, kind: str = "auto", material=None,
     from design_engine.material_file import save_material
 
     t0 = time.perf_counter()
+    mine = Path(out) / "calibration.json"
+    if mine.exists():
+        try:
+            ours = "parameters" in json.loads(mine.read_text())
+        except (ValueError, OSError):
+            ours = False
+        if not ours:
+            raise InputError(f"{mine} exists and is not a material calibration (a camera "
+                             "calibration?): choose another --out folder")
     found, files = detect_kind([Path(s) for s in sources])
-    if kind != "auto" and kind != found:
-        if not (kind == "hinge" and found in ("hinge",)):
-            raise InputError(f"--kind {kind} but the inputs look like a {found} test")
+    if kind not in ("auto", found):
+        raise InputError(f"--kind {kind} but the inputs look like a {found} test")
     kind = found
     if kind == "hinge":
-        result, extra = calibrate_hinge(files, fit, material)
+        result, extra = calibrate_hinge(files, fit, material, progress)
     elif kind == "oscillation":
-        result, extra = calibrate_oscillation(files, fit, material)
+        result, extra = calibrate_oscillation(files, fit, material, progress)
     else:
-        result, extra = calibrate_pulse(files, fit, material, poses, calibration, workers)
+        result, extra = calibrate_pulse(files, fit, material, poses, calibration, workers,
+                                        progress)
     out.mkdir(parents=True, exist_ok=True)
     doc = calibration_document(result, kind, files, extra)
     doc["wall_s_total"] = time.perf_counter() - t0
@@ -310,14 +352,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, help="output folder")
     p.add_argument("--fit", default=None, help="comma-separated parameters to fit (hinge: "
                    "k_stretch,k_shear,k_bend; oscillation: damping_ratio,k_bend; pulse: "
-                   "k_shear,k_bend,damping_u,damping_theta by default)")
+                   "k_stretch,k_shear,k_bend,damping_ratio by default, or damping_u and "
+                   "damping_theta separately)")
     p.add_argument("--kind", choices=KINDS, default="auto", help="test kind (auto-detected)")
     p.add_argument("--material", default=None, help="start material file (default: the default "
                    "material)")
     p.add_argument("--poses", default="auto", choices=("auto", "dic", "track", "truth"),
                    help="pulse: which poses to fit (as `metarig compare --poses`)")
     p.add_argument("--calibration", default=None, help="pulse: camera calibration for tracking")
-    p.add_argument("--workers", type=int, default=None, help="pulse: tracker processes")
+    p.add_argument("--workers", type=positive(int), default=None,
+                   help="pulse: tracker processes")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     return p
 
 
@@ -328,12 +373,19 @@ def calibrate_main(argv: list[str] | None = None) -> int:
 
     args = build_parser().parse_args(argv)
     fit = [s.strip() for s in args.fit.split(",") if s.strip()] if args.fit else None
+    progress = Progress(not args.quiet)
     try:
         doc = calibrate(args.source, args.out, fit, args.kind, args.material, args.poses,
-                        args.calibration, args.workers)
+                        args.calibration, args.workers, progress)
+    except KeyboardInterrupt:
+        progress.close()
+        print("metarig calibrate: interrupted; nothing written", file=sys.stderr)
+        return 130
     except (InputError, CalibrationError, MaterialFileError) as exc:
+        progress.close()
         print(f"metarig calibrate: error: {str(exc).splitlines()[0]}", file=sys.stderr)
         return 2
+    progress.close()
     for n, p in doc["parameters"].items():
         print(f"{n:<14} {p['value']:.6g} ± {p['stderr']:.3g} {p['unit']}"
               + ("  (not determined by these data)" if n in doc["undetermined"] else ""))

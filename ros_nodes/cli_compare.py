@@ -37,7 +37,8 @@ class Tracked:
     tracked_here: bool
 
 
-def _design(rec, run_dir: Path | None) -> dict:
+def recorded_design(rec, run_dir: Path | None) -> dict:
+    """The design document of a recording (/rig/design), else `design.json` beside it."""
     if rec.design is not None:
         return rec.design
     if run_dir is not None and (run_dir / "design.json").exists():
@@ -46,7 +47,8 @@ def _design(rec, run_dir: Path | None) -> dict:
                        "design.json lies beside it")
 
 
-def _calibration_path(run_dir: Path | None, given: str | None) -> Path | None:
+def camera_calibration_path(run_dir: Path | None, given: str | None) -> Path | None:
+    """The camera calibration to track with: `given`, else the run folder's `calibration.json`."""
     if given:
         return Path(given)
     if run_dir is not None and (run_dir / "calibration.json").exists():
@@ -151,9 +153,9 @@ def compare_recording(source: str | Path, out: Path | None = None, poses: str = 
         raise CompareError(str(exc)) from None
     run_dir = Path(source) if Path(source).is_dir() else None
     out = Path(out) if out is not None else (run_dir or rec.path.parent)
-    doc = _design(rec, run_dir)
+    doc = recorded_design(rec, run_dir)
     scene, polygons = run.design_scene(doc, where=str(rec.path))
-    tracked = measured_poses(rec, poses, polygons, _calibration_path(run_dir, calibration),
+    tracked = measured_poses(rec, poses, polygons, camera_calibration_path(run_dir, calibration),
                              workers or os.cpu_count() or 1, progress, dic)
     run.check_poses(scene, tracked.poses, where=str(rec.path), lost_hint=(
         " (small units in pixels? try --margin-px 1.5 --min-points 16)"

@@ -1,0 +1,304 @@
+"""`metarig calibrate`: material constants recovered from simulated characterisation tests.
+
+Truth: the nominal material with stiffnesses and damping perturbed by 20 %; noise: 0.02 N on
+the hinge-test forces (`characterisation.FORCE_NOISE_N`), 1e-3 rad on the tracked rotation at
+960 fps (`ROTATION_NOISE_RAD`). Tolerances are stated per test; every recovered value must also
+lie within 3 of its reported standard errors of the truth.
+"""
+
+import json
+from pathlib import Path
+
+import equinox as eqx
+import numpy as np
+import pytest
+
+from design_engine import calibrate as cal
+from design_engine.material import reference_damping
+from design_engine.material_file import SI_UNITS
+from hardware_sim import characterisation as ch
+from ros_nodes.cli_calibrate import calibrate_main
+
+ROOT = Path(__file__).resolve().parents[1]
+FACTORS = {"k_stretch": 1.2, "k_shear": 0.8, "k_bend": 1.2}
+
+
+def _perturbed(m, factors):
+    names = tuple(factors)
+    return eqx.tree_at(lambda x: tuple(getattr(x, n) for n in names), m,
+                       tuple(getattr(m, n) * factors[n] for n in names))
+
+
+def _spec_damped(m, lattice, zeta, **stiffness_factors):
+    """`m` with stiffnesses scaled and c_u, c_theta set by spec 6.3 from `zeta`."""
+    m = _perturbed(m, stiffness_factors)
+    c_u, c_t = reference_damping(lattice, zeta, m.density, m.k_shear, m.k_bend)
+    return eqx.tree_at(lambda x: (x.damping_u, x.damping_theta), m, (c_u, c_t))
+
+
+def _truth_si(m, name):
+    return cal.to_si(name, float(getattr(m, name)))
+
+
+@pytest.fixture(scope="module")
+def hinge_files(tmp_path_factory):
+    true = _perturbed(cal.hinge_sample().material, FACTORS)
+    d = tmp_path_factory.mktemp("hinge")
+    return true, ch.hinge_tests(true, d, n_points=50, seed=1)
+
+
+def test_hinge_files_have_the_instron_layout(hinge_files):
+    _, paths = hinge_files
+    lines = paths[0].read_text().splitlines()
+    assert lines[2] == "Time (s),Extension (m),Load (N)" and "test=tension" in lines[1]
+    a = np.loadtxt(paths[0], delimiter=",", skiprows=3)
+    assert a.shape == (50, 3) and a[-1, 1] == pytest.approx(1.05e-3)
+
+
+def test_hinge_calibration_recovers_the_stiffnesses(hinge_files, tmp_path, capsys):
+    """3 tests x 50 points, 0.02 N noise: k_shear and k_bend within 2 %, k_stretch (seen
+    mostly by the tension test) within 6 %; errors within 3 stderr."""
+    true, paths = hinge_files
+    out = tmp_path / "cal"
+    assert calibrate_main([*map(str, paths), "--out", str(out)]) == 0
+    doc = json.loads((out / "calibration.json").read_text())
+    assert set(doc) >= {"parameters", "residual", "source"} and doc["kind"] == "hinge"
+    assert doc["residual"] == pytest.approx(ch.FORCE_NOISE_N, rel=0.3)  # residual = noise
+    for name, tol in (("k_shear", 0.02), ("k_bend", 0.02), ("k_stretch", 0.06)):
+        p = doc["parameters"][name]
+        t = _truth_si(true, name)
+        assert p["unit"] == SI_UNITS[name]
+        assert abs(p["value"] / t - 1) < tol, (name, p, t)
+        assert abs(p["value"] - t) < 3 * p["stderr"], (name, p, t)
+    assert (out / "material.toml").exists() and (out / "calibration.png").stat().st_size > 0
+    from design_engine.material_file import load_material_file
+
+    vals, errs = load_material_file(out / "material.toml")
+    assert vals["k_shear"] == pytest.approx(doc["parameters"]["k_shear"]["value"])
+    assert errs["k_shear"] == pytest.approx(doc["parameters"]["k_shear"]["stderr"])
+
+
+def test_a_parameter_the_test_does_not_see_gets_a_large_stderr(hinge_files):
+    """Shear test alone: k_stretch barely changes the shear force."""
+    true, paths = hinge_files
+    recs = [cal.read_hinge_file(p) for p in paths if "shear" in p.name]
+    fit = cal.fit_hinge(recs, ("k_stretch", "k_shear"))
+    assert fit.stderr["k_stretch"] > 0.5 * fit.values["k_stretch"]  # > 50 %: not determined
+    assert "k_stretch" in fit.undetermined and "k_shear" not in fit.undetermined
+    t = _truth_si(true, "k_shear")
+    assert abs(fit.values["k_shear"] - t) < 3 * fit.stderr["k_shear"]
+
+
+@pytest.fixture(scope="module")
+def oscillation(tmp_path_factory):
+    sample = cal.oscillation_sample()
+    m = sample.material
+    zeta = 0.8 * cal.start_damping_ratio(m, sample.lattice)  # spec 6.3 truth: zeta and k_bend
+    true = _spec_damped(m, sample.lattice, zeta, k_bend=1.2)
+    cfg = ch.OscillationConfig(n_frames=300)
+    path = ch.write_oscillation(tmp_path_factory.mktemp("osc") / "tracks.npz",
+                                ch.free_oscillation(true, cfg), cfg)
+    clean = ch.free_oscillation(true, ch.OscillationConfig(n_frames=300, noise_rad=0.0,
+                                                           noise_m=0.0))
+    return true, path, clean, zeta
+
+
+def test_oscillation_damping_by_log_decrement_and_by_fit(oscillation, tmp_path):
+    """300 frames at 960 fps, 1e-3 rad noise: the hand method (6 usable peaks) within 10 % of
+    the noise-free curve's and of the fitted curve's; the engine fit within 2 % (zeta, k_bend)
+    and within 3 stderr."""
+    true, path, clean, zeta = oscillation
+    out = tmp_path / "cal"
+    assert calibrate_main([str(path), "--out", str(out)]) == 0
+    doc = json.loads((out / "calibration.json").read_text())
+    assert doc["kind"] == "oscillation"
+    ref = cal.log_decrement(clean.t, clean.q[:, 1, 2])["damping_ratio"]
+    ld = doc["log_decrement"]
+    assert ld["damping_ratio"] == pytest.approx(ref, rel=0.10)
+    assert ld["damping_ratio_of_fit"] == pytest.approx(ref, rel=0.01)  # fit: the true curve
+    for name, t in (("damping_ratio", zeta), ("k_bend", _truth_si(true, "k_bend"))):
+        p = doc["parameters"][name]
+        assert abs(p["value"] / t - 1) < 0.02 and abs(p["value"] - t) < 3 * p["stderr"], (name, p, t)
+    for name in ("damping_u", "damping_theta"):
+        d = doc["derived"][name]
+        assert abs(d["value"] / _truth_si(true, name) - 1) < 0.02, (name, d)
+    assert (out / "material.toml").exists() and (out / "calibration.png").exists()
+
+
+def _one_line(capsys, argv, message):
+    code = calibrate_main(argv)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and message in err[0], err
+
+
+def _hinge_text(rows, test="shear"):
+    return "\n".join(["Instron", f"test={test}", "Time (s),Extension (m),Load (N)", *rows]) + "\n"
+
+
+@pytest.mark.parametrize("case, message", [
+    ("malformed", "is not numeric"),
+    ("columns", "expected 3"),
+    ("few", "a hinge fit needs"),
+    ("no-test", "which hinge test"),
+    ("unknown-param", "cannot fit"),
+    ("mixed", "mix test kinds"),
+])
+def test_bad_hinge_and_tracks_inputs_give_one_line(case, message, tmp_path, capsys):
+    good = [f"{i:.3f},{i * 1e-5:.6e},{i * 0.01:.4f}" for i in range(40)]
+    f = tmp_path / "shear_run.csv"
+    argv = [str(f), "--out", str(tmp_path / "o")]
+    if case == "malformed":
+        f.write_text(_hinge_text(good[:20] + ["1.0,abc,2.0"] + good[20:]))
+    elif case == "columns":
+        f.write_text(_hinge_text([r + ",7" for r in good]))
+    elif case == "few":
+        f.write_text(_hinge_text(good[:4]))
+    elif case == "no-test":
+        f = tmp_path / "run1.csv"
+        f.write_text(_hinge_text(good).replace("test=shear", ""))
+        argv[0] = str(f)
+    elif case == "unknown-param":
+        f.write_text(_hinge_text(good))
+        argv += ["--fit", "k_shear,damping_u"]
+    else:
+        f.write_text(_hinge_text(good))
+        np.savez(tmp_path / "t.npz", t=np.zeros(3), q=np.zeros((3, 2, 3)))
+        argv.insert(1, str(tmp_path / "t.npz"))
+    _one_line(capsys, argv, message)
+    assert not (tmp_path / "o" / "calibration.json").exists()
+
+
+def test_a_tracks_file_without_a_trajectory_gives_one_line(tmp_path, capsys):
+    np.savez(tmp_path / "bad.npz", x=np.zeros(3))
+    _one_line(capsys, [str(tmp_path / "bad.npz"), "--out", str(tmp_path / "o")],
+              "not a trajectory file")
+    t = np.arange(20) / 960
+    np.savez(tmp_path / "short.npz", t=t, q=np.zeros((20, 2, 3)))
+    _one_line(capsys, [str(tmp_path / "short.npz"), "--out", str(tmp_path / "o")],
+              "needs 50 or more")
+
+
+def test_a_recording_without_poses_gives_one_line(tmp_path, capsys):
+    from ros_nodes import topics as T
+    from ros_nodes.logic.mcap_append import append_messages
+
+    src = ROOT / "recordings" / "precompression-12x8" / "recording.mcap"
+    (tmp_path / "r").mkdir()
+    path = append_messages(src, tmp_path / "r" / "recording.mcap", {}, [],
+                           replace=(T.IMAGE.name, T.CAMERA_INFO.name, T.GROUND_TRUTH.name))
+    _one_line(capsys, [str(path), "--out", str(tmp_path / "o")], "neither poses nor camera frames")
+
+
+def test_the_camera_calibration_of_a_run_folder_is_never_overwritten(tmp_path, capsys):
+    (tmp_path / "calibration.json").write_text('{"m_per_px": 1e-4}')
+    f = tmp_path / "shear.csv"
+    f.write_text(_hinge_text([f"{i},{i * 1e-5},{i * 0.01}" for i in range(40)]))
+    _one_line(capsys, [str(f), "--out", str(tmp_path)], "not a material calibration")
+
+
+@pytest.mark.slow
+def test_pulse_calibration_recovers_perturbed_parameters():
+    """A simulated 8x6 focusing experiment (2 mm pulse, 1 kHz frames, truth by the rig's
+    physics), tracked-position noise 1.2e-5 m, fitted from a start 20 % off: k_shear within
+    2 %, k_bend within 10 % (it is seen less), every error within 3 stderr; damping_u is
+    barely seen by this short, quasi-static record and gets a large stderr."""
+    from hardware_sim import specimen as sp
+    from hardware_sim.rig import MotionRecord, capture_times, specimen_motion
+
+    t_in = np.arange(0.0, 0.08, 1e-4)
+    u_in = 1e-3 * (1 - np.cos(2 * np.pi * 30 * np.clip(t_in - 0.005, 0, 1 / 30)))
+    s = sp.build(sp.SpecimenConfig(scene="focusing-24x16", nx=8, ny=6, bias_angle_deg=25.0))
+    times = capture_times(0.001, 0.07, 1000.0)
+    q = specimen_motion(s, times, MotionRecord(t_in, u_in), None, 1000.0).q[1:]
+    q = q + np.random.default_rng(0).normal(0, ch.POSITION_NOISE_M, q.shape) * [1, 1, 0]
+    m = s.scene.material
+    start = _perturbed(m, {"k_shear": 1.2, "k_bend": 0.8, "damping_u": 1.2})
+    fit = cal.fit_pulse(s.scene, times, q, np.ones(q.shape[:2], bool), t_in, u_in,
+                        fit=("k_shear", "k_bend", "damping_u"), start=start)
+    for name, tol in (("k_shear", 0.02), ("k_bend", 0.10)):
+        t = _truth_si(m, name)
+        assert abs(fit.values[name] / t - 1) < tol, (name, fit.values[name], t)
+        assert abs(fit.values[name] - t) < 3 * fit.stderr[name]
+    assert fit.stderr["damping_u"] > 0.2 * fit.values["damping_u"]  # barely seen: large stderr
+    assert abs(fit.values["damping_u"] - _truth_si(m, "damping_u")) < 3 * fit.stderr["damping_u"]
+    assert fit.rms == pytest.approx(ch.POSITION_NOISE_M, rel=0.2)
+
+
+@pytest.mark.slow
+def test_pulse_calibration_of_a_recording_writes_its_outputs(tmp_path):
+    """The focusing-12x8 sample recording end to end (ground-truth poses, measured input)."""
+    out = tmp_path / "cal"
+    run = ROOT / "recordings" / "focusing-12x8"
+    assert calibrate_main([str(run), "--out", str(out), "--poses", "truth",
+                           "--fit", "k_shear,k_bend"]) == 0
+    doc = json.loads((out / "calibration.json").read_text())
+    assert doc["kind"] == "pulse" and set(doc["parameters"]) == {"k_shear", "k_bend"}
+    assert (out / "material.toml").exists() and (out / "calibration.png").exists()
+
+
+def test_cluster_robust_errors_equal_gauss_newton_for_noise_and_grow_for_correlated_errors():
+    """Linear model y = a x + b, 200 groups of 50 points. Independent noise: the sandwich
+    errors agree with Gauss-Newton (within 15 %) and cover the truth; an error shared by each
+    group (a per-group offset, as a tracker bias along one unit's record): Gauss-Newton
+    claims ~sqrt(50) x too much precision, the cluster-robust error does not."""
+    rng = np.random.default_rng(3)
+    groups = np.repeat(np.arange(200), 50)
+    x = rng.normal(size=groups.size) + 0.3 * rng.normal(size=200)[groups]
+    J = np.c_[x, np.ones_like(x)]
+    r = rng.normal(0, 0.1, x.size)
+    gn = np.sqrt(np.diag(cal.covariance(J, r)[0]))
+    cr = np.sqrt(np.diag(cal.covariance(J, r, groups)[0]))
+    assert np.allclose(cr, gn, rtol=0.15)
+    shared = r + rng.normal(0, 0.1, 200)[groups]  # the residual at the LS optimum, offset per group
+    shared -= J @ np.linalg.lstsq(J, shared, rcond=None)[0]
+    gn = np.sqrt(np.diag(cal.covariance(J, shared)[0]))
+    cr = np.sqrt(np.diag(cal.covariance(J, shared, groups)[0]))
+    assert cr[1] > 4 * gn[1]  # the intercept sees the group offsets in full
+    # over 200 repeats, the per-group offsets move the intercept by ~0.1 / sqrt(200) = 0.007
+    assert cr[1] == pytest.approx(0.1 / np.sqrt(200), rel=0.3)
+
+
+def test_a_direction_the_data_do_not_see_gets_the_large_standard_error():
+    J = np.c_[np.linspace(0, 1, 30), np.zeros(30)]
+    r = np.random.default_rng(0).normal(0, 0.01, 30)
+    sd = np.sqrt(np.diag(cal.covariance(J, r, np.arange(30) // 3)[0]))
+    assert sd[0] < 0.1 and sd[1] == pytest.approx(cal.LARGE_SD)
+
+
+def test_pulse_fit_windows_grow_from_the_input_onset():
+    t = np.arange(1, 101) * 1e-3  # frames 1..100 ms
+    t_in = np.linspace(0, 0.1, 1001)
+    u_in = np.where(t_in > 0.02, 1e-3 * np.sin(np.pi * np.clip(t_in - 0.02, 0, 0.03) / 0.03), 0)
+    n = cal.window_frames(t, t_in, u_in)
+    assert n[-1] == t.size and n == sorted(set(n))
+    onset = 0.02
+    for k, f in zip(n[:-1], cal.WINDOWS):  # window k ends `f` of the way from onset to the end
+        assert t[k - 1] <= onset + f * (t[-1] - onset) < t[k]
+
+
+def test_damping_as_a_ratio_or_as_two_coefficients_not_both(tmp_path):
+    with pytest.raises(cal.CalibrationError, match="either damping_ratio"):
+        cal.fit_oscillation(np.arange(60) / 960, np.zeros(60), ("damping_ratio", "damping_u"))
+
+
+def test_two_way_clusters_see_an_error_shared_by_all_groups_at_one_time():
+    """100 units x 100 frames; an error common to every unit in each 10-frame block (as the
+    measured input's error reaches every unit at once): clustering by unit alone misses it,
+    two-way clustering (unit, time block) recovers the spread of the slope over repeats."""
+    rng = np.random.default_rng(5)
+    unit, frame = np.meshgrid(np.arange(100), np.arange(100))
+    unit, frame = unit.ravel(), frame.ravel()
+    x = np.sin(frame / 7.0) * (1 + 0.2 * rng.normal(size=100))[unit]
+    J = np.c_[x, np.ones_like(x)]
+    slopes, sd_unit, sd_two = [], [], []
+    for _ in range(40):
+        shared = rng.normal(0, 0.05, 10)[frame // 10] * np.sin(frame / 7.0)
+        y = 2.0 * x + shared + rng.normal(0, 0.05, x.size)
+        coef = np.linalg.lstsq(J, y, rcond=None)[0]
+        r = J @ coef - y
+        slopes.append(coef[0])
+        sd_unit.append(np.sqrt(cal.covariance(J, r, unit)[0][0, 0]))
+        sd_two.append(np.sqrt(cal.covariance(J, r, (unit, frame // 10))[0][0, 0]))
+    actual = np.std(slopes)
+    assert np.median(sd_unit) < 0.5 * actual
+    assert 0.6 * actual < np.median(sd_two) < 1.6 * actual

@@ -285,7 +285,10 @@ def plot(fit, kind: str, path: Path) -> Path:
     else:
         c = fit.extra["curves"]
         used = c["used"]
-        amp = np.nanmax(np.abs(np.where(used[..., None], c["data"][..., :2], 0)), axis=(0, 2))
+        # the units whose motion the fit changed most (where the data say most about the
+        # material; the units next to the input merely follow it)
+        moved = np.abs(c["fitted"][..., :2] - c["start"][..., :2])
+        amp = np.max(np.where(used[..., None], moved, 0), axis=(0, 2))
         units = np.argsort(amp)[-4:][::-1]
         fig, axes = plt.subplots(len(units), 1, figsize=(8, 2.0 * len(units)), sharex=True,
                                  squeeze=False)

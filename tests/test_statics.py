@@ -1,0 +1,96 @@
+"""Static pre-compression: equilibrium with contact, its implicit-function gradient, and the
+limit of the dynamic ramp's settled state."""
+
+import dataclasses
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from design_engine import build_scene
+from design_engine.simulate import SolverConfig, make_simulator
+from design_engine.statics import GRADIENT_TOL, make_static_solver
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """A 12x10 protection scene pre-compressed 5 %: voids reach the contact cutoff."""
+    return build_scene("protection-24x18", nx=12, ny=10, strain=0.05)
+
+
+@pytest.fixture(scope="module")
+def solver(scene):
+    return jax.jit(make_static_solver(scene.lattice, scene.supports))
+
+
+def _solve(scene, solver, x=None, loading=None, t_hold=None):
+    ld = loading or scene.loading
+    t = scene.loading.precompression_time if t_hold is None else t_hold
+    return solver(jnp.asarray(scene.design if x is None else x), scene.material, ld, t)
+
+
+def test_equilibrium_is_a_stable_minimum_in_contact(scene, solver):
+    q, info = _solve(scene, solver)
+    assert float(info["gradient_norm"]) < 10 * GRADIENT_TOL
+    assert np.all(np.isfinite(np.asarray(q))) and np.abs(np.asarray(q)).max() > 0.1  # deformed
+    from design_engine.energy import bond_geometry, make_energy
+    from design_engine.geometry import block_geometry
+    from design_engine.loading import make_prescribed
+
+    energy = make_energy(scene.lattice, use_contact=True)
+    bonds = bond_geometry(scene.lattice, block_geometry(scene.lattice, jnp.asarray(scene.design)))
+    qc = make_prescribed(scene.supports)[0](jnp.asarray(scene.loading.precompression_time),
+                                             scene.loading)
+    index = np.asarray(scene.supports.assemble_index)
+
+    def total(qf):
+        return energy(jnp.concatenate([qf, qc])[index].reshape(-1, 3), bonds, scene.material)
+
+    h = np.asarray(jax.hessian(total)(q))
+    assert np.linalg.eigvalsh(0.5 * (h + h.T)).min() > 0  # a minimum, not a saddle
+    contact = make_energy(scene.lattice, use_contact=True)(
+        jnp.concatenate([q, qc])[index].reshape(-1, 3), bonds, scene.material) - make_energy(
+        scene.lattice, use_contact=False)(jnp.concatenate([q, qc])[index].reshape(-1, 3), bonds,
+                                          scene.material)
+    assert float(contact) > 0  # the barrier carries load at this strain
+
+
+def test_the_dynamic_ramp_settles_onto_the_static_state(scene, solver):
+    """Dopri8 with contact through the ramp and a long hold (no pulse): the state approaches
+    the static equilibrium as the ramp's motion decays."""
+    q, _ = _solve(scene, solver)
+    ld = dataclasses.replace(scene.loading, amplitude=0.0)
+    tc = ld.precompression_time
+    sim = make_simulator(scene.lattice, scene.supports, SolverConfig(solver=diffrax.Dopri8()))
+    ts = jnp.asarray([tc, tc + 200.0, tc + 600.0])
+    sol = sim(jnp.asarray(scene.design), scene.material, ld, ts)
+    free = np.asarray(scene.supports.free)
+    err = [np.abs(np.asarray(sol.q).reshape(3, -1)[k, free] - np.asarray(q)).max()
+           for k in range(3)]
+    assert err[2] < 1e-4 * np.abs(np.asarray(q)).max()  # settled: within 1e-4 of the motion
+    assert err[2] < err[1] < err[0] or err[2] < 1e-9
+
+
+def test_gradient_matches_finite_differences(scene, solver):
+    """d/dx and d/d(strain) of a functional of the equilibrium, against central differences."""
+    w = jnp.asarray(np.random.default_rng(0).normal(size=scene.supports.free.size))
+    x0 = jnp.asarray(scene.design)
+
+    t_hold = 2.0 * scene.loading.precompression_time  # past the ramp for every strain here
+
+    def f(x, strain):
+        ld = dataclasses.replace(scene.loading, strain=strain)
+        return jnp.dot(_solve(scene, solver, x, ld, t_hold)[0], w)
+
+    strain = scene.loading.strain
+    gx, gs = jax.grad(f, argnums=(0, 1))(x0, strain)
+    d = np.random.default_rng(1).normal(size=x0.size)
+    d /= np.linalg.norm(d)
+    h = 1e-4
+    fd_x = (float(f(x0 + h * d, strain)) - float(f(x0 - h * d, strain))) / (2 * h)
+    assert float(gx @ d) == pytest.approx(fd_x, rel=1e-5)
+    hs = 1e-6
+    fd_s = (float(f(x0, strain + hs)) - float(f(x0, strain - hs))) / (2 * hs)
+    assert float(gs) == pytest.approx(fd_s, rel=1e-5)

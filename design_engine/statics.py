@@ -8,13 +8,16 @@ prescribed DOFs at their values at time `t_hold` (stages closed, input at rest).
 Solver: load continuation (the prescribed values scaled by k / n_load, k = 1..n_load), and at
 each load level damped Newton on the free DOFs with the exact Hessian, (H + mu I) d = -g, mu
 raised tenfold until the energy falls and stays finite (the contact barrier is +inf / NaN past
-its asymptote, so no step crosses it) and lowered threefold after a success. Linear solves in
-plain jax (`spd_solve`, no LAPACK call).
+its asymptote, so no step crosses it) and lowered threefold after a success, until
+max |g| <= GRADIENT_TOL. The Hessian is exact and sparse: one Hessian-vector product per colour
+and DOF of a distance-2 colouring of the bond graph (21 products for the 1146 free DOFs of
+24x18; `make_sparse_hessian`); the solves are dense Cholesky factorisations.
 
-Gradients: the returned state is q* = q_s - H_s^-1 g(q_s; theta) with q_s and H_s held
-constant (`stop_gradient`): its value is q_s (g = 0 there) and its derivative with respect to
-any input theta (design, material, loading) is the implicit one, dq*/dtheta = -H^-1 dg/dtheta,
-exact at an equilibrium. Internal units (mm, rad, N mm).
+Gradients: the returned state is q_s + (s - stop_gradient(s)), s = -H_s^-1 g(q_s; theta), with
+q_s and H_s held constant: its value is exactly q_s and its derivative with respect to any
+input theta (design, material, loading) is the implicit one, dq*/dtheta = -H^-1 dg/dtheta,
+exact at an equilibrium. `info["gradient_norm"]` says how close to one the solve came.
+Internal units (mm, rad, N mm).
 """
 
 import jax

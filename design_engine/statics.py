@@ -36,6 +36,21 @@ MAX_DAMPING_TRIES = 12  # tenfold increases of mu before a step is given up
 MIN_DAMPING, MAX_DAMPING = 1e-12, 1e3  # bounds of mu (relative to the largest Hessian diagonal)
 
 
+class EquilibriumError(RuntimeError):
+    """The static solve did not reach an equilibrium (one line saying how far it stayed)."""
+
+
+def check_equilibrium(info: dict, tol: float = 100 * GRADIENT_TOL) -> dict:
+    """Raise `EquilibriumError` unless the solve's max |dE/dq_f| is finite and below `tol`
+    (N, N mm); returns `info` (call it outside jit, on the solver's info)."""
+    g = float(info["gradient_norm"])
+    if not (np.isfinite(g) and g <= tol):
+        raise EquilibriumError(
+            f"the static pre-compression did not converge: max |dE/dq| = {g:.3g} (tolerance "
+            f"{tol:.1g}); more load levels (n_load) or Newton iterations (newton_iters) may help")
+    return info
+
+
 def distance2_colouring(n_blocks: int, bond_blocks: np.ndarray) -> np.ndarray:
     """[n_blocks] colours such that two blocks of one colour share no bond and no neighbour
     (greedy, distance-2 on the bond graph)."""

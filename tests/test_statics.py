@@ -11,7 +11,8 @@ import pytest
 
 from design_engine import build_scene
 from design_engine.simulate import SolverConfig, make_simulator
-from design_engine.statics import GRADIENT_TOL, make_static_solver
+from design_engine.statics import (GRADIENT_TOL, EquilibriumError, check_equilibrium,
+                                   make_static_solver)
 
 
 @pytest.fixture(scope="module")
@@ -34,6 +35,7 @@ def _solve(scene, solver, x=None, loading=None, t_hold=None):
 def test_equilibrium_is_a_stable_minimum_in_contact(scene, solver):
     q, info = _solve(scene, solver)
     assert float(info["gradient_norm"]) < 10 * GRADIENT_TOL
+    check_equilibrium(info)
     assert np.all(np.isfinite(np.asarray(q))) and np.abs(np.asarray(q)).max() > 0.1  # deformed
     from design_engine.energy import bond_geometry, make_energy
     from design_engine.geometry import block_geometry
@@ -94,3 +96,11 @@ def test_gradient_matches_finite_differences(scene, solver):
     hs = 1e-6
     fd_s = (float(f(x0, strain + hs)) - float(f(x0, strain - hs))) / (2 * hs)
     assert float(gs) == pytest.approx(fd_s, rel=1e-5)
+
+
+def test_a_solve_stopped_short_is_reported_not_used(scene):
+    """One load level and two Newton steps cannot reach the 5 % equilibrium: the check says so."""
+    short = jax.jit(make_static_solver(scene.lattice, scene.supports, n_load=1, newton_iters=2))
+    _, info = _solve(scene, short)
+    with pytest.raises(EquilibriumError, match="did not converge"):
+        check_equilibrium(info)

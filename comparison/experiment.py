@@ -72,15 +72,41 @@ def stage_history(stage_t_s, stage_closing_m, closing_speed_m_s: float,
     return np.r_[head_t, t[keep]], np.r_[head_c, c[keep]], reached
 
 
+def measured_input_of(scene, poses: Trajectory, frame_t0_s: float, shaker_t_s=None,
+                      shaker_u_m=None, stage_t_s=None, stage_closing_m=None,
+                      closing_speed_m_s: float | None = None,
+                      stage_hold_s: float | None = None) -> MeasuredInput:
+    """What drove the recorded sample (arguments as `compare_experiment`): the input
+    (`input_motion`) and, in a scene with stages, the stage closing from rest
+    (`stage_history`)."""
+    t_in, u_in, source = input_motion(poses, scene.input_units, shaker_t_s, shaker_u_m, frame_t0_s)
+    st = sc = None
+    reached = 0.0
+    if len(scene.stage_units_top) and stage_t_s is not None and len(stage_t_s) >= 2:
+        st, sc, reached = stage_history(stage_t_s, stage_closing_m,
+                                        closing_speed_m_s or 0.25 * scene.sample_height_m,
+                                        stage_hold_s)
+    return MeasuredInput(t_in, u_in, source, st, sc, reached)
+
+
+def engine_input(measured: MeasuredInput) -> tuple[np.ndarray, np.ndarray]:
+    """(t s, u m) of the input as the engine takes it: smoothed (`smooth_input`) and at rest
+    from t = 0 to the record's start."""
+    from design_engine.run import smooth_input
+
+    t_in, u_in = smooth_input(measured.t_s, measured.u_m)
+    if t_in[0] > 0:
+        t_in, u_in = np.r_[0.0, t_in], np.r_[0.0, u_in]
+    return t_in, u_in
+
+
 def simulate_measured(scene, frame_t_s: np.ndarray, measured: MeasuredInput,
                       config=None) -> Trajectory:
     """The engine's motion of `scene` at the frame times (rig clock, s) under the measured input,
     from rest at t = 0; q from the undeformed reference, as the engine gives it."""
-    from design_engine.run import simulate_rig, smooth_input
+    from design_engine.run import simulate_rig
 
-    t_in, u_in = smooth_input(measured.t_s, measured.u_m)
-    if t_in[0] > 0:  # at rest before the record
-        t_in, u_in = np.r_[0.0, t_in], np.r_[0.0, u_in]
+    t_in, u_in = engine_input(measured)
     has_stages = len(scene.stage_units_top) > 0 and measured.stage_t_s is not None
     return simulate_rig(scene, np.asarray(frame_t_s, np.float64), t_in, u_in,
                         measured.stage_t_s if has_stages else None,
@@ -165,14 +191,10 @@ def compare_experiment(scene, poses: Trajectory, frame_t0_s: float, shaker_t_s=N
                          f"{scene.n_units}: the design does not match the recording")
     if poses.n_t < 3:
         raise ValueError(f"the recording holds {poses.n_t} frames; the comparison needs 3 or more")
-    t_in, u_in, source = input_motion(poses, scene.input_units, shaker_t_s, shaker_u_m, frame_t0_s)
-    st = sc = None
-    reached = 0.0
-    if len(scene.stage_units_top) and stage_t_s is not None and len(stage_t_s) >= 2:
-        st, sc, reached = stage_history(stage_t_s, stage_closing_m,
-                                        closing_speed_m_s or 0.25 * scene.sample_height_m,
-                                        stage_hold_s)
-    measured_input = MeasuredInput(t_in, u_in, source, st, sc, reached)
+    measured_input = measured_input_of(scene, poses, frame_t0_s, shaker_t_s, shaker_u_m,
+                                       stage_t_s, stage_closing_m, closing_speed_m_s,
+                                       stage_hold_s)
+    t_in, u_in = measured_input.t_s, measured_input.u_m
     sim_abs = simulate_measured(scene, poses.t + frame_t0_s, measured_input, config=config)
     if not np.all(np.isfinite(sim_abs.q)):
         raise ValueError("the simulation of the measured experiment did not finish (non-finite)")

@@ -35,9 +35,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from design_engine.energy import bond_geometry, make_energy
-from design_engine.linalg import spd_solve
 from design_engine.geometry import block_geometry
 from design_engine.lattice import Lattice, periodic_design, quads
+from design_engine.linalg import implicit_point, spd_solve
 from design_engine.loading import CH_ZERO, Loading, Supports
 from design_engine.material import SI_POWER, Material, engine_to_si, reference_damping, si_to_engine
 from design_engine.material_file import SI_UNITS
@@ -108,7 +108,7 @@ class Fit:
     def undetermined(self) -> list:
         """Names whose relative standard error exceeds `UNDETERMINED_SD` (the data barely see
         them: their values are start values moved by noise)."""
-        return [n for n in self.names if self.units[n] != "rad" and n not in ("omega0",)
+        return [n for n in self.names if n in SI_UNITS  # nuisance parameters are not judged
                 and abs(self.stderr[n]) > UNDETERMINED_SD * abs(self.values[n])]
 
     def parameters_json(self) -> dict:
@@ -224,7 +224,11 @@ def run_fit(residual, names: list, log_params: list, start_si: dict, units: dict
             `extra["stderr_gauss_newton"]` keeps the plain ones.
     """
     t0 = time.perf_counter()
-    jac = jax.jit(jax.jacfwd(lambda p: (residual(p), residual(p)), has_aux=True))
+    def with_value(p):
+        r = residual(p)
+        return r, r  # the residual once: its Jacobian and (as aux) its value
+
+    jac = jax.jit(jax.jacfwd(with_value, has_aux=True))
 
     count = [0]
 
@@ -262,16 +266,7 @@ def run_fit(residual, names: list, log_params: list, start_si: dict, units: dict
                sigma=math.sqrt(s2) * scale, n=int(r.size), dof=dof, iterations=iters,
                converged=ok, correlation=corr, residual_unit=residual_unit,
                wall_s=time.perf_counter() - t0,
-               extra={"p": p, "residuals": r * scale, "stderr_gauss_newton": stderr_gn})
-
-
-def _material_with(base: Material, internal: dict) -> Material:
-    """`base` with the given fields (internal units, possibly traced) replaced."""
-    names = tuple(internal)
-    if not names:
-        return base
-    return eqx.tree_at(lambda m: tuple(getattr(m, n) for n in names), base,
-                       tuple(internal[n] for n in names))
+               extra={"p": p, "stderr_gauss_newton": stderr_gn})
 
 
 def start_damping_ratio(start: Material, lattice: Lattice) -> float:
@@ -293,7 +288,7 @@ def make_fitted_material(start: Material, names: list, start_si: dict, lattice: 
                                          fields.get("k_shear", start.k_shear),
                                          fields.get("k_bend", start.k_bend))
             fields["damping_u"], fields["damping_theta"] = c_u, c_t
-        return _material_with(start, fields)
+        return start.replaced(**fields)
 
     return material
 
@@ -391,7 +386,7 @@ def make_hinge_forces(sample: HingeSample, test: str, newton_steps: int = 3):
         return jnp.zeros(3 * nb, qf.dtype).at[free].set(qf).at[loaded].set(sign * d)
 
     def total(qfull, k):
-        mat = _material_with(sample.material, dict(zip(STIFFNESSES, (k[0], k[1], k[2]))))
+        mat = sample.material.replaced(**dict(zip(STIFFNESSES, (k[0], k[1], k[2]))))
         return energy(qfull.reshape(nb, 3), bonds, mat)
 
     def grad_f(qf, d, k):
@@ -414,25 +409,16 @@ def make_hinge_forces(sample: HingeSample, test: str, newton_steps: int = 3):
         z = jnp.zeros(free.size)
         return jax.lax.scan(step, (z, z), d_mm)[1]
 
-    @jax.custom_jvp
-    def path_const(k, d_mm):  # the path as a constant for differentiation (see force_at)
-        return path(k, d_mm)
-
-    @path_const.defjvp
-    def _path_jvp(primals, tangents):
-        out = path(*primals)
-        return out, jnp.zeros_like(out)
-
     def force_at(qs, d, k):
         h = jax.lax.stop_gradient(hess_f(qs, d, jax.lax.stop_gradient(k)))
-        qd = qs - spd_solve(h, grad_f(qs, d, k))  # = qs; its derivative: the implicit one
+        qd = implicit_point(qs, -spd_solve(h, grad_f(qs, d, k)))
         g = jax.grad(lambda qq: total(qq, k))(full(qd, d))
         return sign * jnp.sum(g[loaded])
 
     def forces(k, d_mm):
         k = jnp.asarray(k, jnp.float64)
         d_mm = jnp.asarray(d_mm, jnp.float64)
-        qs = path_const(jax.lax.stop_gradient(k), d_mm)
+        qs = path(jax.lax.stop_gradient(k), d_mm)  # the path carries no derivative
         return jax.vmap(force_at, in_axes=(0, 0, None))(qs, d_mm, k)
 
     return forces
@@ -632,7 +618,7 @@ def make_oscillation_model(sample: OscillationSample, ts_ms, config=None):
             return z - spd_solve(h(z, ps, ms), g(z, ps, ms))
 
         uv = jax.lax.stop_gradient(jax.lax.fori_loop(0, 12, newton, jnp.zeros(2)))
-        uv = uv - spd_solve(jax.lax.stop_gradient(h(uv, ps, ms)), g(uv, phi0, mat))
+        uv = implicit_point(uv, -spd_solve(jax.lax.stop_gradient(h(uv, ps, ms)), g(uv, phi0, mat)))
         q0 = jnp.concatenate([uv, jnp.reshape(phi0, (1,))])
         v0 = jnp.zeros(3).at[2].set(omega0)
         sol = sim(jnp.asarray(sample.design), mat, Loading(), ts, initial=(q0, v0))
@@ -742,7 +728,6 @@ def fit_oscillation(t_s, theta, fit=DEFAULT_OSC_FIT, start: Material | None = No
     p = jnp.asarray(out.extra["p"])
     m = material(p)
     out.extra["curves"] = {"t_s": t, "data": y, "fitted": np.asarray(curve(p))}
-    out.extra["material"] = m
     if "damping_ratio" in names:
         out.extra["derived"] = derived_damping(out, m)
     try:
@@ -837,6 +822,7 @@ def fit_pulse(scene, frame_t_s, tracked_q, valid, input_t_s, input_u_m, stage_t_
     simulated rig's DIC tracks, actual errors 10-20 of them against at most 2 of these).
     """
     from design_engine.fixed_step import is_fixed_step
+    from design_engine.run import measured_loading
     from design_engine.simulate import make_simulator
 
     names = _check_fit_names(list(fit), PULSE_PARAMS, "pulse")
@@ -857,14 +843,10 @@ def fit_pulse(scene, frame_t_s, tracked_q, valid, input_t_s, input_u_m, stage_t_
     use[:, np.asarray(scene.input_units)] = False  # the driven units are the input, not data
     if use.sum() < 10:
         raise CalibrationError("fewer than 10 tracked unit poses to fit")
-    st = np.array([0.0, 1.0]) if stage_t_s is None else np.asarray(stage_t_s) * 1e3
-    sc = np.zeros(2) if stage_t_s is None else np.asarray(stage_closing_m) * 1e3
-    loading = Loading(waveform="measured", amplitude=0.0, frequency=scene.loading.frequency,
-                      delay=0.0, pulse_start=0.0, strain=0.0,
-                      stage_height=scene.loading.stage_height,
-                      measured_t=jnp.asarray(np.asarray(input_t_s) * 1e3),
-                      measured_u=jnp.asarray(np.asarray(input_u_m) * 1e3),
-                      stage_t=jnp.asarray(st), stage_closing=jnp.asarray(sc))
+    try:
+        loading = measured_loading(scene, input_t_s, input_u_m, stage_t_s, stage_closing_m)
+    except ValueError as exc:
+        raise CalibrationError(str(exc)) from None
     start = start or scene.material
     start_si = start.to_si()
     start_si["damping_ratio"] = start_damping_ratio(start, scene.lattice)

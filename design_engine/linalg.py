@@ -23,3 +23,10 @@ def spd_solve(A, b):
         return x.at[k].set((v[k] - a[k] @ x) / a[k, k])
 
     return jax.lax.fori_loop(0, n, back, jnp.zeros_like(b))
+
+
+def implicit_point(q_s, step):
+    """An equilibrium q_s with the implicit-function derivative: value q_s exactly, derivative
+    that of `step` = -H_s^-1 g(q_s; theta) with q_s and H_s held constant (`stop_gradient`),
+    i.e. dq/dtheta = -H^-1 dg/dtheta, exact where g(q_s) = 0."""
+    return q_s + (step - jax.lax.stop_gradient(step))

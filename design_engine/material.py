@@ -164,3 +164,15 @@ class Material(eqx.Module):
     def undamped(self) -> "Material":
         """Same material with zero damping."""
         return eqx.tree_at(lambda m: (m.damping_u, m.damping_theta), self, (0.0, 0.0))
+
+    def replaced(self, **fields) -> "Material":
+        """Same material with the given fields (engine units; jax values allowed) replaced."""
+        if not fields:
+            return self
+        names = tuple(fields)
+        return eqx.tree_at(lambda m: tuple(getattr(m, n) for n in names), self,
+                           tuple(fields[n] for n in names))
+
+    def scaled(self, factors: dict[str, float]) -> "Material":
+        """Same material with each named field multiplied by its factor."""
+        return self.replaced(**{n: getattr(self, n) * f for n, f in factors.items()})

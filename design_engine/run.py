@@ -204,6 +204,33 @@ def smooth_input(t_s, u_m) -> tuple[np.ndarray, np.ndarray]:
     return fine, CubicSpline(t, u)(fine)
 
 
+def measured_loading(scene: Scene, input_t_s, input_u_m, stage_t_s=None,
+                     stage_closing_m=None) -> Loading:
+    """The `Loading` of a measured experiment (SI in, validated): the shaker displacement into
+    the specimen and the total stage closing (m) at times (s), linearly interpolated; no stage
+    record holds the stages at zero.
+
+    Raises:
+        ValueError: arrays of unequal length, not 1-D or shorter than 2.
+    """
+    it, iu = np.asarray(input_t_s, np.float64), np.asarray(input_u_m, np.float64)
+    if it.shape != iu.shape or it.ndim != 1 or it.size < 2:
+        raise ValueError("input_t_s and input_u_m must be 1-D arrays of the same length (>= 2)")
+    if stage_t_s is None:
+        st, sc = np.array([0.0, 1.0]), np.zeros(2)
+    else:
+        st = units.time_from_si(np.asarray(stage_t_s, np.float64))
+        sc = units.length_from_si(np.asarray(stage_closing_m, np.float64))
+        if st.shape != sc.shape or st.ndim != 1 or st.size < 2:
+            raise ValueError("stage_t_s and stage_closing_m must be 1-D arrays of equal length >= 2")
+    return Loading(
+        waveform="measured", amplitude=0.0, frequency=scene.loading.frequency, delay=0.0,
+        pulse_start=0.0, strain=0.0, stage_height=scene.loading.stage_height,
+        measured_t=jnp.asarray(units.time_from_si(it)), measured_u=jnp.asarray(units.length_from_si(iu)),
+        stage_t=jnp.asarray(st), stage_closing=jnp.asarray(sc),
+    )
+
+
 def simulate_rig(scene: Scene, times_s, input_t_s, input_u_m, stage_t_s=None, stage_closing_m=None,
                  config: SolverConfig | None = None) -> Trajectory:
     """Simulate the specimen under measured shaker and stage motion, from rest at t = 0.
@@ -223,22 +250,7 @@ def simulate_rig(scene: Scene, times_s, input_t_s, input_u_m, stage_t_s=None, st
     times_ms = units.time_from_si(np.asarray(times_s, np.float64))
     if times_ms.ndim != 1 or times_ms.size < 2 or np.any(np.diff(times_ms) <= 0) or times_ms[0] < 0:
         raise ValueError("times_s must be an increasing 1-D array of non-negative times")
-    it, iu = np.asarray(input_t_s, np.float64), np.asarray(input_u_m, np.float64)
-    if it.shape != iu.shape or it.ndim != 1 or it.size < 2:
-        raise ValueError("input_t_s and input_u_m must be 1-D arrays of the same length (>= 2)")
-    if stage_t_s is None:
-        st, sc = np.array([0.0, 1.0]), np.zeros(2)
-    else:
-        st = units.time_from_si(np.asarray(stage_t_s, np.float64))
-        sc = units.length_from_si(np.asarray(stage_closing_m, np.float64))
-        if st.shape != sc.shape or st.ndim != 1 or st.size < 2:
-            raise ValueError("stage_t_s and stage_closing_m must be 1-D arrays of equal length >= 2")
-    loading = Loading(
-        waveform="measured", amplitude=0.0, frequency=scene.loading.frequency, delay=0.0,
-        pulse_start=0.0, strain=0.0, stage_height=scene.loading.stage_height,
-        measured_t=jnp.asarray(units.time_from_si(it)), measured_u=jnp.asarray(units.length_from_si(iu)),
-        stage_t=jnp.asarray(st), stage_closing=jnp.asarray(sc),
-    )
+    loading = measured_loading(scene, input_t_s, input_u_m, stage_t_s, stage_closing_m)
     sol, _, _, _ = _run_with_policy(scene, config, times_ms, loading)
     return to_trajectory(sol, 0.0, times_ms)
 

@@ -27,6 +27,7 @@ import numpy as np
 from design_engine.energy import bond_geometry, make_energy
 from design_engine.geometry import block_geometry
 from design_engine.lattice import Lattice
+from design_engine.linalg import implicit_point
 from design_engine.loading import Loading, Supports, make_prescribed
 
 N_LOAD = 8  # load levels of the continuation
@@ -194,8 +195,7 @@ def make_static_solver(lattice: Lattice, supports: Supports, *, use_contact: boo
         q_s = jax.lax.stop_gradient(q_s)
         h = jax.lax.stop_gradient(hess(q_s, qc_s, bonds_s, ms))
         qc, bonds = constants(x, loading, t_hold)
-        step = -_solve(h, grad(q_s, qc, bonds, material))
-        q = q_s + (step - jax.lax.stop_gradient(step))  # value q_s; the implicit derivative
+        q = implicit_point(q_s, -_solve(h, grad(q_s, qc, bonds, material)))
         info = {"gradient_norm": jnp.max(jnp.abs(grad(q_s, qc_s, bonds_s, ms))),
                 "energy": total(q_s, qc_s, bonds_s, ms), "damping": mu}
         return q, jax.lax.stop_gradient(info)

@@ -68,17 +68,22 @@ class HingeTestConfig:
     seed: int = 0
 
 
-def hinge_test(material, cfg: HingeTestConfig, sample=None):
-    """Simulate one run: (t s [n], displacement m [n], force N [n]) for an engine `Material`."""
+def hinge_curve(material, test: str, d_max_m: float, n_points: int, sample=None):
+    """The noise-free test: (displacement m [n], force N [n]) for an engine `Material`."""
+    import jax
     import jax.numpy as jnp
 
     sample = sample or hinge_sample()
-    d_max = cfg.max_displacement_m or HINGE_TESTS[cfg.test][2]
-    d = np.linspace(0.0, d_max, cfg.n_points)
+    d = np.linspace(0.0, d_max_m, n_points)
     k = jnp.asarray([material.k_stretch, material.k_shear, material.k_bend])
-    import jax
+    return d, np.asarray(jax.jit(make_hinge_forces(sample, test))(k, d * 1e3))
 
-    f = np.asarray(jax.jit(make_hinge_forces(sample, cfg.test))(k, d * 1e3))
+
+def hinge_test(material, cfg: HingeTestConfig, sample=None, curve=None):
+    """Simulate one run: (t s [n], displacement m [n], force N [n]) for an engine `Material`;
+    `curve`: its `hinge_curve` when already computed (repeats differ by their noise only)."""
+    d_max = cfg.max_displacement_m or HINGE_TESTS[cfg.test][2]
+    d, f = curve or hinge_curve(material, cfg.test, d_max, cfg.n_points, sample)
     f = f + np.random.default_rng(cfg.seed).normal(0.0, cfg.noise_n, f.shape)
     return d / cfg.rate_m_s, d, f
 
@@ -101,10 +106,11 @@ def hinge_tests(material, out_dir, tests=tuple(HINGE_TESTS), runs: int = 1, seed
     sample = hinge_sample()
     paths = []
     for i, test in enumerate(tests):
+        curve = hinge_curve(material, test, HINGE_TESTS[test][2], n_points, sample)
         for r in range(runs):
             cfg = HingeTestConfig(test, n_points=n_points, noise_n=noise_n,
                                   seed=seed + 1000 * i + r)
-            t, d, f = hinge_test(material, cfg, sample)
+            t, d, f = hinge_test(material, cfg, sample, curve)
             paths.append(write_hinge_file(Path(out_dir) / f"hinge_{test}_{r}.csv", t, d, f, cfg))
     return paths
 

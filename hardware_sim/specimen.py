@@ -81,7 +81,6 @@ def build(cfg: SpecimenConfig) -> Specimen:
     """Build the scene (strain 0: the stages apply the measured closing), give it the material
     file's nominal material (if any) and perturb it."""
     import design_engine as de
-    import equinox as eqx
 
     nx, ny, design = cfg.nx, cfg.ny, None
     if cfg.design_path:
@@ -105,12 +104,9 @@ def build(cfg: SpecimenConfig) -> Specimen:
     factors = {}
     if cfg.perturb > 0:
         rng = np.random.default_rng(cfg.seed)
-        m = scene.material
         names = ("k_stretch", "k_shear", "k_bend", "k_contact", "damping_u", "damping_theta")
         factors = {n: float(np.exp(cfg.perturb * rng.standard_normal())) for n in names}
-        m = eqx.tree_at(lambda x: tuple(getattr(x, n) for n in names), m,
-                        tuple(getattr(m, n) * factors[n] for n in names))
-        scene = replace(scene, material=m)
+        scene = replace(scene, material=scene.material.scaled(factors))
     return Specimen(cfg, scene, np.asarray(scene.reference_polygons_m()), factors, material_si)
 
 

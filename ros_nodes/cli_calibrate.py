@@ -152,12 +152,12 @@ def calibrate_oscillation(files, fit, material_path=None, progress=None):
 
 def pulse_inputs(source: Path, poses_source: str = "auto", calibration: str | None = None,
                  workers: int | None = None):
-    """(scene, tracked Trajectory, frame t0 s, input (t, u), stage (t, closing) or None) of a run
-    folder or .mcap: the poses and measured input as `metarig compare` takes them."""
+    """(scene, tracked Trajectory, frame t0 s, input (t, u) as the engine takes it, stage
+    (t, closing) or None) of a run folder or .mcap: the poses and measured input exactly as
+    `metarig compare` takes them."""
     import os
 
-    from comparison.experiment import input_motion, stage_history
-    from design_engine.run import smooth_input
+    from comparison.experiment import engine_input, measured_input_of
     from ros_nodes.cli_compare import camera_calibration_path, measured_poses, recorded_design
     from ros_nodes.logic import comparison_run as run
     from ros_nodes.logic.comparison_run import CompareError
@@ -171,22 +171,15 @@ def pulse_inputs(source: Path, poses_source: str = "auto", calibration: str | No
                                  camera_calibration_path(run_dir, calibration),
                                  workers or os.cpu_count() or 1, progress=False)
         run.check_poses(scene, tracked.poses, where=str(rec.path), min_frames=5)
-        t_in, u_in, _ = input_motion(tracked.poses, scene.input_units, rec.shaker_t_s,
-                                     rec.shaker_u_m, tracked.t0_s)
+        measured = measured_input_of(scene, tracked.poses, tracked.t0_s, rec.shaker_t_s,
+                                     rec.shaker_u_m, rec.stage_t_s, rec.stage_closing_m,
+                                     rec.closing_speed_m_s, rec.stage_hold_s)
     except (RecordingError, CompareError) as exc:
         raise InputError(str(exc)) from None
     except ValueError as exc:
         raise InputError(f"{source}: {exc}") from None
-    t_in, u_in = smooth_input(t_in, u_in)
-    if t_in[0] > 0:
-        t_in, u_in = np.r_[0.0, t_in], np.r_[0.0, u_in]
-    stage = None
-    if len(scene.stage_units_top) and rec.stage_t_s.size >= 2:
-        st, sc, _ = stage_history(rec.stage_t_s, rec.stage_closing_m,
-                                  rec.closing_speed_m_s or 0.25 * scene.sample_height_m,
-                                  rec.stage_hold_s)
-        stage = (st, sc)
-    return scene, tracked.poses, tracked.t0_s, (t_in, u_in), stage
+    stage = None if measured.stage_t_s is None else (measured.stage_t_s, measured.stage_closing_m)
+    return scene, tracked.poses, tracked.t0_s, engine_input(measured), stage
 
 
 def calibrate_pulse(files, fit, material_path=None, poses_source="auto", calibration=None,

@@ -9,7 +9,6 @@ lie within 3 of its reported standard errors of the truth.
 import json
 from pathlib import Path
 
-import equinox as eqx
 import numpy as np
 import pytest
 
@@ -23,17 +22,11 @@ ROOT = Path(__file__).resolve().parents[1]
 FACTORS = {"k_stretch": 1.2, "k_shear": 0.8, "k_bend": 1.2}
 
 
-def _perturbed(m, factors):
-    names = tuple(factors)
-    return eqx.tree_at(lambda x: tuple(getattr(x, n) for n in names), m,
-                       tuple(getattr(m, n) * factors[n] for n in names))
-
-
 def _spec_damped(m, lattice, zeta, **stiffness_factors):
     """`m` with stiffnesses scaled and c_u, c_theta set by spec 6.3 from `zeta`."""
-    m = _perturbed(m, stiffness_factors)
+    m = m.scaled(stiffness_factors)
     c_u, c_t = reference_damping(lattice, zeta, m.density, m.k_shear, m.k_bend)
-    return eqx.tree_at(lambda x: (x.damping_u, x.damping_theta), m, (c_u, c_t))
+    return m.replaced(damping_u=c_u, damping_theta=c_t)
 
 
 def _truth_si(m, name):
@@ -42,7 +35,7 @@ def _truth_si(m, name):
 
 @pytest.fixture(scope="module")
 def hinge_files(tmp_path_factory):
-    true = _perturbed(cal.hinge_sample().material, FACTORS)
+    true = cal.hinge_sample().material.scaled(FACTORS)
     d = tmp_path_factory.mktemp("hinge")
     return true, ch.hinge_tests(true, d, n_points=50, seed=1)
 
@@ -212,7 +205,7 @@ def test_pulse_calibration_recovers_perturbed_parameters():
     q = specimen_motion(s, times, MotionRecord(t_in, u_in), None, 1000.0).q[1:]
     q = q + np.random.default_rng(0).normal(0, ch.POSITION_NOISE_M, q.shape) * [1, 1, 0]
     m = s.scene.material
-    start = _perturbed(m, {"k_shear": 1.2, "k_bend": 0.8, "damping_u": 1.2})
+    start = m.scaled({"k_shear": 1.2, "k_bend": 0.8, "damping_u": 1.2})
     fit = cal.fit_pulse(s.scene, times, q, np.ones(q.shape[:2], bool), t_in, u_in,
                         fit=("k_shear", "k_bend", "damping_u"), start=start)
     for name, tol in (("k_shear", 0.02), ("k_bend", 0.10)):

@@ -89,6 +89,12 @@ def _json_number(v):
     return v if v is None or math.isfinite(v) else None
 
 
+def resumable(out: Path) -> bool:
+    """Whether a design run folder holds a run to resume: its run.json and its checkpoint (a
+    run killed between writing the two starts afresh)."""
+    return (Path(out) / "run.json").exists() and (Path(out) / "checkpoint.npz").exists()
+
+
 class _Record:
     """The run's record on disk: history.json, checkpoint.npz, run.json (atomic writes)."""
 
@@ -103,7 +109,7 @@ class _Record:
 
     def load(self) -> None:
         run_path, ck = self.out / "run.json", self.out / "checkpoint.npz"
-        if not run_path.exists() or not ck.exists():
+        if not resumable(self.out):
             raise ResumeError(f"{self.out}: nothing to resume (no run.json and checkpoint.npz)")
         try:
             run = json.loads(run_path.read_text())

@@ -60,7 +60,7 @@ def run_one(spec: RunSpec, out: str) -> dict:
     """
     import design_engine  # noqa: F401  (x64, cache)
     from design_engine.design_cli import write_outputs
-    from design_engine.optimize import run_design
+    from design_engine.optimize import resumable, run_design
 
     folder = Path(out) / "runs" / spec.name
     task = _task(spec)
@@ -71,7 +71,7 @@ def run_one(spec: RunSpec, out: str) -> dict:
             return {"run": spec.name, "evaluations": run["evaluations"], "skipped": True,
                     "compilations": 0}
     t0 = time.perf_counter()
-    res = run_design(task, folder, resume=(folder / "checkpoint.npz").exists(), progress=False)
+    res = run_design(task, folder, resume=resumable(folder), progress=False)
     write_outputs(task, folder, res, plots=False)
     return {"run": spec.name, "evaluations": len(res.evaluations), "skipped": False,
             "compilations": res.compilations, "wall_s": time.perf_counter() - t0,

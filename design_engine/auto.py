@@ -45,23 +45,26 @@ class Choice:
 
 
 def make_frequency_estimator(scene: Scene, iterations: int):
-    """Factory: jitted `estimate(x, v0) -> (omega_max, v)` for designs `x` [n_design] (mm).
+    """Factory: jitted `estimate(x, v0, q_base=None) -> (omega_max, v)` for designs `x`
+    [n_design] (mm).
 
-    Power iteration on M^-1/2 K M^-1/2 at rest with Hessian-vector products (no dense Hessian:
-    `iterations` force-gradient products), started from `v0` [n_free] (unit vector). Warm-started
-    from the previous eigenvector, a few dozen iterations track omega_max (rad/ms) while an
-    optimiser changes the unit masses. The Rayleigh quotient approaches omega_max from below.
+    Power iteration on M^-1/2 K M^-1/2 with Hessian-vector products (no dense Hessian:
+    `iterations` force-gradient products), started from `v0` [n_free] (unit vector), K taken at
+    `q_base` ([n_blocks, 3] mm/rad, contact included; default the reference state, at rest).
+    Warm-started from the previous eigenvector, a few dozen iterations track omega_max (rad/ms)
+    while an optimiser changes the unit masses. The Rayleigh quotient approaches omega_max from
+    below.
     """
     lat, free = scene.lattice, scene.supports.free
     energy = make_energy(lat)
     material = scene.material
 
     @jax.jit
-    def estimate(x, v):
+    def estimate_at(x, v, q_base):
         geom = block_geometry(lat, x)
         bonds = bond_geometry(lat, geom)
         inv_sqrt_m = 1.0 / jnp.sqrt(dof_masses(geom, material)[free])
-        q0 = jnp.zeros(3 * lat.n_blocks, x.dtype)
+        q0 = jnp.reshape(q_base, -1).astype(x.dtype)
 
         def grad_free(qf):
             return jax.grad(lambda z: energy(q0.at[free].set(z).reshape(-1, 3), bonds,
@@ -77,6 +80,11 @@ def make_frequency_estimator(scene: Scene, iterations: int):
         v = jax.lax.fori_loop(0, iterations, body, v)
         return jnp.sqrt(jnp.maximum(jnp.dot(v, apply(v)), 0.0)), v
 
+    def estimate(x, v, q_base=None):
+        x = jnp.asarray(x)
+        return estimate_at(x, v, jnp.zeros(3 * lat.n_blocks, x.dtype) if q_base is None
+                           else jnp.asarray(q_base))
+
     return estimate
 
 
@@ -86,13 +94,14 @@ def initial_vector(scene: Scene) -> np.ndarray:
     return v0 / np.linalg.norm(v0)
 
 
-def max_angular_frequency(scene: Scene, iterations: int = 300) -> float:
-    """Largest omega (rad/ms) of K phi = omega^2 M phi at rest, for the scene's design.
+def max_angular_frequency(scene: Scene, iterations: int = 300, state=None) -> float:
+    """Largest omega (rad/ms) of K phi = omega^2 M phi for the scene's design, K taken at
+    `state` ([n_blocks, 3] mm/rad; default the reference state at rest).
 
     Power iteration (see `make_frequency_estimator`): a few hundred force evaluations.
     """
-    omega, _ = make_frequency_estimator(scene, iterations)(jnp.asarray(scene.design),
-                                                           jnp.asarray(initial_vector(scene)))
+    omega, _ = make_frequency_estimator(scene, iterations)(
+        jnp.asarray(scene.design), jnp.asarray(initial_vector(scene)), state)
     return float(omega)
 
 
@@ -123,6 +132,21 @@ def choose_config(scene: Scene, *, full_model: bool = False,
     )
     config = SolverConfig(solver=FixedStepVerlet(max_dt=dt), use_contact=False, dtype="float32")
     return Choice(config, reasons, omega)
+
+
+def contact_frequency(min_void_margin: float, material, min_inertia: float) -> float:
+    """Upper bound (rad/ms) of the frequency the contact barrier adds at its deepest point.
+
+    At a void angle alpha between the cutoff and the asymptote (tau = (theta_cut - alpha) /
+    span in [0, 1)) the barrier's stiffness is d2V/dalpha2 = k_c (1 + 3 tau^2) / (1 - tau^2)^3
+    (N mm/rad); two units of rotary inertia >= `min_inertia` (g mm^2) joined by it vibrate at
+    most at sqrt(2 d2V/dalpha2 / min_inertia). `min_void_margin` is `Solution.min_void_margin`
+    (rad above the asymptote).
+    """
+    span = float(material.contact_cutoff - material.contact_min)
+    tau = min(max((span - float(min_void_margin)) / span, 0.0), 1.0 - 1e-12)
+    stiffness = float(material.k_contact) * (1.0 + 3.0 * tau**2) / (1.0 - tau**2) ** 3
+    return float(np.sqrt(2.0 * stiffness / min_inertia))
 
 
 def contact_config() -> SolverConfig:

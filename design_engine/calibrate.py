@@ -29,7 +29,6 @@ import time
 from dataclasses import dataclass, field
 
 import diffrax
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np

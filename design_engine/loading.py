@@ -17,6 +17,11 @@ from design_engine._types import Array, Float, Scalar
 
 CH_ZERO, CH_INPUT, CH_STAGE = 0, 1, 2
 WAVEFORMS = ("pulse", "harmonic", "measured")
+# how the stages reach their strain: "ramp" closes them at `strain_rate` from t = 0 and the
+# dynamics follow (the reference's two-stage protocol, spec 7.4); "static" holds them closed from
+# t = 0 and the solve starts at rest in the static equilibrium there (`statics`), the pulse
+# following after `delay` (the rig closes its stages slowly and settles before it fires)
+PRECOMPRESSION = ("ramp", "static")
 
 
 class Loading(eqx.Module):
@@ -35,6 +40,8 @@ class Loading(eqx.Module):
         measured_t, measured_u: [n] samples of a measured input (ms, mm); used by "measured".
         stage_t, stage_closing: [m] samples of a measured total stage closing (ms, mm); when
             given they replace the ramp.
+        precompression: "ramp" or "static" (see `PRECOMPRESSION`); "static" starts every solve
+            from the equilibrium under the closed stages, so its `pulse_start` is 0.
     """
 
     waveform: str = eqx.field(static=True, default="pulse")
@@ -49,17 +56,28 @@ class Loading(eqx.Module):
     measured_u: Float[Array, " n"] | None = None
     stage_t: Float[Array, " m"] | None = None
     stage_closing: Float[Array, " m"] | None = None
+    precompression: str = eqx.field(static=True, default="ramp")
 
     def __check_init__(self):
         if self.waveform not in WAVEFORMS:
             raise ValueError(f"waveform must be one of {WAVEFORMS}, got {self.waveform!r}")
+        if self.precompression not in PRECOMPRESSION:
+            raise ValueError(f"precompression must be one of {PRECOMPRESSION}, got "
+                             f"{self.precompression!r}")
         if self.waveform == "measured" and (self.measured_t is None or self.measured_u is None):
             raise ValueError("a measured waveform needs measured_t and measured_u")
 
     @property
     def precompression_time(self) -> float:
-        """Duration t_c of the pre-compression ramp, ms."""
+        """Duration t_c of the pre-compression ramp, ms (0 for a static pre-compression)."""
+        if self.precompression == "static":
+            return 0.0
         return float(self.strain / self.strain_rate) if self.strain > 0 else 0.0
+
+    @property
+    def is_static(self) -> bool:
+        """True when solves start from the static equilibrium under the closed stages."""
+        return self.precompression == "static"
 
 
 def input_displacement(t: Scalar, ld: Loading) -> Scalar:
@@ -79,6 +97,8 @@ def stage_closing(t: Scalar, ld: Loading) -> Scalar:
     """Total closing delta(t) of the two stage rows, mm (half is applied to each row)."""
     if ld.stage_t is not None:
         return jnp.interp(t, ld.stage_t, ld.stage_closing)
+    if ld.precompression == "static":
+        return ld.stage_height * ld.strain * jnp.ones_like(t)
     return ld.stage_height * jnp.minimum(ld.strain_rate * t, ld.strain)
 
 

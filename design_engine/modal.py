@@ -60,16 +60,33 @@ def modal_analysis(scene: Scene, q_state: np.ndarray | None = None, *, linearize
 
 
 def prestressed_state(scene: Scene, config=None) -> np.ndarray:
-    """State [n_blocks, 3] (mm, rad) at the end of the scene's pre-compression (t_c + t_d).
+    """State [n_blocks, 3] (mm, rad) at the end of the scene's pre-compression, when the pulse
+    starts.
 
-    The two-stage protocol reaches it dynamically from rest (spec 7.4), so the returned state holds
-    the small residual vibration of the ramp; the reference state for scenes without stages.
+    A static pre-compression (`loading.is_static`) gives the equilibrium under the closed stages
+    (`statics`); the two-stage ramp reaches it dynamically from rest (spec 7.4), so the state
+    at t_c + t_d holds the small residual vibration of the ramp; the reference state for scenes
+    without stages.
     """
+    from design_engine.loading import make_prescribed
     from design_engine.run import compiled_simulator
-    from design_engine.simulate import SolverConfig, check_solution
+    from design_engine.simulate import SolverConfig, SimulationError, check_solution
+    from design_engine.statics import EquilibriumError, check_equilibrium, make_static_solver
 
     if scene.loading.strain <= 0.0:
         return np.zeros((scene.n_units, 3))
+    if scene.loading.is_static:
+        q_f, info = jax.jit(make_static_solver(scene.lattice, scene.supports))(
+            jnp.asarray(scene.design), scene.material, scene.loading, 0.0)
+        try:
+            check_equilibrium(info)
+        except EquilibriumError as exc:
+            raise SimulationError(str(exc)) from None
+        q = np.zeros(3 * scene.n_units)
+        q[scene.supports.free] = np.asarray(q_f)
+        values, _ = make_prescribed(scene.supports)
+        q[scene.supports.constrained] = np.asarray(values(jnp.asarray(0.0), scene.loading))
+        return q.reshape(-1, 3)
     config = config or SolverConfig()
     ts = np.asarray([0.5 * scene.window_start, scene.window_start])
     sim = compiled_simulator(scene, config, ts)

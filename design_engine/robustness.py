@@ -39,7 +39,7 @@ from design_engine.loading import Loading
 from design_engine.objectives import region_energy, region_energy_ratio
 from design_engine.run import compile_key, config_summary, default_choice
 from design_engine.scenes import Scene, build_scene
-from design_engine.simulate import SolverConfig, failure_message, make_simulator
+from design_engine.simulate import SolverConfig, health_failure, make_simulator, solve_health
 
 log = logging.getLogger("metarig.robustness")
 
@@ -168,16 +168,8 @@ def _summary_fn(sim, ids: np.ndarray):
         sol = sim(x, material, loading, ts)
         sol64 = jax.tree_util.tree_map(
             lambda a: a.astype(jnp.float64) if jnp.issubdtype(a.dtype, jnp.floating) else a, sol)
-        return {
-            "ratio": region_energy_ratio(sol64, ids),
-            "target_energy": region_energy(sol64, ids),
-            "result": sol.result,
-            "finite": jnp.all(jnp.isfinite(sol.q)) & jnp.all(jnp.isfinite(sol.qdot)),
-            "max_disp": jnp.max(jnp.abs(sol.q[..., :2])),
-            "max_rot": jnp.max(jnp.abs(sol.q[..., 2])),
-            "void_margin": sol64.min_void_margin,
-            "num_steps": sol.num_steps,
-        }
+        return dict(solve_health(sol64), ratio=region_energy_ratio(sol64, ids),
+                    target_energy=region_energy(sol64, ids))
 
     return one
 
@@ -225,14 +217,8 @@ def _solve(scene: Scene, config: SolverConfig, ts_ms, loadings: list[Loading], c
 
 
 def _failure(config: SolverConfig, r: dict, k: int) -> str | None:
-    """Why point k of a batch failed (as `simulate.check_solution` says it), or None."""
-    msg = failure_message(int(r["result"][k]), config)
-    if msg is None and not bool(r["finite"][k]):
-        msg = "non-finite state during the solve"
-    if msg is None and (r["max_disp"][k] > 1e4 or r["max_rot"][k] > 1e2):
-        msg = "the state diverged (displacements above 10 m or rotations above 100 rad)"
-    if msg is None and config.use_contact and float(r["void_margin"][k]) < 0.0:
-        msg = "a unit passed through the contact barrier: the step was too large"
+    """Why point k of a batch failed (`simulate.health_failure`), or None."""
+    msg = health_failure({name: v[k] for name, v in r.items()}, config)
     if msg is None and not np.isfinite(r["ratio"][k]):
         msg = "non-finite energy ratio"
     return msg

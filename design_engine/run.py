@@ -19,7 +19,7 @@ from design_engine.regions import row_units
 from design_engine.scenes import Scene
 from design_engine.fixed_step import is_fixed_step
 from design_engine.simulate import (SimulationError, Solution, SolverConfig, check_solution,
-                                    failure_message, make_simulator)
+                                    health_failure, make_simulator, solve_health)
 from metarig.trajectory import Trajectory
 from design_engine import units
 
@@ -305,24 +305,18 @@ def _jitted_objective(scene: Scene, config: SolverConfig, weights):
         else:
             value = sum(w * objective_term("kinetic_energy", sol, scene.targets[n])
                         for w, n in zip(weights, names))
-        aux = {"result": sol.result, "num_steps": sol.num_steps,
-               "finite": jnp.all(jnp.isfinite(sol.qdot)), "void_margin": sol.min_void_margin}
-        return value, aux
+        return value, solve_health(sol)
 
     return jax.jit(jax.value_and_grad(objective, has_aux=True)), jax.jit(objective)
 
 
 def checked(value_aux, config: SolverConfig | None = None):
-    """Raise `SimulationError` if an objective evaluation's aux reports a failure."""
+    """Raise `SimulationError` if an objective evaluation's aux (`simulate.solve_health`, plus
+    anything else) reports a failure or the value is not finite."""
     (value, aux) = value_aux[0] if isinstance(value_aux[0], tuple) else value_aux
-    config = config or SolverConfig()
-    msg = failure_message(int(aux["result"]), config)
-    if msg is None and not bool(aux["finite"]):
-        msg = "non-finite state during the solve"
+    msg = health_failure(aux, config or SolverConfig())
     if msg is None and not np.isfinite(float(value)):
         msg = "non-finite objective value"
-    if msg is None and config.use_contact and float(aux["void_margin"]) < 0.0:
-        msg = "a unit passed through the contact barrier: the step was too large"
     if msg is not None:
         raise SimulationError(msg)
     return value_aux

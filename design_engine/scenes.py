@@ -12,7 +12,7 @@ import numpy as np
 
 from design_engine.geometry import block_geometry, check_design
 from design_engine.lattice import Lattice, kagome, periodic_design, quads
-from design_engine.loading import CH_INPUT, CH_STAGE, CH_ZERO, Loading, Supports
+from design_engine.loading import CH_INPUT, CH_STAGE, CH_ZERO, PRECOMPRESSION, Loading, Supports
 from design_engine.material import Material, default_si
 from design_engine.regions import corner_clamps, driven_units, row_units, window
 
@@ -163,6 +163,7 @@ def build_scene(
     shift: int | None = None,
     contact_deg: tuple[float, float] | None = None,
     periods: float | None = None,
+    precompression: str = "static",
 ) -> Scene:
     """Build a preset scene, optionally resized or re-loaded.
 
@@ -183,6 +184,10 @@ def build_scene(
             (spec 7.2), replacing the preset's; an explicit shift is used as given (not scaled).
         contact_deg: (theta_min, theta_cutoff) contact angles, degrees (spec 5.3).
         periods: window length T in input periods (default the preset's: 2, spin 5, kagome 3).
+        precompression: how a stage scene with strain > 0 is pre-compressed: "static" (default:
+            the pulse starts from rest in the static equilibrium under the closed stages, the
+            rig's protocol) or "ramp" (the stages close at 0.25 1/s and the dynamics follow,
+            the reference's two-stage protocol, spec 7.4; the pulse starts at t_c).
     """
     if name not in PRESETS:
         raise ValueError(f"unknown scene {name!r}; choose one of: {', '.join(PRESETS)}")
@@ -220,7 +225,11 @@ def build_scene(
         raise ValueError(f"scene {name!r} has no stages; pre-compression needs a stage scene")
     if not 0.0 <= eps <= 0.2:
         raise ValueError(f"pre-compression strain {eps} outside [0, 0.2]")
-    tc = eps / STRAIN_RATE if eps > 0 else 0.0
+    if precompression not in PRECOMPRESSION:
+        raise ValueError(f"precompression must be one of {', '.join(PRECOMPRESSION)}, got "
+                         f"{precompression!r}")
+    mode = precompression if eps > 0 else "ramp"  # without strain both are the same solve
+    tc = eps / STRAIN_RATE if eps > 0 and mode == "ramp" else 0.0
     loading = Loading(
         waveform=r.get("waveform", "pulse"),
         amplitude=amp,
@@ -230,6 +239,7 @@ def build_scene(
         strain=eps,
         strain_rate=STRAIN_RATE,
         stage_height=(shape[1] - 1) * lattice.spacing,
+        precompression=mode,
     )
     if target_windows is not None:
         r["targets"] = dict(target_windows)

@@ -20,6 +20,7 @@ from design_engine.geometry import block_geometry
 from design_engine.lattice import Lattice
 from design_engine.loading import Loading, Supports, make_prescribed
 from design_engine.material import Material
+from design_engine.statics import EquilibriumError, check_equilibrium, make_static_solver
 
 
 class SolverConfig(eqx.Module):
@@ -70,6 +71,8 @@ class Solution(eqx.Module):
         num_steps, num_accepted, num_rejected: solver statistics.
         min_void_margin: smallest unwrapped void angle minus the contact asymptote over the samples,
             rad; negative means a unit passed through the contact barrier (a failed step).
+        static_residual: max |dE/dq_f| of the static pre-compression the solve started from
+            (N, N mm; 0 without one); above `statics` tolerance the start was no equilibrium.
     """
 
     ts: Float[Array, " n_t"]
@@ -83,6 +86,7 @@ class Solution(eqx.Module):
     num_accepted: Int[Array, ""]
     num_rejected: Int[Array, ""]
     min_void_margin: Float[Array, ""]
+    static_residual: Float[Array, ""]
 
 
 VOID_WRAP = np.pi / 3.0  # reference void angles are taken on [-VOID_WRAP, 2 pi - VOID_WRAP)
@@ -108,7 +112,10 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
         material: `Material`.
         loading: `Loading`.
         ts: [n_t] increasing sample times, ms; the solve runs from t = 0.
-        initial: optional (q_f, qdot_f) free-DOF state at t = 0 (default: rest, reference state).
+        initial: optional (q_f, qdot_f) free-DOF state at t = 0 (default: rest, in the reference
+            state, or for a static pre-compression (`loading.is_static`) in the equilibrium
+            under the closed stages, solved in float64 with the model's energy and
+            differentiated by the implicit function theorem, `statics.make_static_solver`).
     """
     energy_fn = make_energy(lattice, linearized=config.linearized, use_contact=config.use_contact)
     rhs = make_rhs(supports, energy_fn, VELOCITY_SCALE)
@@ -152,6 +159,19 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
         return qs, vs, (result, n, n, jnp.asarray(0))
 
     dtype = jnp.dtype(config.dtype)
+    static_solvers = []  # built on the first static pre-compression (a Hessian colouring)
+
+    def static_start(x, material, loading):
+        if not static_solvers:
+            static_solvers.append(make_static_solver(lattice, supports,
+                                                     use_contact=config.use_contact,
+                                                     linearized=config.linearized))
+        to64 = jax.tree_util.tree_map(
+            lambda a: jnp.asarray(a, jnp.float64) if isinstance(a, float) or (
+                hasattr(a, "dtype") and jnp.issubdtype(a.dtype, jnp.floating)) else a,
+            (x, material, loading))
+        q_f, info = static_solvers[0](*to64, 0.0)
+        return (q_f, jnp.zeros_like(q_f)), info["gradient_norm"]
 
     def cast_leaf(a):
         if isinstance(a, float) or (hasattr(a, "dtype") and jnp.issubdtype(a.dtype, jnp.floating)):
@@ -162,6 +182,9 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
         return jax.tree_util.tree_map(cast_leaf, tree)
 
     def simulate(x: DesignVector, material: Material, loading: Loading, ts, initial=None) -> Solution:
+        residual = jnp.zeros(())
+        if initial is None and loading.is_static:
+            initial, residual = static_start(x, material, loading)
         x, material, loading, ts, initial = cast((x, material, loading, ts, initial))
         if config.stretch_scale != 1.0:
             material = eqx.tree_at(lambda m: m.k_stretch, material,
@@ -197,9 +220,41 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
             num_accepted=accepted,
             num_rejected=rejected,
             min_void_margin=jax.lax.stop_gradient(jnp.min(voids) - material.contact_min),
+            static_residual=jax.lax.stop_gradient(residual),
         )
 
     return simulate
+
+
+def solve_health(sol: Solution) -> dict:
+    """Scalars that judge a solve (`health_failure`), cheap to return from a jitted or vmapped
+    call: result code, steps, whether the state stayed finite, the largest displacement (mm) and
+    rotation (rad), the void margin (rad) and the static start's residual (N, N mm)."""
+    return {"result": sol.result, "num_steps": sol.num_steps,
+            "finite": jnp.all(jnp.isfinite(sol.q)) & jnp.all(jnp.isfinite(sol.qdot)),
+            "max_disp": jnp.max(jnp.abs(sol.q[..., :2])), "max_rot": jnp.max(jnp.abs(sol.q[..., 2])),
+            "void_margin": sol.min_void_margin, "static_residual": sol.static_residual}
+
+
+def health_failure(health: dict, config: SolverConfig) -> str | None:
+    """Why a solve failed, from its `solve_health` scalars (one line), or None if it did not."""
+    msg = failure_message(int(health["result"]), config)
+    if msg is None and not bool(health["finite"]):
+        hint = config.solver.unstable_hint() if is_fixed_step(config.solver) else ""
+        msg = f"non-finite state during the solve{hint}"
+    if msg is None and (float(health["max_disp"]) > 1e4 or float(health["max_rot"]) > 1e2):
+        msg = ("the state diverged (displacements above 10 m or rotations above 100 rad): the "
+               "step is above the stability limit")
+    if msg is None and config.use_contact and float(health["void_margin"]) < 0.0:
+        msg = ("a unit passed through the contact barrier (void angle below the asymptote by "
+               f"{np.degrees(-float(health['void_margin'])):.2g} deg): the step was too large for "
+               "the contact stiffness; use the adaptive solver or a smaller step")
+    if msg is None:
+        try:
+            check_equilibrium({"gradient_norm": health["static_residual"]})
+        except EquilibriumError as exc:
+            msg = str(exc)
+    return msg
 
 
 def failure_message(result: int, config: SolverConfig) -> str | None:
@@ -220,22 +275,12 @@ def failure_message(result: int, config: SolverConfig) -> str | None:
 
 
 def check_solution(sol: Solution, config: SolverConfig) -> Solution:
-    """Raise `SimulationError` naming the cause if the solve failed or produced non-finite values."""
-    msg = failure_message(int(sol.result), config)
+    """Raise `SimulationError` naming the cause if the solve failed (`health_failure`)."""
+    msg = health_failure(solve_health(sol), config)
+    if msg is not None and msg.startswith("non-finite state"):
+        bad = ~np.isfinite(np.asarray(sol.q)) | ~np.isfinite(np.asarray(sol.qdot))
+        k = int(np.argmax(bad.reshape(bad.shape[0], -1).any(axis=1)))
+        msg = msg.replace("during the solve", f"from t = {float(sol.ts[k]):.4g} ms on")
     if msg is not None:
         raise SimulationError(msg)
-    bad = ~np.isfinite(np.asarray(sol.q)) | ~np.isfinite(np.asarray(sol.qdot))
-    if bad.any():
-        k = int(np.argmax(bad.reshape(bad.shape[0], -1).any(axis=1)))
-        hint = config.solver.unstable_hint() if is_fixed_step(config.solver) else ""
-        raise SimulationError(f"non-finite state from t = {float(sol.ts[k]):.4g} ms on{hint}")
-    q = np.asarray(sol.q)
-    if np.max(np.abs(q[..., :2])) > 1e4 or np.max(np.abs(q[..., 2])) > 1e2:
-        raise SimulationError("the state diverged (displacements above 10 m or rotations above "
-                              "100 rad): the step is above the stability limit")
-    if config.use_contact and float(sol.min_void_margin) < 0.0:
-        raise SimulationError(
-            "a unit passed through the contact barrier (void angle below the asymptote by "
-            f"{np.degrees(-float(sol.min_void_margin)):.2g} deg): the step was too large for "
-            "the contact stiffness; use the adaptive solver or a smaller step")
     return sol

@@ -28,7 +28,8 @@ from design_engine.auto import (STABILITY_SAFETY, choose_config, fallback_config
 from design_engine.fixed_step import is_fixed_step
 from design_engine.objectives import objective_term
 from design_engine.run import checked, compile_key, config_summary
-from design_engine.simulate import SimulationError, Solution, SolverConfig, make_simulator
+from design_engine.simulate import (SimulationError, Solution, SolverConfig, make_simulator,
+                                   solve_health)
 from design_engine.task import OPTIMISER_SCALE, Task, Term
 
 STEP_RECHECK = 0.8  # re-choose the fixed step above this fraction of the stability limit
@@ -132,8 +133,7 @@ class TaskEvaluator:
             sol = sim(x, material, loading, ts)
             raw = [objective_term(q, sol, ids, point) for q, ids in zip(quantities, targets)]
             value = sum(weights[k] * OPTIMISER_SCALE[q] * raw[k] for k, q in enumerate(quantities))
-            aux = {"result": sol.result, "num_steps": sol.num_steps, "terms": jnp.stack(raw),
-                   "finite": jnp.all(jnp.isfinite(sol.qdot)), "void_margin": sol.min_void_margin}
+            aux = dict(solve_health(sol), terms=jnp.stack(raw))
             return value, aux
 
         fn = jax.jit(jax.value_and_grad(objective, has_aux=True))

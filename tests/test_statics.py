@@ -18,7 +18,7 @@ from design_engine.statics import (GRADIENT_TOL, EquilibriumError, check_equilib
 @pytest.fixture(scope="module")
 def scene():
     """A 12x10 protection scene pre-compressed 5 %: voids reach the contact cutoff."""
-    return build_scene("protection-24x18", nx=12, ny=10, strain=0.05)
+    return build_scene("protection-24x18", nx=12, ny=10, strain=0.05, precompression="ramp")
 
 
 @pytest.fixture(scope="module")
@@ -99,8 +99,56 @@ def test_gradient_matches_finite_differences(scene, solver):
 
 
 def test_a_solve_stopped_short_is_reported_not_used(scene):
-    """One load level and two Newton steps cannot reach the 5 % equilibrium: the check says so."""
-    short = jax.jit(make_static_solver(scene.lattice, scene.supports, n_load=1, newton_iters=2))
+    """Without Newton iterations no load level converges: the continuation halves its step
+    until it gives up, and the check says so."""
+    short = jax.jit(make_static_solver(scene.lattice, scene.supports, newton_iters=0))
     _, info = _solve(scene, short)
+    assert float(info["load"]) == 0.0
     with pytest.raises(EquilibriumError, match="did not converge"):
         check_equilibrium(info)
+
+
+@pytest.fixture(scope="module")
+def static_scene():
+    """The same 12x10 scene with the default static pre-compression."""
+    return build_scene("protection-24x18", nx=12, ny=10, strain=0.05)
+
+
+def test_a_static_precompression_starts_at_rest_in_the_equilibrium(scene, solver, static_scene):
+    """Without a pulse the static scene stays where the statics put it: the stages are closed
+    from t = 0, the solve starts from the equilibrium, and nothing moves."""
+    assert static_scene.loading.is_static and static_scene.loading.precompression_time == 0.0
+    assert static_scene.window_start == pytest.approx(static_scene.loading.delay)
+    q_eq, _ = _solve(scene, solver)  # the ramp scene's equilibrium at the end of its ramp
+    ld = dataclasses.replace(static_scene.loading, amplitude=0.0)
+    sim = make_simulator(static_scene.lattice, static_scene.supports,
+                         SolverConfig(solver=diffrax.Dopri8(), rtol=1e-11, atol=1e-9))
+    sol = sim(jnp.asarray(static_scene.design), static_scene.material, ld,
+              jnp.asarray([0.0, ld.delay, 50.0]))
+    free = np.asarray(static_scene.supports.free)
+    q = np.asarray(sol.q).reshape(3, -1)[:, free]
+    assert float(sol.static_residual) < 10 * GRADIENT_TOL
+    assert np.abs(q - np.asarray(q_eq)).max() < 1e-7 * np.abs(np.asarray(q_eq)).max()
+    assert np.abs(np.asarray(sol.qdot)).max() < 1e-8  # mm/ms
+
+
+def test_the_pulse_objective_through_the_static_start_matches_finite_differences(static_scene):
+    """dJ/dx of the pulse objective includes the implicit derivative of the start state."""
+    from gradcheck import directional_check
+
+    sc = build_scene("protection-24x18", nx=8, ny=8, strain=0.04, amplitude_m=2e-3)
+    assert sc.loading.is_static
+    directional_check(sc, SolverConfig(rtol=1e-10, atol=1e-9), h=1e-3, seed=3, rel=1e-4)
+
+
+def test_a_static_start_that_did_not_converge_fails_the_solve(static_scene):
+    """check_solution turns an unconverged static start into a one-line SimulationError."""
+    from design_engine.simulate import SimulationError, check_solution
+
+    config = SolverConfig(solver=diffrax.Dopri8())
+    sim = make_simulator(static_scene.lattice, static_scene.supports, config)
+    sol = sim(jnp.asarray(static_scene.design), static_scene.material, static_scene.loading,
+              jnp.asarray([0.0, 1.0]))
+    bad = dataclasses.replace(sol, static_residual=jnp.asarray(1.0))
+    with pytest.raises(SimulationError, match="static pre-compression did not converge"):
+        check_solution(bad, config)

@@ -1,19 +1,22 @@
 """Per-scene choice of integrator and model from measured quantities (speed against accuracy).
 
-The default policy, read off the work-precision charts (README, `metarig bench work-precision`):
-- scenes whose voids stay away from the contact barrier (pulse scenes without pre-compression):
-  fixed-step velocity Verlet (one force evaluation per step) with a step of
-  `safety * 2 / omega_max`, omega_max being the highest natural frequency measured by power
-  iteration on the stiffness (Hessian-vector products); float32 (on the chart it changes J by
-  1e-5 and the gradient by 3e-3 relative, like float64 Verlet, at 15-20 % less time) and
-  nonlinear strains (the linearised strains miss J by tens of percent). The contact terms are left out of the solve and
-  every solve checks that all void angles stayed above the contact cutoff at every sample, in
-  which case the contact energy was identically zero and the result equals the full model's;
-  otherwise the solve is repeated with contact (`needs_contact`, `with_contact`);
-- scenes in contact (pre-compressed, or a void that reached the cutoff): adaptive Dopri8 at the
-  reference tolerances with contact. The barrier makes the gradient stiff: on the chart fixed
-  steps and Dopri5 at the reference tolerances miss it by 4-12 %, Dopri8 stays within 1 %;
-- if a fixed-step solve fails (instability), the contact configuration is used instead, and said.
+The default policy, read off the work-precision and speed-up charts (README, `metarig bench`):
+- pulse scenes, and pre-compressed scenes with the default static pre-compression (the pulse
+  starts from rest in the equilibrium under the closed stages): fixed-step velocity Verlet (one
+  force evaluation per step) with a step of `safety * 2 / omega_max`, omega_max being the
+  highest natural frequency at the state the pulse starts from (rest, or the static
+  equilibrium with its contact stiffness), measured by power iteration (Hessian-vector
+  products); float32 (on the charts it changes J by 1e-5 to 1e-4 and the gradient by 3e-3 relative,
+  like float64 Verlet, at 20-40 % less time) and nonlinear strains (the linearised strains miss
+  J by tens of percent). The contact terms are left out of the solve and every solve checks
+  that all void angles stayed above the contact cutoff at every sample, in which case the
+  contact energy was identically zero and the result equals the full model's;
+- a solve whose voids reached the cutoff is repeated with contact at the same step in float64, and that
+  result stands while the barrier's own frequency at the deepest void, omega_c
+  (`contact_frequency`), keeps dt x omega_c <= CONTACT_STEP_LIMIT (`next_config`); past it, or
+  if any fixed-step solve fails, adaptive Dopri8 at the reference tolerances with contact;
+- the dynamic pre-compression ramp (`precompression="ramp"`, the reference's protocol):
+  adaptive Dopri8 at the reference tolerances with contact (the ramp lasts 40-320 ms).
 `full_model=True` forces the reference configuration (Dopri5, spec tolerances).
 """
 
@@ -27,12 +30,17 @@ import numpy as np
 
 from design_engine.dynamics import dof_masses
 from design_engine.energy import bond_geometry, make_energy
-from design_engine.fixed_step import FixedStepVerlet
+from design_engine.fixed_step import FixedStepVerlet, is_fixed_step
 from design_engine.geometry import block_geometry
 from design_engine.scenes import Scene
 from design_engine.simulate import SolverConfig
 
 STABILITY_SAFETY = 0.6  # fraction of the Verlet stability limit 2 / omega_max
+# largest dt x omega_c (the contact barrier's own frequency at the deepest void) a fixed step
+# with contact may take: with dt x omega_max <= 1.2 it keeps dt x sqrt(omega_max^2 + omega_c^2)
+# within 0.8 x the stability limit 2 (measured: 0.45 on the 24x16 focusing design in contact and
+# 0.95 on 24x18 at 8 % pre-compression, both within 1e-4 of J)
+CONTACT_STEP_LIMIT = 1.0
 
 
 @dataclass(frozen=True)
@@ -106,30 +114,43 @@ def max_angular_frequency(scene: Scene, iterations: int = 300, state=None) -> fl
 
 
 def choose_config(scene: Scene, *, full_model: bool = False,
-                  safety: float = STABILITY_SAFETY, omega: float | None = None) -> Choice:
+                  safety: float = STABILITY_SAFETY, omega: float | None = None,
+                  state=None) -> Choice:
     """Pick the configuration for `scene` (see module docstring).
 
-    `omega` (rad/ms) is a measured highest natural frequency of the scene's design; None
-    measures it.
+    `omega` (rad/ms) is a measured highest natural frequency of the scene's design at the state
+    the pulse starts from (`state` [n_blocks, 3], mm/rad: rest, or for a static pre-compression
+    the equilibrium, `modal.prestressed_state`); None measures it.
     """
     if full_model:
         return Choice(SolverConfig(), ("forced full model: Dopri5, rtol 1e-8, atol 1e-4, float64, "
                                        "nonlinear strains, contact",))
-    if scene.loading.strain > 0.0:
+    ld = scene.loading
+    if ld.strain > 0.0 and not ld.is_static:
         return Choice(contact_config(), (
-            "pre-compression closes voids onto the contact barrier: adaptive Dopri8, rtol 1e-8, "
-            "atol 1e-4, with contact (the only method within 1 % of the reference gradient "
-            "on the pre-compressed chart)",))
-    omega = max_angular_frequency(scene) if omega is None else omega
+            "dynamic pre-compression ramp (the reference's protocol; tens to hundreds of ms "
+            "before the pulse): adaptive Dopri8, rtol 1e-8, atol 1e-4, with contact",))
+    where = "at rest"
+    if ld.strain > 0.0:
+        where = "in the static pre-compression"
+        if omega is None and state is None:
+            from design_engine.modal import prestressed_state
+
+            state = prestressed_state(scene)
+    omega = max_angular_frequency(scene, state=state) if omega is None else omega
     dt = safety * 2.0 / omega
     reasons = (
-        f"highest natural frequency at rest {omega / (2 * np.pi) * 1e3:.0f} Hz",
+        f"highest natural frequency {where} {omega / (2 * np.pi) * 1e3:.0f} Hz",
         f"fixed-step Verlet, dt = {dt * 1e3:.1f} us = {safety:g} x the stability limit (1 force "
         "evaluation per step; within 0.5 % of J and 1 % of the gradient on the focusing chart)",
         "float32: within 1e-5 of J and 3e-3 of the gradient on the focusing chart",
         "contact terms left out while every void stays above the contact cutoff (checked after "
-        "each solve; exact then, else re-solved with contact)",
+        "each solve; exact then, else re-solved with contact at the same step while the "
+        f"barrier's own frequency stays below {CONTACT_STEP_LIMIT:g} / dt, else with Dopri8)",
     )
+    if ld.strain > 0.0:
+        reasons += ("static pre-compression: the pulse starts from rest in the equilibrium under "
+                    "the closed stages (float64 Newton continuation, implicit gradient)",)
     config = SolverConfig(solver=FixedStepVerlet(max_dt=dt), use_contact=False, dtype="float32")
     return Choice(config, reasons, omega)
 
@@ -162,8 +183,38 @@ def needs_contact(config: SolverConfig, min_void_margin: float, scene: Scene) ->
 
 
 def with_contact(config: SolverConfig) -> SolverConfig:
-    """Configuration for a scene whose voids reached the contact cutoff."""
+    """Configuration for a scene whose voids reached the contact cutoff: the same fixed step
+    with the contact terms in float64 (checked by `next_config`), or Dopri8 for an adaptive
+    solve. Float64 because in float32 a solve driven hard into the barrier can stay shallow and
+    wrong, which no depth check sees: on 8x6 units with 44 deg bias under a 6 mm pulse, float32
+    Verlet with contact reached 55 % of the barrier's depth and missed J by 53 %, float64
+    reached 98 % (the check then moves on to Dopri8)."""
+    if is_fixed_step(config.solver) and config.solver.stability_limited:
+        return SolverConfig(solver=config.solver, use_contact=True, dtype="float64")
     return contact_config()
+
+
+def next_config(config: SolverConfig, health: dict, scene: Scene) -> tuple[SolverConfig, str] | None:
+    """After a solve that did not fail (`simulate.solve_health` scalars): the configuration to
+    solve again with and why, or None when the result stands.
+
+    - voids reached the contact cutoff without contact terms: `with_contact(config)`;
+    - a fixed step with contact whose barrier frequency at the deepest void
+      (`contact_frequency`) exceeds CONTACT_STEP_LIMIT / dt: Dopri8 (`contact_config`).
+    """
+    margin = float(health["void_margin"])
+    if needs_contact(config, margin, scene):
+        nxt = with_contact(config)
+        how = ("Verlet at the same step" if is_fixed_step(nxt.solver) else "adaptive Dopri8")
+        return nxt, f"a void reached the contact cutoff: re-solved with contact ({how})"
+    if config.use_contact and is_fixed_step(config.solver) and config.solver.stability_limited:
+        w_c = contact_frequency(margin, scene.material, float(health["min_inertia"]))
+        ratio = config.solver.max_dt * w_c
+        if ratio > CONTACT_STEP_LIMIT:
+            return contact_config(), (
+                f"the contact barrier stiffened past the fixed step (dt x omega_c = {ratio:.2f} > "
+                f"{CONTACT_STEP_LIMIT:g}): re-solved with adaptive Dopri8")
+    return None
 
 
 def fallback_config() -> tuple[SolverConfig, str]:

@@ -11,10 +11,10 @@ The metric is R = J_target / J_rest (`objectives.region_energy_ratio`, both sums
 energy over the same samples; the rest includes the clamped units (zero) and the driven units).
 
 Solver policy, per point (as `run.simulate_scene` with the automatic choice): the batch runs with
-`run.default_choice(scene)`; a point whose voids reached the contact cutoff (`auto.needs_contact`)
-or whose solve failed (result code, non-finite or diverged state) is re-run, batched with the
-other such points, with `auto.with_contact(config)`, then with `auto.fallback_config()` if that
-differs. A point that fails with every configuration is NaN in the map and listed with its
+`run.default_choice(scene)`; a point that `auto.next_config` sends on (voids reached the contact
+cutoff, or the barrier outgrew the fixed step) is re-run, batched with the other such points,
+with the configuration it names, and a point whose solve failed (result code, non-finite or
+diverged state) with `auto.fallback_config()`. A point that fails with every configuration is NaN in the map and listed with its
 reason. `robustness_chunk` evaluates a list of points from plain data (design vector, lattice
 description) so that chunks can be sent to other processes (Dask workers).
 
@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from design_engine import units
-from design_engine.auto import choose_config, fallback_config, needs_contact, with_contact
+from design_engine.auto import choose_config, fallback_config, next_config
 from design_engine.lattice import lattice_from_description
 from design_engine.loading import Loading
 from design_engine.objectives import region_energy, region_energy_ratio
@@ -48,8 +48,6 @@ DEFAULT_CHUNK = 24  # grid points per vmap batch on an accelerator (the 8 x 9 gr
 # focusing-24x16, Verlet float32, 2 loaded cores: 0.11 s/point at 1, 0.14 at 4, 0.18 at 24)
 CPU_CHUNK = 4
 DELAY_PERIODS = 0.1  # input delay t_d = 0.1 / f_min (as the paper's 0.1 / f)
-CONTACT_REASON = ("a void reached the contact cutoff or the fixed-step solve failed at this point: "
-                  "re-solved with contact (adaptive Dopri8 at the reference tolerances)")
 
 _BATCHED: dict[tuple, object] = {}
 
@@ -256,26 +254,34 @@ def evaluate_points(scene: Scene, points, *, f_min_hz: float, chunk: int | None 
     used = np.full(n, -1, np.int64)
     notes = [""] * n
     configs: list[dict] = []
-    tried: list[str] = []
-    config, reasons = choice.config, list(choice.reasons)
-    todo = list(range(n))
+    tried: list[set[str]] = [set() for _ in range(n)]  # configurations each point has seen
+    # (configuration, reasons, points) still to solve; a point that fails goes to the fallback,
+    # a point `auto.next_config` sends on goes to the configuration it names (as simulate_scene)
+    queue = [(choice.config, list(choice.reasons), list(range(n)))]
+    todo: list[int] = []
     first = True
-    while todo and config is not None:
-        tried.append(repr(config))
+    while queue:
+        config, reasons, points = queue.pop(0)
+        for i in points:
+            tried[i].add(repr(config))
         configs.append({"solver": config_summary(config), "reasons": reasons})
         idx = len(configs) - 1
-        rerun: list[int] = []
-        for start, res in _solve(scene, config, ts, [loadings[i] for i in todo], chunk, first):
+        groups: dict[str, tuple] = {}
+        for start, res in _solve(scene, config, ts, [loadings[i] for i in points], chunk, first):
             final = 0
-            for k, i in enumerate(todo[start:start + len(res["ratio"])]):
+            for k, i in enumerate(points[start:start + len(res["ratio"])]):
                 msg = _failure(config, res, k)
-                margin = float(res["void_margin"][k])
-                if msg is None and needs_contact(config, margin, scene):
-                    msg = (f"voids reached the contact cutoff (margin {np.degrees(margin):.3g} "
-                           "deg above the asymptote)")
-                if msg is not None:
-                    notes[i] = f"{configs[idx]['solver']['solver']}: {msg}"
-                    rerun.append(i)
+                nxt = None
+                if msg is None:
+                    nxt = next_config(config, {name: v[k] for name, v in res.items()}, scene)
+                else:
+                    nxt = fallback_config()
+                if nxt is not None:
+                    notes[i] = f"{configs[idx]['solver']['solver']}: {msg or nxt[1]}"
+                    if repr(nxt[0]) in tried[i]:  # nothing new left to try for this point
+                        todo.append(i)
+                    else:
+                        groups.setdefault(repr(nxt[0]), (nxt[0], [nxt[1]], []))[2].append(i)
                     continue
                 ratio[i] = float(res["ratio"][k])
                 energy[i] = float(res["target_energy"][k])
@@ -283,17 +289,11 @@ def evaluate_points(scene: Scene, points, *, f_min_hz: float, chunk: int | None 
                 final += 1
             if progress is not None and final:
                 progress(final)
-        todo, first = rerun, False
-        if not todo:
-            break
-        if not config.use_contact:
-            nxt, why = with_contact(config), CONTACT_REASON
-        else:
-            nxt, why = fallback_config()
-        config, reasons = (None, []) if repr(nxt) in tried else (nxt, [why])
-        if config is not None:
-            log.info("%d of %d points re-solved with %s", len(todo), n,
-                     config_summary(config)["solver"])
+        first = False
+        for cfg, why, members in groups.values():
+            log.info("%d of %d points re-solved with %s", len(members), n,
+                     config_summary(cfg)["solver"])
+            queue.append((cfg, why, members))
     for i in todo:  # failed with every configuration
         notes[i] += " (failed with every configuration)"
     if todo and progress is not None:

@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from design_engine.auto import Choice, choose_config, fallback_config, needs_contact, with_contact
+from design_engine.auto import Choice, choose_config, fallback_config, next_config
 from design_engine.loading import Loading
 from design_engine.objectives import (angular_momentum, block_kinetic_energy, objective_term,
                                       peak_energy_along_units, region_energy, region_energy_ratio)
@@ -140,23 +140,25 @@ def default_choice(scene: Scene) -> Choice:
 
 
 def _run_with_policy(scene: Scene, config: SolverConfig | None, ts_ms=None, loading=None):
-    """Solve with `config`, or with the automatic choice and its fallback when None."""
+    """Solve with `config`, or with the automatic choice, its re-solves (`auto.next_config`) and
+    its fallback when None."""
     if config is not None:
         sol, wall = _simulate(scene, config, ts_ms, loading)
         return sol, wall, config, ("configuration given by the caller",)
     choice = default_choice(scene)
+    cfg, why, wall = choice.config, choice.reasons, 0.0
     try:
-        sol, wall = _simulate(scene, choice.config, ts_ms, loading)
-        if needs_contact(choice.config, sol.min_void_margin, scene):
-            cfg = with_contact(choice.config)
-            sol, wall2 = _simulate(scene, cfg, ts_ms, loading)
-            return sol, wall + wall2, cfg, choice.reasons + (
-                "a void reached the contact cutoff: re-solved with contact (adaptive Dopri8)",)
-        return sol, wall, choice.config, choice.reasons
+        while True:
+            sol, w = _simulate(scene, cfg, ts_ms, loading)
+            wall += w
+            nxt = next_config(cfg, solve_health(sol), scene)
+            if nxt is None:
+                return sol, wall, cfg, why
+            cfg, why = nxt[0], why + (nxt[1],)
     except SimulationError as exc:
-        cfg, why = fallback_config()
-        sol, wall = _simulate(scene, cfg, ts_ms, loading)
-        return sol, wall, cfg, choice.reasons + (f"{why} ({exc})",)
+        fb, reason = fallback_config()
+        sol, w = _simulate(scene, fb, ts_ms, loading)
+        return sol, wall + w, fb, why + (f"{reason} ({exc})",)
 
 
 def simulate_scene(scene: Scene, config: SolverConfig | None = None) -> SceneRun:
@@ -263,27 +265,27 @@ def make_objective(scene: Scene, config: SolverConfig | None = None, weights=Non
     for a single target, (0.5, 0.5) for two), or the angular momentum J_L for spin scenes. `aux`
     holds the solver result code, step count and void margin, so that failures can be reported
     after the jitted call (see `checked`). With a given `config` both functions are jitted as
-    they are. `config=None` uses the automatic per-scene choice: when that leaves contact out,
-    an evaluation whose voids reached the contact cutoff is repeated with contact (compiled on
-    first need), so the result always equals the full model's; on a reported failure, retry
-    with `auto.fallback_config()`.
+    they are. `config=None` uses the automatic per-scene choice and repeats an evaluation with
+    the configuration `auto.next_config` names (contact once a void reached the cutoff, Dopri8
+    once the barrier outgrew the fixed step; each compiled on first need), so the result always
+    equals the full model's; on a reported failure, retry with `auto.fallback_config()`.
     """
     if config is not None:
         return _jitted_objective(scene, config, weights)
-    config = default_choice(scene).config
-    fast = _jitted_objective(scene, config, weights)
-    if config.use_contact:
-        return fast
-    slow: list = []
+    programs: dict = {}
 
     def pick(i, x):
-        out = fast[i](x)
-        aux = out[0][1] if i == 0 else out[1]
-        if needs_contact(config, aux["void_margin"], scene):
-            if not slow:
-                slow.extend(_jitted_objective(scene, with_contact(config), weights))
-            out = slow[i](x)
-        return out
+        cfg = default_choice(scene).config
+        while True:
+            key = repr(cfg)
+            if key not in programs:
+                programs[key] = _jitted_objective(scene, cfg, weights)
+            out = programs[key][i](x)
+            aux = out[0][1] if i == 0 else out[1]
+            nxt = next_config(cfg, aux, scene)
+            if nxt is None:
+                return out
+            cfg = nxt[0]
 
     return (lambda x: pick(0, x)), (lambda x: pick(1, x))
 

@@ -229,11 +229,13 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
 def solve_health(sol: Solution) -> dict:
     """Scalars that judge a solve (`health_failure`), cheap to return from a jitted or vmapped
     call: result code, steps, whether the state stayed finite, the largest displacement (mm) and
-    rotation (rad), the void margin (rad) and the static start's residual (N, N mm)."""
+    rotation (rad), the void margin (rad), the static start's residual (N, N mm) and the
+    smallest rotary inertia (g mm^2)."""
     return {"result": sol.result, "num_steps": sol.num_steps,
             "finite": jnp.all(jnp.isfinite(sol.q)) & jnp.all(jnp.isfinite(sol.qdot)),
             "max_disp": jnp.max(jnp.abs(sol.q[..., :2])), "max_rot": jnp.max(jnp.abs(sol.q[..., 2])),
-            "void_margin": sol.min_void_margin, "static_residual": sol.static_residual}
+            "void_margin": sol.min_void_margin, "static_residual": sol.static_residual,
+            "min_inertia": jnp.min(sol.inertia)}
 
 
 def health_failure(health: dict, config: SolverConfig) -> str | None:

@@ -5,12 +5,14 @@ times and weights are traced arguments, so every evaluation, every scene of the 
 every run of a sweep in the same process reuses it). Per evaluation and scene the solver policy of `auto` applies, with two additions
 that an optimisation needs:
 - the fixed step is kept valid while the design changes: before each fixed-step solve the
-  highest natural frequency of the *current* design is re-measured (a warm-started power
+  highest natural frequency of the *current* design is re-measured at the state the last solve
+  started from (rest, or the previous design's static pre-compression) (a warm-started power
   iteration, `STEP_CHECK_ITERATIONS` Hessian-vector products, a few per cent of a solve) and
   when the step exceeds `STEP_RECHECK` x 2/omega_max a new step of `auto.STABILITY_SAFETY` x
   2/omega_max is taken (one more compilation, recorded as an event); a solve that still goes
   non-finite is caught and redone with the fallback configuration;
-- a design whose voids reach the contact cutoff is re-solved with contact, and a failed solve is
+- a design whose voids reach the contact cutoff is re-solved as `auto.next_config` says (with
+  contact at the same step, or with Dopri8 once the barrier outgrows it), and a failed solve is
   retried with the fallback; if that fails too the evaluation raises `EvaluationFailed`.
 Every such step is recorded with its reason.
 """
@@ -23,9 +25,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from design_engine.auto import (STABILITY_SAFETY, choose_config, fallback_config,
-                                initial_vector, make_frequency_estimator, needs_contact,
-                                with_contact)
+                                initial_vector, make_frequency_estimator, next_config)
 from design_engine.fixed_step import is_fixed_step
+from design_engine.modal import prestressed_state
 from design_engine.objectives import objective_term
 from design_engine.run import checked, compile_key, config_summary
 from design_engine.simulate import (SimulationError, Solution, SolverConfig, make_simulator,
@@ -84,6 +86,7 @@ class _SceneState:
     reasons: tuple[str, ...]
     omega: float | None = None
     vector: np.ndarray | None = None
+    start_state: np.ndarray | None = None  # [n_blocks, 3] where the last solve started, mm/rad
 
 
 class TaskEvaluator:
@@ -95,15 +98,17 @@ class TaskEvaluator:
         self._estimators: dict[str, object] = {}
         self._state: dict[str, _SceneState] = {}
         for name, scene in task.scenes.items():
-            omega, vec = None, None
-            if scene.loading.strain == 0.0:
-                omega, vec = self._frequency(name, task.initial_design, None)
+            omega, vec, state = None, None, None
+            if scene.loading.strain == 0.0 or scene.loading.is_static:
+                if scene.loading.strain > 0.0:  # the static equilibrium the pulse starts from
+                    state = prestressed_state(scene.with_design(task.initial_design))
+                omega, vec = self._frequency(name, task.initial_design, None, state)
             choice = choose_config(scene, omega=omega)
-            self._state[name] = _SceneState(choice.config, choice.reasons, omega, vec)
+            self._state[name] = _SceneState(choice.config, choice.reasons, omega, vec, state)
 
     # --- compiled pieces -------------------------------------------------------------------
 
-    def _frequency(self, name: str, x, vector):
+    def _frequency(self, name: str, x, vector, state=None):
         scene = self.task.scenes[name]
         if name not in self._estimators:
             self._estimators[name] = make_frequency_estimator(scene, STEP_CHECK_ITERATIONS)
@@ -113,7 +118,7 @@ class TaskEvaluator:
             vector, rounds = initial_vector(scene), INITIAL_ITERATIONS // STEP_CHECK_ITERATIONS
         v = jnp.asarray(vector)
         for _ in range(rounds):
-            omega, v = est(jnp.asarray(x), v)
+            omega, v = est(jnp.asarray(x), v, state)
         return float(omega), np.asarray(v)
 
     def _function(self, name: str, config: SolverConfig):
@@ -133,7 +138,7 @@ class TaskEvaluator:
             sol = sim(x, material, loading, ts)
             raw = [objective_term(q, sol, ids, point) for q, ids in zip(quantities, targets)]
             value = sum(weights[k] * OPTIMISER_SCALE[q] * raw[k] for k, q in enumerate(quantities))
-            aux = dict(solve_health(sol), terms=jnp.stack(raw))
+            aux = dict(solve_health(sol), terms=jnp.stack(raw), start_state=sol.q[0])
             return value, aux
 
         fn = jax.jit(jax.value_and_grad(objective, has_aux=True))
@@ -165,7 +170,9 @@ class TaskEvaluator:
         solver = st.config.solver
         if not (is_fixed_step(solver) and solver.stability_limited):
             return
-        st.omega, st.vector = self._frequency(name, x, st.vector)
+        # at the state the last solve started from (rest, or the static pre-compression of the
+        # previous design: an optimiser's step moves it little)
+        st.omega, st.vector = self._frequency(name, x, st.vector, st.start_state)
         limit = 2.0 / st.omega
         dt = solver.max_dt
         if dt > STEP_RECHECK * limit:
@@ -188,12 +195,12 @@ class TaskEvaluator:
             self._check_step(name, x, events)
             config, why = st.config, list(st.reasons)
             value, grad, terms, aux = self._solve(name, config, x)
-            if needs_contact(config, float(aux["void_margin"]), scene):
-                config = with_contact(config)
-                why.append("a void reached the contact cutoff: re-solved with contact "
-                           "(adaptive Dopri8)")
-                events.append(f"{name}: voids reached the contact cutoff, solved with contact")
+            while (nxt := next_config(config, aux, scene)) is not None:
+                config, reason = nxt
+                why.append(reason)
+                events.append(f"{name}: {reason}")
                 value, grad, terms, aux = self._solve(name, config, x)
+            self._state[name].start_state = np.asarray(aux["start_state"])
             return value, grad, terms, {"config": config_summary(config), "why": why}
         except SimulationError as exc:
             fb, reason = fallback_config()

@@ -124,13 +124,14 @@ def test_batched_grid_equals_per_point_calls_of_the_same_simulator_in_float64(sc
 
 def test_a_point_whose_fixed_step_solve_fails_is_resolved_with_contact(scene):
     """0.9 s on this lattice: Verlet without contact diverges; the point is re-run (batched)
-    with adaptive Dopri8 and contact, as `simulate_scene` does, and the map says so."""
+    with the fallback, adaptive Dopri8 and contact, as `simulate_scene` does, and the map says
+    so."""
     m = rb.robustness_map(scene, (20.0,), (AMPS_M[0], 0.9 * S_M), chunk=CHUNK)
     assert m.point_config[0, 0] == 0 and m.point_notes[0, 0] == ""
     c = m.configs[m.point_config[0, 1]]
     assert m.point_config[0, 1] == 1
     assert c["solver"]["solver"] == "Dopri8" and c["solver"]["use_contact"]
-    assert "re-solved with contact" in c["reasons"][0]
+    assert "fell back to adaptive Dopri8" in c["reasons"][0]
     assert "FixedStepVerlet" in m.point_notes[0, 1]
     assert np.isfinite(m.ratio).all() and m.failures == ()
     single = simulate_scene(tied_scene(20.0, 0.9 * S_M))
@@ -139,7 +140,7 @@ def test_a_point_whose_fixed_step_solve_fails_is_resolved_with_contact(scene):
 
 def test_a_point_that_fails_with_every_configuration_is_nan_and_listed(scene, monkeypatch):
     verlet = default_choice(scene).config
-    monkeypatch.setattr(rb, "with_contact", lambda config: verlet)  # no other config to try
+    monkeypatch.setattr(rb, "fallback_config", lambda: (verlet, "no fallback"))  # nothing else
     m = rb.robustness_map(scene, (20.0,), (AMPS_M[0], 0.9 * S_M), chunk=CHUNK)
     assert np.isfinite(m.ratio[0, 0]) and np.isnan(m.ratio[0, 1])
     assert np.isnan(m.target_ke_mean_J[0, 1]) and m.point_config[0, 1] == -1

@@ -21,9 +21,13 @@ def bench_main(argv: list[str] | None = None) -> int:
     st.add_argument("--out", type=Path, default=Path("runs/bench"))
     tp = sub.add_parser("throughput", help="vmap batch cost per design; first-call compile time")
     tp.add_argument("--out", type=Path, default=Path("runs/bench"))
-    sp = sub.add_parser("speedup", help="default vs baseline value-and-gradient, 24x16 focusing")
+    sp = sub.add_parser("speedup", help="default vs baseline value-and-gradient, side by side")
     sp.add_argument("--out", type=Path, default=Path("runs/bench"))
     sp.add_argument("--repeats", type=int, default=3)
+    sp.add_argument("--scene", default="focusing-24x16",
+                    help="study scene: focusing-24x16 (default), focusing-contact-24x16, "
+                         "precompressed-contact-12x10, focus-vs-protect-24x18, "
+                         "reprogram-location-24x18")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     import design_engine  # noqa: F401
@@ -67,11 +71,23 @@ def bench_main(argv: list[str] | None = None) -> int:
             print(f"batch {row['batch']:>3}: {row['per_design_s']:.3f} s per design")
         print(f"first value-and-gradient call: {r['value_and_grad_first_call']}")
         return 0
-    from design_engine.studies.speedup import run_speedup
+    from design_engine.studies.speedup import SCENES, run_speedup
 
-    r = run_speedup(args.out, repeats=args.repeats)
-    print(f"value-and-gradient, focusing-24x16: baseline {r['baseline_s']:.2f} s, default "
+    if args.scene not in SCENES:
+        print(f"metarig bench speedup: unknown scene {args.scene!r}; choose from "
+              f"{', '.join(SCENES)}", file=sys.stderr)
+        return 2
+    if args.repeats < 1:
+        print("metarig bench speedup: --repeats must be at least 1", file=sys.stderr)
+        return 2
+    try:
+        r = run_speedup(args.out, scene=args.scene, repeats=args.repeats)
+    except KeyboardInterrupt:
+        print("interrupted: the tight reference, once computed, is kept in --out; rerun to resume")
+        return 130
+    print(f"value-and-gradient, {args.scene}: baseline {r['baseline_s']:.2f} s, default "
           f"{r['default_s']:.2f} s, ratio {r['ratio']:.1f}x; default vs reference: J "
           f"{r['J_rel_err']:.2e}, gradient {r['grad_rel_err']:.2e} (cosine {r['grad_cosine']:.6f})")
-    print(f"wrote {args.out / 'speedup.json'}")
+    name = "speedup.json" if args.scene == "focusing-24x16" else f"speedup_{args.scene}.json"
+    print(f"wrote {args.out / name}")
     return 0

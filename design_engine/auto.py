@@ -130,13 +130,15 @@ def choose_config(scene: Scene, *, full_model: bool = False,
         return Choice(contact_config(), (
             "dynamic pre-compression ramp (the reference's protocol; tens to hundreds of ms "
             "before the pulse): adaptive Dopri8, rtol 1e-8, atol 1e-4, with contact",))
-    where = "at rest"
+    where, in_contact = "at rest", False
     if ld.strain > 0.0:
         where = "in the static pre-compression"
-        if omega is None and state is None:
+        if state is None:
             from design_engine.modal import prestressed_state
 
             state = prestressed_state(scene)
+        margin = static_void_margin(scene, state)
+        in_contact = margin < float(scene.material.contact_cutoff - scene.material.contact_min)
     omega = max_angular_frequency(scene, state=state) if omega is None else omega
     dt = safety * 2.0 / omega
     reasons = (
@@ -152,7 +154,21 @@ def choose_config(scene: Scene, *, full_model: bool = False,
         reasons += ("static pre-compression: the pulse starts from rest in the equilibrium under "
                     "the closed stages (float64 Newton continuation, implicit gradient)",)
     config = SolverConfig(solver=FixedStepVerlet(max_dt=dt), use_contact=False, dtype="float32")
+    if in_contact:
+        config = with_contact(config)
+        reasons += (f"the static pre-compression already closes voids past the contact cutoff "
+                    f"({np.degrees(margin):.2f} deg above the asymptote): contact terms on, "
+                    "float64, from the first solve",)
     return Choice(config, reasons, omega)
+
+
+def static_void_margin(scene: Scene, state) -> float:
+    """Smallest void angle of `state` [n_blocks, 3] (mm, rad) above the contact asymptote, rad."""
+    from design_engine.simulate import followed_voids
+
+    bonds = bond_geometry(scene.lattice, block_geometry(scene.lattice, jnp.asarray(scene.design)))
+    voids = followed_voids(bonds.void_ref, jnp.asarray(state), scene.lattice.bond_blocks)
+    return float(jnp.min(voids) - scene.material.contact_min)
 
 
 def contact_frequency(min_void_margin: float, material, min_inertia: float) -> float:
@@ -215,6 +231,19 @@ def next_config(config: SolverConfig, health: dict, scene: Scene) -> tuple[Solve
                 f"the contact barrier stiffened past the fixed step (dt x omega_c = {ratio:.2f} > "
                 f"{CONTACT_STEP_LIMIT:g}): re-solved with adaptive Dopri8")
     return None
+
+
+def start_config(choice: SolverConfig, last: SolverConfig | None, health: dict | None,
+                 scene: Scene) -> SolverConfig:
+    """The configuration an optimiser's next evaluation starts with: the one the previous
+    evaluation ended with (`last`, with its `solve_health`) while its voids still reached the
+    contact cutoff, since the next design, a small step away, most likely needs it too (it
+    saves the no-contact solve that `next_config` would reject); else the choice. Either way
+    `next_config` still judges the result, so this changes the cost, not the answer."""
+    if last is None or health is None or last == choice or not last.use_contact:
+        return choice
+    span = float(scene.material.contact_cutoff - scene.material.contact_min)
+    return last if float(health["void_margin"]) < span else choice
 
 
 def fallback_config() -> tuple[SolverConfig, str]:

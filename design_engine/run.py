@@ -11,7 +11,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from design_engine.auto import Choice, choose_config, fallback_config, next_config
+from design_engine.auto import (Choice, choose_config, fallback_config, next_config,
+                                start_config)
 from design_engine.loading import Loading
 from design_engine.objectives import (angular_momentum, block_kinetic_energy, objective_term,
                                       peak_energy_along_units, region_energy, region_energy_ratio)
@@ -268,14 +269,17 @@ def make_objective(scene: Scene, config: SolverConfig | None = None, weights=Non
     they are. `config=None` uses the automatic per-scene choice and repeats an evaluation with
     the configuration `auto.next_config` names (contact once a void reached the cutoff, Dopri8
     once the barrier outgrew the fixed step; each compiled on first need), so the result always
-    equals the full model's; on a reported failure, retry with `auto.fallback_config()`.
+    equals the full model's; on a reported failure, retry with `auto.fallback_config()`. Each
+    call starts where the previous one ended while that was in contact (`auto.start_config`).
     """
     if config is not None:
         return _jitted_objective(scene, config, weights)
     programs: dict = {}
+    last: dict = {"config": None, "health": None}
 
     def pick(i, x):
-        cfg = default_choice(scene).config
+        choice = default_choice(scene).config
+        cfg = start_config(choice, last["config"], last["health"], scene)
         while True:
             key = repr(cfg)
             if key not in programs:
@@ -284,6 +288,7 @@ def make_objective(scene: Scene, config: SolverConfig | None = None, weights=Non
             aux = out[0][1] if i == 0 else out[1]
             nxt = next_config(cfg, aux, scene)
             if nxt is None:
+                last.update(config=cfg, health=aux)
                 return out
             cfg = nxt[0]
 

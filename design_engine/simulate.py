@@ -98,6 +98,19 @@ class SimulationError(RuntimeError):
     """The solver failed (step budget, non-finite state); the message names the cause."""
 
 
+def followed_voids(void_ref, q, bond_blocks):
+    """[..., n_bonds, 2] void angles (rad) of states q [..., n_blocks, 3], followed continuously
+    from the reference angles `void_ref` [n_bonds, 2] (`BondGeometry.void_ref`).
+
+    The reference angle (signed, in (-pi, pi]) is first put on [-60, 300) deg so that a wide
+    void (> 180 deg, which the contact law sees as far below theta_min) is not mistaken for a
+    unit that passed through the barrier (a feasible design has reference voids in [0, 300]
+    deg)."""
+    bb = np.asarray(bond_blocks)
+    ref = jnp.mod(void_ref + VOID_WRAP, 2.0 * jnp.pi) - VOID_WRAP
+    return void_angles(ref, q[..., bb[:, 1], 2] - q[..., bb[:, 0], 2])
+
+
 def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = SolverConfig(),
                    time_grid: np.ndarray | None = None):
     """Factory: `simulate(x, material, loading, ts, initial=None) -> Solution` (pure; jit/grad/vmap).
@@ -201,13 +214,7 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
         qc_dot = jax.vmap(lambda t: prescribed(t, loading)[1])(ts)
         v_all = jnp.zeros((ts.shape[0], 3 * nb), vf.dtype)
         v_all = v_all.at[:, free].set(vf).at[:, constrained].set(qc_dot)
-        # void angles followed continuously from the reference; the reference angle (signed, in
-        # (-pi, pi]) is first put on [-60, 300) deg so that a wide void (> 180 deg, which the
-        # contact law sees as far below theta_min) is not mistaken for a unit that passed
-        # through the barrier (a feasible design has reference voids in [0, 300] deg)
-        ref = jnp.mod(args.bonds.void_ref + VOID_WRAP, 2.0 * jnp.pi) - VOID_WRAP
-        bend = q[:, bb[:, 1], 2] - q[:, bb[:, 0], 2]
-        voids = void_angles(ref, bend)
+        voids = followed_voids(args.bonds.void_ref, q, bb)
         return Solution(
             ts=ts,
             q=q,

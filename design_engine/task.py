@@ -15,7 +15,9 @@ keys are refused):
                    nlopt_dual_ftol_rel
     [targets.NAME] size = [w, h], offset = [sx, sy]      (spec 8 windows)
     [scenes.NAME]  preset, and optional side, shift, strain, amplitude_m, frequency_hz,
-                   periods, samples, contact_deg = [theta_min, theta_cutoff]
+                   periods, samples, contact_deg = [theta_min, theta_cutoff],
+                   precompression = "static" (default: the pulse starts from the equilibrium
+                   under the closed stages) or "ramp" (the reference's dynamic two-stage ramp)
     [[objective]]  scene, target, weight, quantity ("kinetic_energy" | "angular_momentum"), name
     [pareto]       weight_rule ("complement": w2 = 1 - w1, both maximised; "protect":
                    w2 = w1 - 1, the second term minimised; default from the weights' signs)
@@ -40,6 +42,7 @@ from design_engine.constraints import ConstraintLimits
 from design_engine.geometry import InvalidDesignError, block_geometry, check_design
 from design_engine.lattice import Lattice, kagome, periodic_design, quads
 from design_engine.objectives import QUANTITIES
+from design_engine.loading import PRECOMPRESSION
 from design_engine.scenes import PRESETS, Scene, build_scene
 
 FORMAT = "metarig-task/1"
@@ -401,7 +404,7 @@ def load_task(source: str | Path, *, size: tuple[int, int] | None = None,
         if not isinstance(s, dict):
             _fail(w, "must be a table")
         _known(s, {"preset", "side", "shift", "strain", "amplitude_m", "frequency_hz", "periods",
-                   "samples", "contact_deg"}, w)
+                   "samples", "contact_deg", "precompression"}, w)
         preset = _str(s, "preset", w, choices=tuple(PRESETS))
         if PRESETS[preset]["kind"] != kind:
             _fail(f"{w}.preset", f"{preset!r} is a {PRESETS[preset]['kind']} scene, the task "
@@ -427,6 +430,8 @@ def load_task(source: str | Path, *, size: tuple[int, int] | None = None,
                 contact_deg=_pair(s, "contact_deg", w, integer=False) if "contact_deg" in s
                 else None,
                 periods=_num(s, "periods", w, positive=True) if "periods" in s else None,
+                precompression=_str(s, "precompression", w, choices=PRECOMPRESSION)
+                if "precompression" in s else "static",
             )
         except ValueError as exc:
             _fail(w, str(exc))

@@ -25,7 +25,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from design_engine.auto import (STABILITY_SAFETY, choose_config, fallback_config,
-                                initial_vector, make_frequency_estimator, next_config)
+                                initial_vector, make_frequency_estimator, next_config,
+                                start_config)
 from design_engine.fixed_step import is_fixed_step
 from design_engine.modal import prestressed_state
 from design_engine.objectives import objective_term
@@ -87,17 +88,25 @@ class _SceneState:
     omega: float | None = None
     vector: np.ndarray | None = None
     start_state: np.ndarray | None = None  # [n_blocks, 3] where the last solve started, mm/rad
+    last_config: SolverConfig | None = None  # the configuration the last evaluation ended with
+    last_health: dict | None = None
 
 
 class TaskEvaluator:
     """Evaluates a task's scalarised objective and its gradient (see module docstring)."""
 
-    def __init__(self, task: Task):
+    def __init__(self, task: Task, config: SolverConfig | None = None):
+        """`config` forces one configuration on every scene, with no policy (no step checks,
+        no re-solves, no fallback): for comparisons against a fixed method."""
         self.task = task
+        self.forced = config
         self.compilations = 0
         self._estimators: dict[str, object] = {}
         self._state: dict[str, _SceneState] = {}
         for name, scene in task.scenes.items():
+            if config is not None:
+                self._state[name] = _SceneState(config, ("configuration given by the caller",))
+                continue
             omega, vec, state = None, None, None
             if scene.loading.strain == 0.0 or scene.loading.is_static:
                 if scene.loading.strain > 0.0:  # the static equilibrium the pulse starts from
@@ -177,8 +186,9 @@ class TaskEvaluator:
         dt = solver.max_dt
         if dt > STEP_RECHECK * limit:
             new_dt = STABILITY_SAFETY * limit
-            st.config = SolverConfig(solver=solver.with_max_dt(new_dt), use_contact=False,
-                                     dtype=st.config.dtype)
+            st.config = SolverConfig(solver=solver.with_max_dt(new_dt),
+                                     use_contact=st.config.use_contact, dtype=st.config.dtype)
+            st.last_config = None  # its step is the old one
             events.append(
                 f"{name}: highest natural frequency rose to {st.omega / (2 * np.pi) * 1e3:.0f} Hz; "
                 f"fixed step {dt * 1e3:.1f} us was {dt / limit:.2f} x the stability limit, "
@@ -191,16 +201,28 @@ class TaskEvaluator:
         st = self._state[name]
         scene = self.task.scenes[name]
         config, why = st.config, list(st.reasons)
+        if self.forced is not None:
+            try:
+                value, grad, terms, _ = self._solve(name, config, x)
+            except SimulationError as exc:
+                raise EvaluationFailed(f"{name}: {exc}") from None
+            return value, grad, terms, {"config": config_summary(config), "why": why}
         try:
             self._check_step(name, x, events)
             config, why = st.config, list(st.reasons)
+            start = start_config(config, st.last_config, st.last_health, scene)
+            if start != config:
+                config = start
+                why.append("the previous design needed contact: started with its configuration")
             value, grad, terms, aux = self._solve(name, config, x)
             while (nxt := next_config(config, aux, scene)) is not None:
                 config, reason = nxt
                 why.append(reason)
                 events.append(f"{name}: {reason}")
                 value, grad, terms, aux = self._solve(name, config, x)
-            self._state[name].start_state = np.asarray(aux["start_state"])
+            st.start_state = np.asarray(aux["start_state"])
+            st.last_config, st.last_health = config, {k: np.asarray(v) for k, v in aux.items()
+                                                      if k != "start_state"}
             return value, grad, terms, {"config": config_summary(config), "why": why}
         except SimulationError as exc:
             fb, reason = fallback_config()

@@ -92,6 +92,21 @@ def test_bad_task_files_give_one_line_naming_the_key(tmp_path, edit, message):
     assert message in str(err.value) and "\n" not in str(err.value)
 
 
+def test_the_precompression_of_a_task_scene_is_static_unless_the_file_says_ramp(tmp_path):
+    text = preset_path("focus-vs-protect").read_text()
+    static = load_task("focus-vs-protect", size=(8, 8))
+    assert all(s.loading.is_static for s in static.scenes.values())
+    path = tmp_path / "ramp.toml"
+    path.write_text(text.replace('precompression = "static"', 'precompression = "ramp"'))
+    ramp = load_task(path, size=(8, 8))
+    assert not any(s.loading.is_static for s in ramp.scenes.values())
+    assert ramp.scenes["strain_8pct"].window_start > static.scenes["strain_8pct"].window_start
+    path.write_text(text.replace('precompression = "static"', 'precompression = "slow"', 1))
+    with pytest.raises(TaskError) as err:
+        load_task(path)
+    assert "scenes.strain_1pct.precompression" in str(err.value) and "\n" not in str(err.value)
+
+
 def test_design_cli_refuses_a_bad_task_in_one_line(tmp_path, capsys):
     from design_engine.design_cli import design_main
 

@@ -29,6 +29,9 @@ def _scene_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--frequency", type=float, default=30.0, help="input frequency, Hz")
     p.add_argument("--precompression", type=float, help="pre-compression strain of stage scenes "
                    "(e.g. 0.02)")
+    p.add_argument("--ramp", action="store_true", help="simulate the reference's dynamic "
+                   "pre-compression ramp instead of starting the pulse from the static "
+                   "equilibrium under the closed stages (the default)")
     p.add_argument("--design", type=Path, help="design file (JSON, metarig-design/1) to simulate "
                    "instead of the periodic design")
     p.add_argument("--samples", type=int, help="samples in the dynamic window (default 200)")
@@ -67,7 +70,7 @@ def _build(args):
     return _with_material(args, build_scene(
         args.preset, nx=nx, ny=ny, bias_angle_deg=args.bias_angle_deg, amplitude_m=args.amplitude,
         frequency_hz=args.frequency, strain=args.precompression, design=design,
-        n_samples=args.samples))
+        n_samples=args.samples, precompression="ramp" if args.ramp else "static"))
 
 
 def _task(args, nx, ny, design):
@@ -181,6 +184,7 @@ def simulate_main(argv: list[str] | None = None) -> int:
     summary = {"scene": scene.name, "lattice": scene.lattice.describe(), "n_units": scene.n_units,
                "input_units": scene.input_units.tolist(),
                "precompression_strain": float(scene.loading.strain),
+               "precompression": scene.loading.precompression if scene.loading.strain else None,
                "amplitude_m": float(scene.loading.amplitude) / 1e3,
                "frequency_hz": float(scene.loading.frequency) * 1e3,
                "material_si": scene.material.to_si(),

@@ -135,3 +135,33 @@ def test_precompressed_scenes_step_from_the_static_state_and_the_ramp_uses_dopri
     ramp = build_scene("protection-24x18", nx=8, ny=8, strain=0.05, precompression="ramp")
     choice = choose_config(ramp)
     assert choice.config == contact_config() and "Dopri8" in choice.reasons[0]
+
+
+def test_an_evaluation_starts_where_the_last_one_in_contact_ended():
+    """`start_config` keeps the contact configuration only while the voids still reached the
+    cutoff; the choice otherwise."""
+    from design_engine.auto import start_config
+
+    scene = build_scene("focusing-24x16", nx=8, ny=6, bias_angle_deg=44.0)
+    span = float(scene.material.contact_cutoff - scene.material.contact_min)
+    choice = SolverConfig(solver=FixedStepVerlet(max_dt=0.02), use_contact=False, dtype="float32")
+    contact = SolverConfig(solver=FixedStepVerlet(max_dt=0.02))
+    assert start_config(choice, None, None, scene) == choice
+    assert start_config(choice, contact, {"void_margin": 0.5 * span}, scene) == contact
+    assert start_config(choice, contact, {"void_margin": 2.0 * span}, scene) == choice
+    assert start_config(choice, choice, {"void_margin": 0.5 * span}, scene) == choice
+
+
+def test_a_static_precompression_in_contact_starts_with_contact():
+    from design_engine.auto import static_void_margin
+    from design_engine.modal import prestressed_state
+
+    scene = build_scene("protection-24x18", nx=12, ny=10, strain=0.05)
+    span = float(scene.material.contact_cutoff - scene.material.contact_min)
+    assert static_void_margin(scene, prestressed_state(scene)) < span
+    choice = choose_config(scene)
+    assert choice.config.use_contact and choice.config.dtype == "float64"
+    assert isinstance(choice.config.solver, FixedStepVerlet)
+    assert "already closes voids past the contact cutoff" in choice.reasons[-1]
+    mild = build_scene("protection-24x18", nx=12, ny=10, strain=0.01)
+    assert not choose_config(mild).config.use_contact

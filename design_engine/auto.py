@@ -11,10 +11,12 @@ The default policy, read off the work-precision and speed-up charts (README, `me
   J by tens of percent). The contact terms are left out of the solve and every solve checks
   that all void angles stayed above the contact cutoff at every sample, in which case the
   contact energy was identically zero and the result equals the full model's;
-- a solve whose voids reached the cutoff is repeated with contact at the same step in float64, and that
-  result stands while the barrier's own frequency at the deepest void, omega_c
-  (`contact_frequency`), keeps dt x omega_c <= CONTACT_STEP_LIMIT (`next_config`); past it, or
-  if any fixed-step solve fails, adaptive Dopri8 at the reference tolerances with contact;
+- a solve whose voids reached the cutoff is repeated with contact at the same step in float64
+  (from the first solve when the static equilibrium already reaches it), and that result stands
+  while the barrier's own frequency at the deepest void, omega_c (`contact_frequency`), keeps
+  dt x omega_c <= CONTACT_STEP_LIMIT (`next_config`); past it, or if any fixed-step solve
+  fails, adaptive Dopri8 at the reference tolerances with contact. An optimiser's next
+  evaluation starts where the last one ended while that was in contact (`start_config`);
 - the dynamic pre-compression ramp (`precompression="ramp"`, the reference's protocol):
   adaptive Dopri8 at the reference tolerances with contact (the ramp lasts 40-320 ms).
 `full_model=True` forces the reference configuration (Dopri5, spec tolerances).
@@ -29,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from design_engine.dynamics import dof_masses
-from design_engine.energy import bond_geometry, make_energy
+from design_engine.energy import bond_geometry, followed_voids, make_energy
 from design_engine.fixed_step import FixedStepVerlet, is_fixed_step
 from design_engine.geometry import block_geometry
 from design_engine.scenes import Scene
@@ -164,8 +166,6 @@ def choose_config(scene: Scene, *, full_model: bool = False,
 
 def static_void_margin(scene: Scene, state) -> float:
     """Smallest void angle of `state` [n_blocks, 3] (mm, rad) above the contact asymptote, rad."""
-    from design_engine.simulate import followed_voids
-
     bonds = bond_geometry(scene.lattice, block_geometry(scene.lattice, jnp.asarray(scene.design)))
     voids = followed_voids(bonds.void_ref, jnp.asarray(state), scene.lattice.bond_blocks)
     return float(jnp.min(voids) - scene.material.contact_min)

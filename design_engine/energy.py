@@ -89,6 +89,22 @@ def void_angles(void_ref: Float[Array, "n_bonds 2"],
     return void_ref + jnp.stack([-bend, bend], axis=-1)
 
 
+VOID_WRAP = np.pi / 3.0  # reference void angles are taken on [-VOID_WRAP, 2 pi - VOID_WRAP)
+
+
+def followed_voids(void_ref, q, bond_blocks):
+    """[..., n_bonds, 2] void angles (rad) of states q [..., n_blocks, 3], followed continuously
+    from the reference angles `void_ref` [n_bonds, 2] (`BondGeometry.void_ref`).
+
+    The reference angle (signed, in (-pi, pi]) is first put on [-60, 300) deg so that a wide
+    void (> 180 deg, which the contact law sees as far below theta_min) is not mistaken for a
+    unit that passed through the barrier (a feasible design has reference voids in [0, 300]
+    deg)."""
+    bb = np.asarray(bond_blocks)
+    ref = jnp.mod(void_ref + VOID_WRAP, 2.0 * jnp.pi) - VOID_WRAP
+    return void_angles(ref, q[..., bb[:, 1], 2] - q[..., bb[:, 0], 2])
+
+
 def _rotate_minus_identity(theta, d):
     """(R(theta) - I) d for [n] angles and [n, 2] vectors."""
     c, s = jnp.cos(theta), jnp.sin(theta)

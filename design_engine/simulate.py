@@ -14,7 +14,7 @@ import numpy as np
 
 from design_engine._types import Array, DesignVector, Float, Int
 from design_engine.dynamics import VELOCITY_SCALE, make_dynamics_args, make_full_state, make_rhs
-from design_engine.energy import make_energy, void_angles
+from design_engine.energy import followed_voids, make_energy
 from design_engine.fixed_step import AbstractFixedStep, is_fixed_step, step_grid
 from design_engine.geometry import block_geometry
 from design_engine.lattice import Lattice
@@ -89,26 +89,12 @@ class Solution(eqx.Module):
     static_residual: Float[Array, ""]
 
 
-VOID_WRAP = np.pi / 3.0  # reference void angles are taken on [-VOID_WRAP, 2 pi - VOID_WRAP)
 # result code of a fixed-step solve reported not converged (diffrax's meaning)
 NOT_CONVERGED = int(diffrax.RESULTS.nonlinear_max_steps_reached._value)
 
 
 class SimulationError(RuntimeError):
     """The solver failed (step budget, non-finite state); the message names the cause."""
-
-
-def followed_voids(void_ref, q, bond_blocks):
-    """[..., n_bonds, 2] void angles (rad) of states q [..., n_blocks, 3], followed continuously
-    from the reference angles `void_ref` [n_bonds, 2] (`BondGeometry.void_ref`).
-
-    The reference angle (signed, in (-pi, pi]) is first put on [-60, 300) deg so that a wide
-    void (> 180 deg, which the contact law sees as far below theta_min) is not mistaken for a
-    unit that passed through the barrier (a feasible design has reference voids in [0, 300]
-    deg)."""
-    bb = np.asarray(bond_blocks)
-    ref = jnp.mod(void_ref + VOID_WRAP, 2.0 * jnp.pi) - VOID_WRAP
-    return void_angles(ref, q[..., bb[:, 1], 2] - q[..., bb[:, 0], 2])
 
 
 def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = SolverConfig(),
@@ -172,6 +158,16 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
         return qs, vs, (result, n, n, jnp.asarray(0))
 
     dtype = jnp.dtype(config.dtype)
+
+    def cast(tree, to=dtype):
+        """Floating leaves of `tree` as `to`; the rest unchanged."""
+        def leaf(a):
+            if isinstance(a, float) or (hasattr(a, "dtype") and jnp.issubdtype(a.dtype, jnp.floating)):
+                return jnp.asarray(a, to)
+            return a
+
+        return jax.tree_util.tree_map(leaf, tree)
+
     static_solvers = []  # built on the first static pre-compression (a Hessian colouring)
 
     def static_start(x, material, loading):
@@ -179,29 +175,17 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
             static_solvers.append(make_static_solver(lattice, supports,
                                                      use_contact=config.use_contact,
                                                      linearized=config.linearized))
-        to64 = jax.tree_util.tree_map(
-            lambda a: jnp.asarray(a, jnp.float64) if isinstance(a, float) or (
-                hasattr(a, "dtype") and jnp.issubdtype(a.dtype, jnp.floating)) else a,
-            (x, material, loading))
-        q_f, info = static_solvers[0](*to64, 0.0)
+        q_f, info = static_solvers[0](*cast((x, material, loading), jnp.float64), 0.0)
         return (q_f, jnp.zeros_like(q_f)), info["gradient_norm"]
 
-    def cast_leaf(a):
-        if isinstance(a, float) or (hasattr(a, "dtype") and jnp.issubdtype(a.dtype, jnp.floating)):
-            return jnp.asarray(a, dtype)
-        return a
-
-    def cast(tree):
-        return jax.tree_util.tree_map(cast_leaf, tree)
-
     def simulate(x: DesignVector, material: Material, loading: Loading, ts, initial=None) -> Solution:
+        if config.stretch_scale != 1.0:
+            material = eqx.tree_at(lambda m: m.k_stretch, material,
+                                   material.k_stretch * config.stretch_scale)
         residual = jnp.zeros(())
         if initial is None and loading.is_static:
             initial, residual = static_start(x, material, loading)
         x, material, loading, ts, initial = cast((x, material, loading, ts, initial))
-        if config.stretch_scale != 1.0:
-            material = eqx.tree_at(lambda m: m.k_stretch, material,
-                                   material.k_stretch * config.stretch_scale)
         geom = block_geometry(lattice, x)
         args = make_dynamics_args(lattice, supports, geom, material, loading)
         if initial is None:  # every task starts at rest in the reference configuration

@@ -11,8 +11,9 @@ Newton solve does not converge within `newton_iters` is retried at half the step
 equilibrium, and the step grows back by half per converged level; each level starts from the
 secant predictor through the last two equilibria when its energy is finite there, else from the
 last equilibrium), and at each load level damped Newton on the free DOFs with the exact Hessian, (H + mu I) d = -g, mu
-raised tenfold until the energy falls and stays finite (the contact barrier is +inf / NaN past
-its asymptote, so no step crosses it) and lowered threefold after a success, until
+raised tenfold until the energy falls and stays finite and no void passes the contact asymptote
+(past it the barrier's energy is zero again, so the energy alone would not stop a step there),
+and lowered threefold after a success, until
 max |g| <= GRADIENT_TOL. The Hessian is exact and sparse: one Hessian-vector product per colour
 and DOF of a distance-2 colouring of the bond graph (21 products for the 1146 free DOFs of
 24x18; `make_sparse_hessian`); the solves are dense Cholesky factorisations.
@@ -36,7 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from design_engine.energy import bond_geometry, make_energy
+from design_engine.energy import bond_geometry, followed_voids, make_energy
 from design_engine.geometry import block_geometry
 from design_engine.lattice import Lattice
 from design_engine.linalg import implicit_point
@@ -158,6 +159,15 @@ def make_static_solver(lattice: Lattice, supports: Supports, *, use_contact: boo
         q = jnp.concatenate([qf, qc])[index].reshape(nb, 3)
         return energy_fn(q, bonds, material)
 
+    def admissible(qf, qc, bonds, material):
+        """No void past the contact asymptote (beyond it the barrier's energy is zero again,
+        spec 5.3, so an energy test alone would let a step jump through the barrier)."""
+        if not use_contact:
+            return jnp.asarray(True)
+        q = jnp.concatenate([qf, qc])[index].reshape(nb, 3)
+        voids = followed_voids(bonds.void_ref, q, lattice.bond_blocks)
+        return jnp.min(voids) > material.contact_min
+
     grad = jax.grad(total)
     hess = make_sparse_hessian(lattice, np.asarray(supports.free), grad)
 
@@ -177,7 +187,8 @@ def make_static_solver(lattice: Lattice, supports: Supports, *, use_contact: boo
                 m, _, _, tries = state
                 d = _solve(h + m * scale * eye, -g)
                 e1 = total(q + d, qc, bonds, material)
-                ok = jnp.isfinite(e1) & (e1 <= e0 + slack) & jnp.all(jnp.isfinite(d))
+                ok = (jnp.isfinite(e1) & (e1 <= e0 + slack) & jnp.all(jnp.isfinite(d))
+                      & admissible(q + d, qc, bonds, material))
                 return jnp.where(ok, m, m * 10.0), d, ok, tries + 1
 
             def again(state):
@@ -203,9 +214,10 @@ def make_static_solver(lattice: Lattice, supports: Supports, *, use_contact: boo
             target = jnp.minimum(lam + dlam, 1.0)
             qc = target * qc_s
             secant = q + (q - q_prev) * (target - lam) / jnp.maximum(lam - lam_prev, 1e-30)
-            use = jnp.isfinite(total(secant, qc, bonds, material)) & (lam > 0)
+            use = (jnp.isfinite(total(secant, qc, bonds, material)) & (lam > 0)
+                   & admissible(secant, qc, bonds, material))
             q_new, mu_new, ok = newton(jnp.where(use, secant, q), mu, qc, bonds, material)
-            ok = ok & jnp.all(jnp.isfinite(q_new))
+            ok = ok & jnp.all(jnp.isfinite(q_new)) & admissible(q_new, qc, bonds, material)
             return (jnp.where(ok, q_new, q), jnp.where(ok, q, q_prev),
                     jnp.where(ok, target, lam), jnp.where(ok, lam, lam_prev),
                     jnp.where(ok, jnp.minimum(LOAD_GROWTH * dlam, dlam_max), 0.5 * dlam),

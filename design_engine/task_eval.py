@@ -9,7 +9,9 @@ that an optimisation needs:
   started from (rest, or the previous design's static pre-compression) (a warm-started power
   iteration, `STEP_CHECK_ITERATIONS` Hessian-vector products, a few per cent of a solve) and
   when the step exceeds `STEP_RECHECK` x 2/omega_max a new step of `auto.STABILITY_SAFETY` x
-  2/omega_max is taken (one more compilation, recorded as an event); a solve that still goes
+  2/omega_max is taken (one more compilation, recorded as an event), or, when that step would
+  be below `MIN_STEP_FRACTION` of the first one (the contact barrier of a design pressed deep
+  into contact sets the frequency), adaptive Dopri8 from then on; a solve that still goes
   non-finite is caught and redone with the fallback configuration;
 - a design whose voids reach the contact cutoff is re-solved as `auto.next_config` says (with
   contact at the same step, or with Dopri8 once the barrier outgrows it), and a failed solve is
@@ -24,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from design_engine.auto import (STABILITY_SAFETY, choose_config, fallback_config,
+from design_engine.auto import (STABILITY_SAFETY, choose_config, contact_config, fallback_config,
                                 initial_vector, make_frequency_estimator, next_config,
                                 start_config)
 from design_engine.fixed_step import is_fixed_step
@@ -37,6 +39,7 @@ from design_engine.task import OPTIMISER_SCALE, Task, Term
 
 STEP_RECHECK = 0.8  # re-choose the fixed step above this fraction of the stability limit
 STEP_CHECK_ITERATIONS = 30  # warm-started power iterations per evaluation
+MIN_STEP_FRACTION = 0.25  # below this fraction of the first fixed step, use the adaptive solver
 INITIAL_ITERATIONS = 300  # cold power iterations for the initial design
 
 
@@ -89,6 +92,7 @@ class _SceneState:
     vector: np.ndarray | None = None
     start_state: np.ndarray | None = None  # [n_blocks, 3] where the last solve started, mm/rad
     last_config: SolverConfig | None = None  # the configuration the last evaluation ended with
+    first_dt: float = 0.0  # the first fixed step chosen, ms
     last_health: dict | None = None
 
 
@@ -114,6 +118,8 @@ class TaskEvaluator:
                 omega, vec = self._frequency(name, task.initial_design, None, state)
             choice = choose_config(scene, omega=omega)
             self._state[name] = _SceneState(choice.config, choice.reasons, omega, vec, state)
+            if is_fixed_step(choice.config.solver):
+                self._state[name].first_dt = choice.config.solver.max_dt
 
     # --- compiled pieces -------------------------------------------------------------------
 
@@ -186,6 +192,19 @@ class TaskEvaluator:
         dt = solver.max_dt
         if dt > STEP_RECHECK * limit:
             new_dt = STABILITY_SAFETY * limit
+            if new_dt < MIN_STEP_FRACTION * st.first_dt:
+                # the contact barrier sets that frequency: a fixed step would need many times
+                # the steps (and the memory of their reverse pass); the adaptive solver places
+                # small steps only where the barrier is stiff
+                st.config, st.last_config = contact_config(), None
+                events.append(
+                    f"{name}: highest natural frequency rose to "
+                    f"{st.omega / (2 * np.pi) * 1e3:.0f} Hz; a fixed step of {new_dt * 1e3:.1f} us "
+                    f"would be below {MIN_STEP_FRACTION:g} x the first one "
+                    f"({st.first_dt * 1e3:.1f} us): adaptive Dopri8 from here on")
+                st.reasons = st.reasons + ("the contact barrier raised the highest natural "
+                                           "frequency: adaptive Dopri8",)
+                return
             st.config = SolverConfig(solver=solver.with_max_dt(new_dt),
                                      use_contact=st.config.use_contact, dtype=st.config.dtype)
             st.last_config = None  # its step is the old one

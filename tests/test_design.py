@@ -298,6 +298,24 @@ def test_the_fixed_step_follows_the_design(make_task):
         task.initial_design + 0.01)), rel=2e-3)
 
 
+def test_a_fixed_step_that_would_shrink_past_a_quarter_gives_way_to_dopri8(make_task,
+                                                                          monkeypatch):
+    """When the highest frequency of the current design (set by a deep contact barrier) would
+    need a step below a quarter of the first one, the scene moves to adaptive Dopri8 (a fixed
+    step there needs many times the steps and the reverse pass's memory)."""
+    from design_engine.auto import contact_config
+
+    task = make_task(3)
+    evaluator = TaskEvaluator(task)
+    st = evaluator._state["pulse"]
+    omega = st.omega
+    monkeypatch.setattr(evaluator, "_frequency", lambda *a, **k: (5.0 * omega, st.vector))
+    out = evaluator.evaluate(task.initial_design)
+    assert any("adaptive Dopri8 from here on" in e for e in out.events)
+    assert st.config == contact_config()
+    assert out.solver["pulse"]["config"]["solver"] == "Dopri8"
+
+
 def test_design_files_carry_task_objectives_and_provenance(tmp_path):
     from design_engine.design_cli import design_main
 

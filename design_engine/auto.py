@@ -35,7 +35,8 @@ from design_engine.energy import bond_geometry, followed_voids, make_energy
 from design_engine.fixed_step import FixedStepVerlet, is_fixed_step
 from design_engine.geometry import block_geometry
 from design_engine.scenes import Scene
-from design_engine.simulate import SolverConfig
+from design_engine.simulate import SimulationError, SolverConfig
+from design_engine.statics import EquilibriumError, equilibrium_state
 
 STABILITY_SAFETY = 0.6  # fraction of the Verlet stability limit 2 / omega_max
 # largest dt x omega_c (the contact barrier's own frequency at the deepest void) a fixed step
@@ -136,9 +137,10 @@ def choose_config(scene: Scene, *, full_model: bool = False,
     if ld.strain > 0.0:
         where = "in the static pre-compression"
         if state is None:
-            from design_engine.modal import prestressed_state
-
-            state = prestressed_state(scene)
+            try:
+                state = equilibrium_state(scene)
+            except EquilibriumError as exc:
+                raise SimulationError(str(exc)) from None
         margin = static_void_margin(scene, state)
         in_contact = margin < float(scene.material.contact_cutoff - scene.material.contact_min)
     omega = max_angular_frequency(scene, state=state) if omega is None else omega

@@ -68,25 +68,17 @@ def prestressed_state(scene: Scene, config=None) -> np.ndarray:
     at t_c + t_d holds the small residual vibration of the ramp; the reference state for scenes
     without stages.
     """
-    from design_engine.loading import make_prescribed
     from design_engine.run import compiled_simulator
     from design_engine.simulate import SolverConfig, SimulationError, check_solution
-    from design_engine.statics import EquilibriumError, check_equilibrium, make_static_solver
+    from design_engine.statics import EquilibriumError, equilibrium_state
 
     if scene.loading.strain <= 0.0:
         return np.zeros((scene.n_units, 3))
     if scene.loading.is_static:
-        q_f, info = jax.jit(make_static_solver(scene.lattice, scene.supports))(
-            jnp.asarray(scene.design), scene.material, scene.loading, 0.0)
         try:
-            check_equilibrium(info)
+            return equilibrium_state(scene)
         except EquilibriumError as exc:
             raise SimulationError(str(exc)) from None
-        q = np.zeros(3 * scene.n_units)
-        q[scene.supports.free] = np.asarray(q_f)
-        values, _ = make_prescribed(scene.supports)
-        q[scene.supports.constrained] = np.asarray(values(jnp.asarray(0.0), scene.loading))
-        return q.reshape(-1, 3)
     config = config or SolverConfig()
     ts = np.asarray([0.5 * scene.window_start, scene.window_start])
     sim = compiled_simulator(scene, config, ts)

@@ -257,3 +257,25 @@ def make_static_solver(lattice: Lattice, supports: Supports, *, use_contact: boo
         return q, jax.lax.stop_gradient(info)
 
     return equilibrium
+
+
+_SOLVERS: dict[tuple, object] = {}  # jitted solvers of this process, per topology
+
+
+def equilibrium_state(scene) -> np.ndarray:
+    """[n_blocks, 3] state (mm, rad) of a static pre-compression scene (`scenes.Scene`): the
+    equilibrium under its closed stages with the prescribed DOFs filled in, as the pulse starts
+    from it (one compiled solver per lattice and supports). Raises `EquilibriumError` when the
+    solve does not converge."""
+    lat, sup = scene.lattice, scene.supports
+    key = (lat.shape, lat.n_blocks, np.asarray(lat.bond_blocks).tobytes(),
+           sup.constrained.tobytes(), sup.channel.tobytes(), sup.gain.tobytes())
+    if key not in _SOLVERS:
+        _SOLVERS[key] = jax.jit(make_static_solver(lat, sup))
+    q_f, info = _SOLVERS[key](jnp.asarray(scene.design), scene.material, scene.loading, 0.0)
+    check_equilibrium(info)
+    values, _ = make_prescribed(scene.supports)
+    q = np.zeros(3 * scene.n_units)
+    q[scene.supports.free] = np.asarray(q_f)
+    q[scene.supports.constrained] = np.asarray(values(jnp.asarray(0.0), scene.loading))
+    return q.reshape(-1, 3)

@@ -83,6 +83,7 @@ def test_design_file_round_trip(tmp_path):
     assert len(json.loads(path.read_text())["polygons_m"]) == 20
 
 
+@pytest.mark.slow
 def test_a_precompressed_scene_starts_static_unless_ramp_is_asked_for(tmp_path):
     """The default starts the pulse from the static equilibrium (at rest at the first sample);
     --ramp simulates the stages closing, whose motion is still there when the pulse starts."""

@@ -152,6 +152,7 @@ def test_an_evaluation_starts_where_the_last_one_in_contact_ended():
     assert start_config(choice, choice, {"void_margin": 0.5 * span}, scene) == choice
 
 
+@pytest.mark.slow
 def test_a_static_precompression_in_contact_starts_with_contact():
     from design_engine.auto import static_void_margin
     from design_engine.modal import prestressed_state

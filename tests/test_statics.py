@@ -114,6 +114,7 @@ def static_scene():
     return build_scene("protection-24x18", nx=12, ny=10, strain=0.05)
 
 
+@pytest.mark.slow
 def test_a_static_precompression_starts_at_rest_in_the_equilibrium(scene, solver, static_scene):
     """Without a pulse the static scene stays where the statics put it: the stages are closed
     from t = 0, the solve starts from the equilibrium, and nothing moves."""
@@ -132,6 +133,7 @@ def test_a_static_precompression_starts_at_rest_in_the_equilibrium(scene, solver
     assert np.abs(np.asarray(sol.qdot)).max() < 1e-8  # mm/ms
 
 
+@pytest.mark.slow
 def test_the_pulse_objective_through_the_static_start_matches_finite_differences(static_scene):
     """dJ/dx of the pulse objective includes the implicit derivative of the start state."""
     from gradcheck import directional_check

@@ -155,6 +155,25 @@ class CameraNode(Node):
         t, _, pos, _ = convert.joint_state_arrays(msg)
         self._stage.append((t * 1e-9, float(pos.sum())))
 
+    def _await_device_records(self, t1: float, timeout_s: float = 2.0) -> None:
+        """Wait until the shaker's (and the stages') joint states reach the end of the capture
+        `t1` (s): the last messages may still be in flight when the capture stops, and a record
+        that ends early would be held at its last value for the remaining frames."""
+        def short():
+            out = []
+            for name, rec in (("shaker", self._shaker), ("stage", self._stage)):
+                if rec and max(t for t, _ in list(rec)) < t1 - 1e-9:
+                    out.append(name)
+            return out
+
+        deadline = time.monotonic() + timeout_s
+        while short() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        for name in short():
+            self.get_logger().warning(
+                f"the {name} joint states end before the capture ({t1:.4f} s): held at their "
+                "last value for the last frames")
+
     def _develop(self) -> None:
         from hardware_sim import camera as cam
         from hardware_sim.rig import (
@@ -176,6 +195,7 @@ class CameraNode(Node):
             if times.size < 1:
                 raise ValueError(f"capture window [{t0:.4f}, {t1:.4f}] s holds no frame")
             self._status("developing", f"solving the specimen for {times.size} frames")
+            self._await_device_records(t1)
             shaker = MotionRecord.from_samples(list(self._shaker), t1)
             stage = MotionRecord.from_samples(list(self._stage), t1)
             traj = specimen_motion(self._specimen, times, shaker, stage, cfg.fps)

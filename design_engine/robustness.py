@@ -214,10 +214,10 @@ def _solve(scene: Scene, config: SolverConfig, ts_ms, loadings: list[Loading], c
         yield start, {k: np.asarray(v)[:len(part)] for k, v in res.items()}
 
 
-def _failure(config: SolverConfig, r: dict, k: int) -> str | None:
-    """Why point k of a batch failed (`simulate.health_failure`), or None."""
-    msg = health_failure({name: v[k] for name, v in r.items()}, config)
-    if msg is None and not np.isfinite(r["ratio"][k]):
+def _failure(config: SolverConfig, point: dict) -> str | None:
+    """Why a point of a batch (its summary scalars) failed (`simulate.health_failure`), or None."""
+    msg = health_failure(point, config)
+    if msg is None and not np.isfinite(point["ratio"]):
         msg = "non-finite energy ratio"
     return msg
 
@@ -270,10 +270,11 @@ def evaluate_points(scene: Scene, points, *, f_min_hz: float, chunk: int | None 
         for start, res in _solve(scene, config, ts, [loadings[i] for i in points], chunk, first):
             final = 0
             for k, i in enumerate(points[start:start + len(res["ratio"])]):
-                msg = _failure(config, res, k)
+                point = {name: v[k] for name, v in res.items()}
+                msg = _failure(config, point)
                 nxt = None
                 if msg is None:
-                    nxt = next_config(config, {name: v[k] for name, v in res.items()}, scene)
+                    nxt = next_config(config, point, scene)
                 else:
                     nxt = fallback_config()
                 if nxt is not None:

@@ -152,7 +152,7 @@ def _run_with_policy(scene: Scene, config: SolverConfig | None, ts_ms=None, load
         while True:
             sol, w = _simulate(scene, cfg, ts_ms, loading)
             wall += w
-            nxt = next_config(cfg, solve_health(sol), scene)
+            nxt = next_config(cfg, solve_health(sol, np), scene)
             if nxt is None:
                 return sol, wall, cfg, why
             cfg, why = nxt[0], why + (nxt[1],)

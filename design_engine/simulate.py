@@ -217,16 +217,18 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
     return simulate
 
 
-def solve_health(sol: Solution) -> dict:
+def solve_health(sol: Solution, xp=jnp) -> dict:
     """Scalars that judge a solve (`health_failure`), cheap to return from a jitted or vmapped
     call: result code, steps, whether the state stayed finite, the largest displacement (mm) and
     rotation (rad), the void margin (rad), the static start's residual (N, N mm) and the
-    smallest rotary inertia (g mm^2)."""
+    smallest rotary inertia (g mm^2). `xp=np` computes them on the host for a solution already
+    out of a jitted call (no op-by-op dispatch)."""
+    q, qdot = xp.asarray(sol.q), xp.asarray(sol.qdot)
     return {"result": sol.result, "num_steps": sol.num_steps,
-            "finite": jnp.all(jnp.isfinite(sol.q)) & jnp.all(jnp.isfinite(sol.qdot)),
-            "max_disp": jnp.max(jnp.abs(sol.q[..., :2])), "max_rot": jnp.max(jnp.abs(sol.q[..., 2])),
+            "finite": xp.all(xp.isfinite(q)) & xp.all(xp.isfinite(qdot)),
+            "max_disp": xp.max(xp.abs(q[..., :2])), "max_rot": xp.max(xp.abs(q[..., 2])),
             "void_margin": sol.min_void_margin, "static_residual": sol.static_residual,
-            "min_inertia": jnp.min(sol.inertia)}
+            "min_inertia": xp.min(xp.asarray(sol.inertia))}
 
 
 def health_failure(health: dict, config: SolverConfig) -> str | None:
@@ -269,7 +271,7 @@ def failure_message(result: int, config: SolverConfig) -> str | None:
 
 def check_solution(sol: Solution, config: SolverConfig) -> Solution:
     """Raise `SimulationError` naming the cause if the solve failed (`health_failure`)."""
-    msg = health_failure(solve_health(sol), config)
+    msg = health_failure(solve_health(sol, np), config)
     if msg is not None and msg.startswith("non-finite state"):
         bad = ~np.isfinite(np.asarray(sol.q)) | ~np.isfinite(np.asarray(sol.qdot))
         k = int(np.argmax(bad.reshape(bad.shape[0], -1).any(axis=1)))

@@ -116,7 +116,7 @@ class TaskEvaluator:
                 if scene.loading.strain > 0.0:  # the static equilibrium the pulse starts from
                     state = prestressed_state(scene.with_design(task.initial_design))
                 omega, vec = self._frequency(name, task.initial_design, None, state)
-            choice = choose_config(scene, omega=omega)
+            choice = choose_config(scene, omega=omega, state=state)  # no second static solve
             self._state[name] = _SceneState(choice.config, choice.reasons, omega, vec, state)
             if is_fixed_step(choice.config.solver):
                 self._state[name].first_dt = choice.config.solver.max_dt

@@ -1,6 +1,7 @@
 """Where methods fail, failures are reported (never plausible numbers); the automatic choice."""
 
 import math
+import re
 
 import numpy as np
 
@@ -166,3 +167,27 @@ def test_a_static_precompression_in_contact_starts_with_contact():
     assert "already closes voids past the contact cutoff" in choice.reasons[-1]
     mild = build_scene("protection-24x18", nx=12, ny=10, strain=0.01)
     assert not choose_config(mild).config.use_contact
+
+
+@pytest.mark.slow
+def test_a_fixed_step_in_contact_is_accurate_or_rejected_never_silently_wrong():
+    """Verlet with contact at and past the policy's step on a static pre-compression in contact
+    (12x10 at 5 %): every result is a reported failure, or one `next_config` sends on to Dopri8,
+    or within 0.5 % of the tight reference; at the policy's step it is accepted."""
+    from design_engine.auto import STABILITY_SAFETY
+    from design_engine.statics import equilibrium_state
+    from design_engine.studies.methods import reference_method
+    from design_engine.studies.stability import step_sweep_in_contact
+
+    scene = build_scene("protection-24x18", nx=12, ny=10, strain=0.05)
+    ref = simulate_scene(scene, reference_method().config).metrics["target_ke_mean_J"]
+    rows = step_sweep_in_contact(scene, (STABILITY_SAFETY, 1.0, 1.4), ref,
+                                 equilibrium_state(scene))
+    for row in rows:
+        if not row["ok"]:
+            assert re.search("diverged|non-finite|barrier", row["error"]), row
+        elif row["verdict"] == "accepted":
+            assert row["J_rel_err"] < 5e-3, row
+        else:
+            assert row["verdict"] == "Dopri8", row
+    assert rows[0]["ok"] and rows[0]["verdict"] == "accepted"

@@ -19,6 +19,9 @@ def bench_main(argv: list[str] | None = None) -> int:
                     "(dense Newton solves; very slow here)")
     st = sub.add_parser("stability", help="where methods break: step, amplitude, pre-compression")
     st.add_argument("--out", type=Path, default=Path("runs/bench"))
+    st.add_argument("--contact", action="store_true",
+                    help="the contact scenes instead: the default policy against a tight "
+                         "reference over strain to 9 %%, amplitude and fixed steps with contact")
     tp = sub.add_parser("throughput", help="vmap batch cost per design; first-call compile time")
     tp.add_argument("--out", type=Path, default=Path("runs/bench"))
     sp = sub.add_parser("speedup", help="default vs baseline value-and-gradient, side by side")
@@ -53,6 +56,19 @@ def bench_main(argv: list[str] | None = None) -> int:
                    "fastest_acceptable": best[0] if best else None}
         (args.out / "work_precision_summary.json").write_text(json.dumps(summary, indent=2))
         print(json.dumps(summary, indent=2))
+        return 0
+    if args.study == "stability" and args.contact:
+        from design_engine.studies.stability import run_contact_stability
+
+        r = run_contact_stability(args.out)
+        for part, key in (("strain", "strain"), ("amplitude", "amplitude_m")):
+            for row in r[part]["rows"]:
+                pol = row["policy"]
+                print(f"{key} {row[key]:g}: " + (f"{pol['config']}, {pol['solves']} solve(s), "
+                      + (f"J error {row['J_rel_err']:.2e}" if "J_rel_err" in row else
+                         f"reference: {row['reference'].get('error')}")
+                      if pol["ok"] else pol["error"]))
+        print(f"wrote {args.out / 'stability_contact.json'} and stability_contact.png")
         return 0
     if args.study == "stability":
         from design_engine.studies.stability import run_stability

@@ -75,7 +75,7 @@ def term_scene(term: Term, precompression: str = "static"):
     return scene
 
 
-def _timed(vg, x, config, repeats: int):
+def timed_value_and_grad(vg, x, config, repeats: int):
     """(median s, compile s, J, grad) of `repeats` warm calls after one compiling call."""
     t0 = time.perf_counter()
     res = checked(jax.block_until_ready(vg(x)), config)
@@ -130,10 +130,10 @@ def run_speedup(out: Path, *, scene: str = "focusing-24x16", repeats: int = 3,
         progress(f"{tag}: default configuration, {repeats} value-and-gradient evaluations ...")
         choice = default_choice(sd)
         vg, _ = make_objective(sd)
-        d = _timed(vg, jnp.asarray(sd.design), None, repeats)
+        d = timed_value_and_grad(vg, jnp.asarray(sd.design), None, repeats)
         progress(f"{tag}: baseline, {baseline_repeats} value-and-gradient evaluations ...")
         vg, _ = make_objective(sb, base_cfg)
-        b = _timed(vg, jnp.asarray(sb.design), base_cfg, baseline_repeats)
+        b = timed_value_and_grad(vg, jnp.asarray(sb.design), base_cfg, baseline_repeats)
         rows.append({"scene": t.scene, "weight": t.weight, "default_s": d[0],
                      "default_compile_s": d[1], "baseline_s": b[0], "baseline_compile_s": b[1],
                      "ratio": b[0] / d[0], "default": list(choice.reasons), "_d": d, "_b": b})

@@ -1,6 +1,8 @@
 """Where methods break: fixed step against the stability limit (explicit Verlet, and implicit
 Newmark whose chord iterations stop converging instead), amplitude into the contact asymptote,
-pre-compression. Each failure must come back as a reported error, never as numbers.
+pre-compression; and on the contact scenes (`run_contact_stability`) the default policy against
+a tight reference over strain up to 9 %, amplitude toward the barrier and fixed steps with
+contact past the limit. Each failure must come back as a reported error, never as numbers.
 """
 
 import json
@@ -9,12 +11,15 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from design_engine.auto import contact_config, max_angular_frequency
+from design_engine.auto import (contact_config, contact_frequency, max_angular_frequency,
+                                next_config, static_void_margin)
 from design_engine.fixed_step import FixedStepVerlet
 from design_engine.implicit_step import ImplicitNewmark
 from design_engine.run import simulate_scene
 from design_engine.scenes import build_scene
-from design_engine.simulate import SimulationError, SolverConfig
+from design_engine.simulate import SimulationError, SolverConfig, solve_health
+from design_engine.statics import EquilibriumError, equilibrium_state
+from design_engine.studies.methods import reference_method
 
 
 def _outcome(scene, config) -> dict:
@@ -26,6 +31,128 @@ def _outcome(scene, config) -> dict:
             "steps": run.metrics["solver"]["num_steps"],
             "min_void_deg": float(np.degrees(float(run.solution.min_void_margin))
                                   + np.degrees(scene.material.contact_min))}
+
+
+def _policy_outcome(scene) -> dict:
+    """The automatic policy's result (`simulate_scene(scene)`): J, steps, the configuration it
+    ended with, how many solves it took and why."""
+    try:
+        run = simulate_scene(scene)
+    except SimulationError as exc:
+        return {"ok": False, "error": str(exc)}
+    solver = run.metrics["solver"]
+    why = [r for r in solver["choice"] if ": re-solved" in r or ": fell back" in r]
+    return {"ok": True, "J_mean_J": run.metrics["target_ke_mean_J"], "steps": solver["num_steps"],
+            "min_void_deg": float(np.degrees(float(run.solution.min_void_margin)
+                                             + float(scene.material.contact_min))),
+            "config": f"{solver['solver']}{' + contact' if solver['use_contact'] else ''}, "
+                      f"{solver['dtype']}",
+            "solves": 1 + len(why), "wall_s": run.wall_s, "why": why}
+
+
+def _static_start(scene) -> dict:
+    """Where a static pre-compression starts: its smallest void (deg) and highest frequency (Hz),
+    or the equilibrium's failure."""
+    if not scene.loading.is_static:
+        return {}
+    try:
+        state = equilibrium_state(scene)
+    except EquilibriumError as exc:
+        return {"equilibrium_error": str(exc)}
+    margin = static_void_margin(scene, state)
+    return {"static_min_void_deg": float(np.degrees(margin + float(scene.material.contact_min))),
+            "static_omega_hz": max_angular_frequency(scene, state=state) / (2 * np.pi) * 1e3}
+
+
+def _against_reference(scene) -> dict:
+    """One row: the policy and the tight reference (Dopri8, rtol 1e-11, atol 1e-9) on `scene`."""
+    row = _static_start(scene)
+    row["policy"] = _policy_outcome(scene)
+    row["reference"] = _outcome(scene, reference_method().config)
+    if row["policy"]["ok"] and row["reference"]["ok"]:
+        ref = row["reference"]["J_mean_J"]
+        row["J_rel_err"] = abs(row["policy"]["J_mean_J"] - ref) / abs(ref)
+    return row
+
+
+def step_sweep_in_contact(scene, ratios, ref_j: float, state=None) -> list[dict]:
+    """Fixed-step Verlet with contact (float64) at `ratios` x 2/omega_max (omega_max at the state
+    the pulse starts from) on a scene in contact: per ratio the J error against `ref_j` (J), the
+    barrier's dt x omega_c at the deepest void, and the policy's verdict on the result
+    (`auto.next_config`: "accepted" or the configuration it re-solves with), or the reported
+    failure."""
+    limit = 2.0 / max_angular_frequency(scene, state=state)
+    rows = []
+    for r in tqdm(ratios, desc="contact dt / limit", leave=False):
+        config = SolverConfig(solver=FixedStepVerlet(max_dt=r * limit), use_contact=True,
+                              dtype="float64")
+        row = {"dt_over_limit": r}
+        try:
+            run = simulate_scene(scene, config)
+        except SimulationError as exc:
+            rows.append(row | {"ok": False, "error": str(exc)})
+            continue
+        health = solve_health(run.solution, np)
+        w_c = contact_frequency(float(health["void_margin"]), scene.material,
+                                float(health["min_inertia"]))
+        nxt = next_config(config, health, scene)
+        rows.append(row | {
+            "ok": True, "J_mean_J": run.metrics["target_ke_mean_J"],
+            "J_rel_err": abs(run.metrics["target_ke_mean_J"] - ref_j) / abs(ref_j),
+            "dt_omega_c": r * limit * w_c,
+            "min_void_deg": float(np.degrees(float(health["void_margin"])
+                                             + float(scene.material.contact_min))),
+            "verdict": "accepted" if nxt is None else type(nxt[0].solver).__name__})
+    return rows
+
+
+CONTACT_STRAINS = (0.0, 0.01, 0.03, 0.05, 0.07, 0.08, 0.09)
+CONTACT_AMPLITUDES_M = (2.5e-3, 5e-3, 7.5e-3, 10e-3, 12.5e-3)
+CONTACT_STEP_RATIOS = (0.2, 0.4, 0.6, 0.8, 1.0, 1.2)
+
+
+def run_contact_stability(out: Path, *, nx: int = 24, ny: int = 18) -> dict:
+    """The contact scenes (focus-vs-protect's 24x18, contact -10/-5 deg, static pre-compression;
+    the mid-optimisation focusing design in contact): the default policy against the tight
+    reference over strain 0-9 % and amplitude toward the barrier at 8 %, and fixed steps with
+    contact past the limit. Writes out/stability_contact.json (after every part) and
+    out/stability_contact.png."""
+    from design_engine.studies.speedup import SCENES, term_scene
+
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "stability_contact.json"
+    report: dict = {"scene": f"protection {nx}x{ny}, contact -10/-5 deg, static pre-compression",
+                    "reference": "Dopri8, rtol 1e-11, atol 1e-9, with contact, float64"}
+
+    def save():
+        path.write_text(json.dumps(report, indent=2))
+
+    rows = []
+    for eps in tqdm(CONTACT_STRAINS, desc="strain (contact scenes)"):
+        rows.append({"strain": eps} | _against_reference(
+            build_scene("protection-24x18", nx=nx, ny=ny, strain=eps)))
+        report["strain"] = {"amplitude_m": 7.5e-3, "rows": rows}
+        save()
+    rows = []
+    for amp in tqdm(CONTACT_AMPLITUDES_M, desc="amplitude at 8 %"):
+        rows.append({"amplitude_m": amp} | _against_reference(
+            build_scene("protection-24x18", nx=nx, ny=ny, strain=0.08, amplitude_m=amp)))
+        report["amplitude"] = {"strain": 0.08, "rows": rows}
+        save()
+    report["steps"] = {}
+    fixture = term_scene(SCENES["focusing-contact-24x16"][0])
+    for name, scene in ((f"protection {nx}x{ny} at 8 %",
+                         build_scene("protection-24x18", nx=nx, ny=ny, strain=0.08)),
+                        ("focusing-contact-24x16 (mid-optimisation design)", fixture)):
+        state = equilibrium_state(scene) if scene.loading.is_static else None
+        ref = _outcome(scene, reference_method().config)
+        report["steps"][name] = {
+            "reference_J": ref.get("J_mean_J"),
+            "rows": step_sweep_in_contact(scene, CONTACT_STEP_RATIOS, ref["J_mean_J"], state)
+            if ref["ok"] else [], "reference_error": ref.get("error")}
+        save()
+    _plot_contact(report, out / "stability_contact.png")
+    return report
 
 
 def run_stability(out: Path) -> dict:
@@ -115,6 +242,57 @@ def _plot(report: dict, path: Path) -> None:
         ax.set_xlabel(xlabel)
         ax.set_ylabel("smallest void angle [deg] (red: failure reported)")
         ax.set_title(f"{report[key]['scene']}: open = Verlet, filled = Dopri8")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _plot_contact(report: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.3))
+    for ax, key, xkey, scale, xlabel in (
+            (axes[0], "strain", "strain", 100.0, "pre-compression strain [%]"),
+            (axes[1], "amplitude", "amplitude_m", 1e3, "input amplitude [mm] (8 % strain)")):
+        rows = report.get(key, {}).get("rows", [])
+        ok = [r for r in rows if "J_rel_err" in r]
+        ax.semilogy([r[xkey] * scale for r in ok], [max(r["J_rel_err"], 1e-9) for r in ok], "o-",
+                    color="b", label="default policy: J error vs reference")
+        for r in rows:
+            if "J_rel_err" not in r:
+                ax.axvline(r[xkey] * scale, color="r", ls=":", lw=1)
+            else:
+                ax.annotate(r["policy"]["config"].split(",")[0].replace("FixedStep", ""),
+                            (r[xkey] * scale, max(r["J_rel_err"], 1e-9)), fontsize=7,
+                            textcoords="offset points", xytext=(3, 4))
+        ax.plot([], [], ":", color="r", label="failure reported")
+        ax.axhline(5e-3, color="k", ls="--", lw=0.8, label="0.5 %")
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel("relative error of J")
+        ax.set_title(report["scene"], fontsize=9)
+        ax.legend(fontsize=8)
+    ax = axes[2]
+    for (name, part), colour in zip(report.get("steps", {}).items(), ("b", "g")):
+        ok = [r for r in part["rows"] if r["ok"]]
+        ax.loglog([r["dt_omega_c"] for r in ok], [max(r["J_rel_err"], 1e-9) for r in ok], "o-",
+                  color=colour, label=name)
+        for r in ok:
+            if r["verdict"] != "accepted":
+                ax.plot(r["dt_omega_c"], max(r["J_rel_err"], 1e-9), "x", color="r", ms=10)
+    ax.plot([], [], "x", color="r", label="policy re-solves with Dopri8")
+    failed = [f"{name.split(' (')[0]}: dt/limit {r['dt_over_limit']:g}"
+              for name, part in report.get("steps", {}).items() for r in part["rows"] if not r["ok"]]
+    if failed:
+        ax.text(0.02, 0.02, "failure reported:\n" + "\n".join(failed), transform=ax.transAxes,
+                fontsize=7, color="r", va="bottom")
+    ax.axvline(1.0, color="k", ls="--", lw=0.8)
+    ax.set_xlabel("dt x omega_c (barrier frequency at the deepest void)")
+    ax.set_ylabel("relative error of J (Verlet + contact)")
+    ax.set_title("fixed steps with contact toward the limit", fontsize=9)
+    ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

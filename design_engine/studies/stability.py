@@ -11,8 +11,13 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from design_engine.auto import (contact_config, contact_frequency, max_angular_frequency,
-                                next_config, static_void_margin)
+from design_engine.auto import (
+    contact_config,
+    contact_frequency,
+    max_angular_frequency,
+    next_config,
+    static_void_margin,
+)
 from design_engine.fixed_step import FixedStepVerlet
 from design_engine.implicit_step import ImplicitNewmark
 from design_engine.run import simulate_scene

@@ -121,6 +121,21 @@ def write_results(out: Path, specs: list[RunSpec], task) -> dict:
     return {"points": len(points), "front": len(front)}
 
 
+PROGRESS_POLL_S = 5.0  # how often the sweep's bar re-counts the evaluations on disk
+
+
+def evaluations_on_disk(out: Path, specs: list[RunSpec]) -> int:
+    """Evaluations recorded so far by the runs of a sweep (their run.json files)."""
+    n = 0
+    for spec in specs:
+        try:
+            n += int(json.loads((out / "runs" / spec.name / "run.json").read_text())
+                     .get("evaluations", 0))
+        except (OSError, ValueError):
+            pass
+    return n
+
+
 def run_sweep(source: str, out: Path, weights: list[float], starts: list[float], *,
               max_evals: int | None = None, size: tuple[int, int] | None = None,
               workers: int | None = None, scheduler: str | None = None,
@@ -131,7 +146,7 @@ def run_sweep(source: str, out: Path, weights: list[float], starts: list[float],
         TaskError: the task is not a two-objective task, or a weight lies outside [0, 1].
         ValueError: `out` holds a sweep with other settings.
     """
-    from distributed import as_completed
+    from distributed import wait
 
     from design_engine.distributed import dask_client
 
@@ -153,24 +168,29 @@ def run_sweep(source: str, out: Path, weights: list[float], starts: list[float],
                              "another --out")
     sweep_path.write_text(json.dumps(settings, indent=1))
     bar = None
+    total = len(specs) * task.budget.max_evals
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=len(specs), desc=f"pareto {task.name}", unit="run", dynamic_ncols=True)
-    done, evals, t0 = [], 0, time.perf_counter()
+        bar = tqdm(total=total, initial=min(evaluations_on_disk(out, specs), total),
+                   desc=f"pareto {task.name}", unit="eval", dynamic_ncols=True)
+    done, t0 = [], time.perf_counter()
     with dask_client(workers=workers, scheduler=scheduler) as client:
         log.info("%d runs (%d weights x %d starts) of up to %d evaluations; dashboard %s",
                  len(specs), len(weights), len(starts), task.budget.max_evals,
                  client.dashboard_link)
-        futures = [client.submit(run_one, spec, str(out), key=f"run-{spec.name}-{out.name}",
-                                 pure=False, retries=2) for spec in specs]
-        for fut in as_completed(futures):
-            summary = fut.result()
-            done.append(summary)
-            evals += summary["evaluations"]
-            if bar is not None:
-                bar.update(1)
-                bar.set_postfix_str(f"{evals} evaluations")
+        pending = {client.submit(run_one, spec, str(out), key=f"run-{spec.name}-{out.name}",
+                                 pure=False, retries=2) for spec in specs}
+        while pending:
+            try:
+                finished, pending = wait(pending, timeout=PROGRESS_POLL_S,
+                                         return_when="FIRST_COMPLETED")
+            except TimeoutError:
+                finished = set()
+            done.extend(fut.result() for fut in finished)
+            if bar is not None:  # evaluations as the runs' records on disk count them
+                bar.n = min(evaluations_on_disk(out, specs), total)
+                bar.set_postfix_str(f"{len(done)}/{len(specs)} runs done")
     if bar is not None:
         bar.close()
     counts = write_results(out, specs, task)

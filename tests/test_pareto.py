@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from design_engine.pareto import dominates, front_indices, pareto_front
-from design_engine.sweep import run_sweep
+from design_engine.sweep import RunSpec, evaluations_on_disk, run_sweep
 from design_engine.task import TaskError, load_task
 
 SWEEP = dict(weights=[0.0, 0.5, 1.0], starts=[20.0, 30.0], max_evals=3, size=(8, 6))
@@ -80,7 +80,7 @@ def test_a_sweep_survives_a_killed_worker_and_finds_the_front(tmp_path, cluster)
 
     def sweep():
         result["r"] = run_sweep("splitting", out, scheduler=lc.scheduler_address,
-                                progress=False, **SWEEP)
+                                progress=True, **SWEEP)  # the bar polls the runs on disk
 
     th = threading.Thread(target=sweep)
     th.start()
@@ -99,6 +99,9 @@ def test_a_sweep_survives_a_killed_worker_and_finds_the_front(tmp_path, cluster)
     assert len(result["r"]["runs"]) == 6
     points = _points(out)
     assert len(points) == 6 * 3  # every run finished its budget despite the lost worker
+    specs = [RunSpec("splitting", w, s, 3, (8, 6)) for w in SWEEP["weights"]
+             for s in SWEEP["starts"]]
+    assert evaluations_on_disk(out, specs) == len(points)  # what the progress bar counts
     for run in {p["run"] for p in points}:
         hist = json.loads((out / "runs" / run / "history.json").read_text())["evaluations"]
         assert [e["eval"] for e in hist] == [1, 2, 3]

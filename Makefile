@@ -26,13 +26,14 @@ test: install
 test-slow: install
 	$(BIN)/python -m pytest --runslow
 
-# Speed-accuracy studies: charts + JSON in runs/bench (about 90 minutes on 2 cores).
+# Speed-accuracy studies: charts + JSON in runs/bench (about 2 hours on 2 cores).
 bench: install
 	$(BIN)/metarig bench work-precision --out runs/bench
 	$(BIN)/metarig bench speedup --out runs/bench
 	for s in focusing-contact-24x16 precompressed-contact-12x10 focus-vs-protect-24x18 \
 	         reprogram-location-24x18; do $(BIN)/metarig bench speedup --scene $$s --out runs/bench; done
 	$(BIN)/metarig bench stability --out runs/bench
+	$(BIN)/metarig bench stability --contact --out runs/bench
 	$(BIN)/metarig bench throughput --out runs/bench
 	$(BIN)/python benchmarks/bench_core.py --out runs/bench
 

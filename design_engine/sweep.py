@@ -174,26 +174,33 @@ def run_sweep(source: str, out: Path, weights: list[float], starts: list[float],
 
         bar = tqdm(total=total, initial=min(evaluations_on_disk(out, specs), total),
                    desc=f"pareto {task.name}", unit="eval", dynamic_ncols=True)
-    done, t0 = [], time.perf_counter()
-    with dask_client(workers=workers, scheduler=scheduler) as client:
-        log.info("%d runs (%d weights x %d starts) of up to %d evaluations; dashboard %s",
-                 len(specs), len(weights), len(starts), task.budget.max_evals,
-                 client.dashboard_link)
-        pending = {client.submit(run_one, spec, str(out), key=f"run-{spec.name}-{out.name}",
-                                 pure=False, retries=2) for spec in specs}
-        while pending:
-            try:
-                finished, pending = wait(pending, timeout=PROGRESS_POLL_S,
-                                         return_when="FIRST_COMPLETED")
-            except TimeoutError:
-                finished = set()
-            done.extend(fut.result() for fut in finished)
-            if bar is not None:  # evaluations as the runs' records on disk count them
-                bar.n = min(evaluations_on_disk(out, specs), total)
-                bar.set_postfix_str(f"{len(done)}/{len(specs)} runs done")
+    done, t0, stopped = [], time.perf_counter(), False
+    try:
+        with dask_client(workers=workers, scheduler=scheduler) as client:
+            log.info("%d runs (%d weights x %d starts) of up to %d evaluations; dashboard %s",
+                     len(specs), len(weights), len(starts), task.budget.max_evals,
+                     client.dashboard_link)
+            pending = {client.submit(run_one, spec, str(out), key=f"run-{spec.name}-{out.name}",
+                                     pure=False, retries=2) for spec in specs}
+            while pending:
+                try:
+                    finished, pending = wait(pending, timeout=PROGRESS_POLL_S,
+                                             return_when="FIRST_COMPLETED")
+                except TimeoutError:
+                    finished = set()
+                done.extend(fut.result() for fut in finished)
+                if bar is not None:  # evaluations as the runs' records on disk count them
+                    bar.n = min(evaluations_on_disk(out, specs), total)
+                    bar.set_postfix_str(f"{len(done)}/{len(specs)} runs done")
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM; the local workers are stopped by now
+        stopped = True
     if bar is not None:
         bar.close()
     counts = write_results(out, specs, task)
+    if stopped:  # the front of what is on disk so far
+        log.warning("stopped: %d evaluated designs so far, %d on the (partial) front",
+                    counts["points"], counts["front"])
+        raise KeyboardInterrupt
     return {"runs": done, "wall_s": time.perf_counter() - t0, **counts}
 
 
@@ -241,8 +248,8 @@ def pareto_main(argv: list[str] | None = None) -> int:
         print(f"metarig pareto: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print(f"metarig pareto: interrupted; re-run the same command to continue ({args.out})",
-              file=sys.stderr)
+        print(f"metarig pareto: stopped; points.json and front.json in {args.out} hold every "
+              "evaluation so far; re-run the same command to continue", file=sys.stderr)
         return 130
     log.info("%d runs, %d evaluated designs, %d on the front, %.0f s: wrote %s",
              len(result["runs"]), result["points"], result["front"], result["wall_s"],

@@ -7,6 +7,8 @@ missing optional piece only affects its own subcommand.
 import importlib
 import sys
 
+from metarig.signals import stop_on_signals
+
 # subcommand -> (module, function, one-line help). Each function is `main(argv) -> int`.
 SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     "simulate": ("design_engine.cli", "simulate_main", "simulate a scene and write its outputs"),
@@ -49,6 +51,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     module_name, func_name, _ = SUBCOMMANDS[name]
     func = getattr(importlib.import_module(module_name), func_name)
+    stop_on_signals()  # SIGTERM, and SIGINT in a background job, stop a command like Ctrl-C
     try:
         return int(func(rest) or 0)
     except KeyboardInterrupt:

@@ -12,51 +12,14 @@ import os
 import signal
 import subprocess
 import sys
-import threading
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from metarig.signals import deferred_stop
 from ros_nodes.registry import NODES, STOP_ORDER
 
 log = logging.getLogger("metarig.launcher")
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
-
-
-def stop_on_signals() -> None:
-    """Make Ctrl-C and SIGTERM raise KeyboardInterrupt in the main thread.
-
-    Set explicitly, not inherited: a non-interactive shell starts background jobs with SIGINT
-    ignored, and Python then keeps ignoring it (a `metarig rig ... &` never stopped on SIGINT).
-    """
-    if threading.current_thread() is threading.main_thread():
-        for sig in STOP_SIGNALS:
-            signal.signal(sig, signal.default_int_handler)
-
-
-@contextmanager
-def deferred_stop() -> Iterator[None]:
-    """Hold Ctrl-C/SIGTERM until the block is done, then raise KeyboardInterrupt.
-
-    Around start-up steps that must not be cut in half: a KeyboardInterrupt inside `Popen`
-    (after the fork) would leave a node process that nobody stops.
-    """
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    got: list[int] = []
-    old = {sig: signal.signal(sig, lambda n, _f: got.append(n)) for sig in STOP_SIGNALS}
-    try:
-        yield
-    finally:
-        for sig, handler in old.items():
-            signal.signal(sig, handler)
-    if got:
-        raise KeyboardInterrupt
-
-
 def ros_value(v) -> str:
     """A parameter value in `-p name:=value` syntax (YAML)."""
     if isinstance(v, bool):

@@ -150,6 +150,36 @@ def test_a_killed_sweep_command_resumes_to_the_uninterrupted_result(tmp_path, cl
     assert _points(out) == _points(straight)
 
 
+def test_a_stopped_sweep_writes_the_front_of_what_it_has(tmp_path):
+    """SIGTERM (a batch scheduler's stop, `kill`) stops the command like Ctrl-C: it exits with
+    130 after writing points.json and front.json from every evaluation on disk."""
+    out = tmp_path / "stopped"
+    cmd = [sys.executable, "-m", "metarig", "pareto", "splitting", "--out", str(out),
+           "--size", "8x6", "--weight-list", "0,0.5,1", "--starts", "20,30", "--max-evals", "3",
+           "--workers", "2", "--quiet"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            start_new_session=True)
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and proc.poll() is None:
+        if any(json.loads(p.read_text()).get("evaluations", 0) >= 1
+               for p in out.glob("runs/*/run.json")):
+            break
+        time.sleep(0.05)
+    os.kill(proc.pid, signal.SIGTERM)  # the command only: it must stop its cluster itself
+    try:
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130, err.decode()[-2000:]
+    specs = [RunSpec("splitting", w, s, 3, (8, 6)) for w in (0.0, 0.5, 1.0) for s in (20.0, 30.0)]
+    points = _points(out)
+    assert 1 <= len(points) == evaluations_on_disk(out, specs) < 18
+    front = json.loads((out / "front.json").read_text())["front"]
+    assert [(p["J1"], p["J2"]) for p in front] == \
+        [(p["J1"], p["J2"]) for p in _brute_force(points, ("max", "max"))]
+
+
 def test_pareto_cli_refuses_bad_input_in_one_line(tmp_path, capsys):
     from design_engine.sweep import pareto_main
 

@@ -7,8 +7,8 @@ from rclpy._rclpy_pybind11 import RCLError
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+from metarig.signals import stop_on_signals
 from ros_nodes import topics
-from ros_nodes.launcher import stop_on_signals
 
 
 def qos_profile(q: topics.Qos, depth: int | None = None) -> QoSProfile:

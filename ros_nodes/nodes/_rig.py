@@ -14,7 +14,8 @@ import rclpy
 from rclpy.context import Context
 from rclpy.executors import MultiThreadedExecutor
 
-from ros_nodes.launcher import ProcessGroup, command_line, deferred_stop, stop_on_signals
+from metarig.signals import deferred_stop, stop_on_signals
+from ros_nodes.launcher import ProcessGroup, command_line
 from ros_nodes.logic.experiment import Experiment, RigError
 from ros_nodes.logic.sequence import DESIGN_NAME, summary, write_summary
 from ros_nodes.nodes._launch import InProcessRig

@@ -8,7 +8,7 @@ design, each term of the pair (focus-vs-protect-24x18: 1 % and 8 %; reprogram-lo
 2 % and 5 %), compile excluded, in one run. Writes
 benchmarks/results/bench_contact_before_after.json.
 
-    .venv/bin/python benchmarks/bench_contact_before_after.py [--repeats 1]
+    .venv/bin/python benchmarks/bench_contact_before_after.py [--repeats 1] [--pairs focus-vs-protect-24x18,...]
 """
 
 import argparse
@@ -25,6 +25,8 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--repeats", type=int, default=1, help="warm calls of the slow 'before' "
                    "configuration (the default gets 3)")
+    p.add_argument("--pairs", default=",".join(PAIRS), help="comma-separated, from: "
+                   + ", ".join(PAIRS))
     p.add_argument("--out", type=Path, default=HERE / "results" / "bench_contact_before_after.json")
     args = p.parse_args(argv)
 
@@ -38,7 +40,10 @@ def main(argv=None) -> int:
               "after": "automatic policy, static pre-compression",
               "machine": {"platform": platform.platform(), "cpus": os.cpu_count(),
                           "load_before": os.getloadavg()}, "pairs": {}}
-    for pair in PAIRS:
+    pairs = [q for q in args.pairs.split(",") if q]
+    if set(pairs) - set(PAIRS):
+        raise SystemExit(f"unknown pairs {sorted(set(pairs) - set(PAIRS))}; choose from {PAIRS}")
+    for pair in pairs:
         rows = []
         for term in SCENES[pair]:
             label = f"{pair}, strain {term.scene['strain']:g}"

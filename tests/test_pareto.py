@@ -121,23 +121,29 @@ def test_a_sweep_survives_a_killed_worker_and_finds_the_front(tmp_path, cluster)
     pareto_front(points, ("max", "max"))
 
 
+def _sweep_command(out: Path, until) -> subprocess.Popen:
+    """Start `metarig pareto` (SWEEP's settings, 2 local workers, its own process group) and
+    return once `until(run.json document)` holds for one of its runs (or after 300 s)."""
+    cmd = [sys.executable, "-m", "metarig", "pareto", "splitting", "--out", str(out),
+           "--size", "8x6", "--weight-list", "0,0.5,1", "--starts", "20,30", "--max-evals", "3",
+           "--workers", "2", "--quiet"]
+    with open(out.parent / f"{out.name}.stderr", "w") as err:  # a file: a pipe could fill
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err,
+                                start_new_session=True)
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and proc.poll() is None:
+        if any(until(json.loads(p.read_text())) for p in out.glob("runs/*/run.json")):
+            break
+        time.sleep(0.05)
+    return proc
+
+
 def test_a_killed_sweep_command_resumes_to_the_uninterrupted_result(tmp_path, cluster):
     lc, _ = cluster
     straight = tmp_path / "straight"
     run_sweep("splitting", straight, scheduler=lc.scheduler_address, progress=False, **SWEEP)
     out = tmp_path / "killed"
-    cmd = [sys.executable, "-m", "metarig", "pareto", "splitting", "--out", str(out),
-           "--size", "8x6", "--weight-list", "0,0.5,1", "--starts", "20,30", "--max-evals", "3",
-           "--workers", "2", "--quiet"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                            start_new_session=True)
-    deadline = time.monotonic() + 300
-    while time.monotonic() < deadline and proc.poll() is None:
-        done = [p for p in out.glob("runs/*/run.json")
-                if json.loads(p.read_text()).get("status") == "complete"]
-        if done:
-            break
-        time.sleep(0.05)
+    proc = _sweep_command(out, lambda run: run.get("status") == "complete")
     os.killpg(proc.pid, signal.SIGKILL)  # the command, its scheduler and its workers
     proc.wait()
     assert not (out / "points.json").exists(), "the sweep was not killed in the middle"
@@ -154,24 +160,14 @@ def test_a_stopped_sweep_writes_the_front_of_what_it_has(tmp_path):
     """SIGTERM (a batch scheduler's stop, `kill`) stops the command like Ctrl-C: it exits with
     130 after writing points.json and front.json from every evaluation on disk."""
     out = tmp_path / "stopped"
-    cmd = [sys.executable, "-m", "metarig", "pareto", "splitting", "--out", str(out),
-           "--size", "8x6", "--weight-list", "0,0.5,1", "--starts", "20,30", "--max-evals", "3",
-           "--workers", "2", "--quiet"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                            start_new_session=True)
-    deadline = time.monotonic() + 300
-    while time.monotonic() < deadline and proc.poll() is None:
-        if any(json.loads(p.read_text()).get("evaluations", 0) >= 1
-               for p in out.glob("runs/*/run.json")):
-            break
-        time.sleep(0.05)
+    proc = _sweep_command(out, lambda run: run.get("evaluations", 0) >= 1)
     os.kill(proc.pid, signal.SIGTERM)  # the command only: it must stop its cluster itself
     try:
-        _, err = proc.communicate(timeout=120)
+        proc.wait(timeout=120)
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
-    assert proc.returncode == 130, err.decode()[-2000:]
+    assert proc.returncode == 130, (tmp_path / "stopped.stderr").read_text()[-2000:]
     specs = [RunSpec("splitting", w, s, 3, (8, 6)) for w in (0.0, 0.5, 1.0) for s in (20.0, 30.0)]
     points = _points(out)
     assert 1 <= len(points) == evaluations_on_disk(out, specs) < 18

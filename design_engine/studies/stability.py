@@ -27,6 +27,11 @@ from design_engine.statics import EquilibriumError, equilibrium_state
 from design_engine.studies.methods import reference_method
 
 
+def _void_deg(margin_rad: float, scene) -> float:
+    """A void angle (deg) from its margin above the contact asymptote (rad)."""
+    return float(np.degrees(float(margin_rad) + float(scene.material.contact_min)))
+
+
 def _outcome(scene, config) -> dict:
     try:
         run = simulate_scene(scene, config)
@@ -34,8 +39,7 @@ def _outcome(scene, config) -> dict:
         return {"ok": False, "error": str(exc)}
     return {"ok": True, "J_mean_J": run.metrics["target_ke_mean_J"],
             "steps": run.metrics["solver"]["num_steps"],
-            "min_void_deg": float(np.degrees(float(run.solution.min_void_margin))
-                                  + np.degrees(scene.material.contact_min))}
+            "min_void_deg": _void_deg(run.solution.min_void_margin, scene)}
 
 
 def _policy_outcome(scene) -> dict:
@@ -48,8 +52,7 @@ def _policy_outcome(scene) -> dict:
     solver = run.metrics["solver"]
     why = [r for r in solver["choice"] if ": re-solved" in r or ": fell back" in r]
     return {"ok": True, "J_mean_J": run.metrics["target_ke_mean_J"], "steps": solver["num_steps"],
-            "min_void_deg": float(np.degrees(float(run.solution.min_void_margin)
-                                             + float(scene.material.contact_min))),
+            "min_void_deg": _void_deg(run.solution.min_void_margin, scene),
             "config": f"{solver['solver']}{' + contact' if solver['use_contact'] else ''}, "
                       f"{solver['dtype']}",
             "solves": 1 + len(why), "wall_s": run.wall_s, "why": why}
@@ -65,7 +68,7 @@ def _static_start(scene) -> dict:
     except EquilibriumError as exc:
         return {"equilibrium_error": str(exc)}
     margin = static_void_margin(scene, state)
-    return {"static_min_void_deg": float(np.degrees(margin + float(scene.material.contact_min))),
+    return {"static_min_void_deg": _void_deg(margin, scene),
             "static_omega_hz": max_angular_frequency(scene, state=state) / (2 * np.pi) * 1e3}
 
 
@@ -105,8 +108,7 @@ def step_sweep_in_contact(scene, ratios, ref_j: float, state=None) -> list[dict]
             "ok": True, "J_mean_J": run.metrics["target_ke_mean_J"],
             "J_rel_err": abs(run.metrics["target_ke_mean_J"] - ref_j) / abs(ref_j),
             "dt_omega_c": r * limit * w_c,
-            "min_void_deg": float(np.degrees(float(health["void_margin"])
-                                             + float(scene.material.contact_min))),
+            "min_void_deg": _void_deg(health["void_margin"], scene),
             "verdict": "accepted" if nxt is None else type(nxt[0].solver).__name__})
     return rows
 

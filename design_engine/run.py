@@ -142,37 +142,42 @@ def default_choice(scene: Scene) -> Choice:
 
 def _run_with_policy(scene: Scene, config: SolverConfig | None, ts_ms=None, loading=None):
     """Solve with `config`, or with the automatic choice, its re-solves (`auto.next_config`) and
-    its fallback when None."""
+    its fallback when None. Returns (solution, wall s, final config, reasons, re-solves), the
+    re-solves being the reasons of every solve after the first."""
     if config is not None:
         sol, wall = _simulate(scene, config, ts_ms, loading)
-        return sol, wall, config, ("configuration given by the caller",)
+        return sol, wall, config, ("configuration given by the caller",), ()
     choice = default_choice(scene)
-    cfg, why, wall = choice.config, choice.reasons, 0.0
+    cfg, resolves, wall = choice.config, (), 0.0
     try:
         while True:
             sol, w = _simulate(scene, cfg, ts_ms, loading)
             wall += w
             nxt = next_config(cfg, solve_health(sol, np), scene)
             if nxt is None:
-                return sol, wall, cfg, why
-            cfg, why = nxt[0], why + (nxt[1],)
+                return sol, wall, cfg, choice.reasons + resolves, resolves
+            cfg, resolves = nxt[0], resolves + (nxt[1],)
     except SimulationError as exc:
         fb, reason = fallback_config()
         sol, w = _simulate(scene, fb, ts_ms, loading)
-        return sol, wall + w, fb, why + (f"{reason} ({exc})",)
+        resolves += (f"{reason} ({exc})",)
+        return sol, wall + w, fb, choice.reasons + resolves, resolves
 
 
 def simulate_scene(scene: Scene, config: SolverConfig | None = None) -> SceneRun:
     """Forward-simulate a scene on its dynamic window; raises `SimulationError` on failure.
 
     `config=None` uses the automatic per-scene choice (`auto.choose_config`, with fallback to
-    the adaptive solver); `SolverConfig()` is the full reference model.
+    the adaptive solver); `SolverConfig()` is the full reference model. `metrics["solver"]`
+    says which configuration gave the result (`choice`: why) and `resolves`: the reasons of the
+    solves the policy made after its first.
     """
-    sol, wall, config, reasons = _run_with_policy(scene, config)
+    sol, wall, config, reasons, resolves = _run_with_policy(scene, config)
     metrics = scene_metrics(scene, sol)
     metrics["solver"] = solver_stats(sol)
     metrics["solver"].update(config_summary(config))
     metrics["solver"]["choice"] = list(reasons)
+    metrics["solver"]["resolves"] = list(resolves)
     return SceneRun(trajectory=to_trajectory(sol, scene.window_start, scene.sample_times),
                     solution=sol,
                     metrics=metrics, wall_s=wall)
@@ -254,7 +259,7 @@ def simulate_rig(scene: Scene, times_s, input_t_s, input_u_m, stage_t_s=None, st
     if times_ms.ndim != 1 or times_ms.size < 2 or np.any(np.diff(times_ms) <= 0) or times_ms[0] < 0:
         raise ValueError("times_s must be an increasing 1-D array of non-negative times")
     loading = measured_loading(scene, input_t_s, input_u_m, stage_t_s, stage_closing_m)
-    sol, _, _, _ = _run_with_policy(scene, config, times_ms, loading)
+    sol = _run_with_policy(scene, config, times_ms, loading)[0]
     return to_trajectory(sol, 0.0, times_ms)
 
 

@@ -70,6 +70,8 @@ def test_automatic_choice_says_what_it_picked_and_falls_back(small, monkeypatch)
     run = simulate_scene(small)
     assert run.metrics["solver"]["solver"] == "Dopri8"
     assert any("fell back" in r for r in run.metrics["solver"]["choice"])
+    assert len(run.metrics["solver"]["resolves"]) == 1  # one solve after the first
+    assert "fell back" in run.metrics["solver"]["resolves"][0]
 
 
 def test_full_model_can_be_forced(small):
@@ -87,6 +89,7 @@ def test_contact_left_out_only_while_it_is_exactly_zero():
     assert auto.metrics["solver"]["use_contact"] is True
     assert auto.metrics["solver"]["dtype"] == "float64"
     assert "re-solved with contact (Verlet at the same step)" in why[-1]
+    assert auto.metrics["solver"]["resolves"] == why[-1:]
     tight = SolverConfig(solver=contact_config().solver, rtol=1e-11, atol=1e-9, max_steps=400_000)
     full = simulate_scene(scene, tight)
     assert auto.metrics["target_ke_mean_J"] == pytest.approx(full.metrics["target_ke_mean_J"],

@@ -50,7 +50,7 @@ def _policy_outcome(scene) -> dict:
     except SimulationError as exc:
         return {"ok": False, "error": str(exc)}
     solver = run.metrics["solver"]
-    why = [r for r in solver["choice"] if ": re-solved" in r or ": fell back" in r]
+    why = solver["resolves"]
     return {"ok": True, "J_mean_J": run.metrics["target_ke_mean_J"], "steps": solver["num_steps"],
             "min_void_deg": _void_deg(run.solution.min_void_margin, scene),
             "config": f"{solver['solver']}{' + contact' if solver['use_contact'] else ''}, "

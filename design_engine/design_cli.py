@@ -63,6 +63,9 @@ def design_main(argv: list[str] | None = None) -> int:
                    "iterations included (default the task's)")
     p.add_argument("--max-time", type=positive(float), help="wall-time budget of the whole run, "
                    "s (default the task's)")
+    p.add_argument("--max-solve-steps", type=positive(int), help="steps one adaptive solve of "
+                   "an evaluation may take before the design counts as failed (default the "
+                   "task's; presets: 20000)")
     p.add_argument("--bias-angle-deg", type=float, help="bias angle of the periodic initial "
                    "design, degrees")
     p.add_argument("--seed", type=int, help="start from a random initial guess drawn with this "
@@ -96,7 +99,8 @@ def design_main(argv: list[str] | None = None) -> int:
 
     try:
         task = load_task(args.task, size=args.size, max_evals=args.max_evals,
-                         max_time_s=args.max_time, bias_angle_deg=args.bias_angle_deg,
+                         max_time_s=args.max_time, max_solve_steps=args.max_solve_steps,
+                         bias_angle_deg=args.bias_angle_deg,
                          seed=args.seed, algorithm=args.algorithm, material=args.material)
         out = args.out or Path("runs") / f"design-{task.name}"
         log.info("task %s (%s): %s lattice %dx%d, %d design variables, %d constraints, "

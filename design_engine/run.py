@@ -20,7 +20,7 @@ from design_engine.regions import row_units
 from design_engine.scenes import Scene
 from design_engine.fixed_step import is_fixed_step
 from design_engine.simulate import (SimulationError, Solution, SolverConfig, check_solution,
-                                    health_failure, make_simulator, solve_health)
+                                    make_simulator, simulation_error, solve_health)
 from metarig.trajectory import Trajectory
 from design_engine import units
 
@@ -190,7 +190,8 @@ def config_summary(config: SolverConfig) -> dict:
     if is_fixed_step(config.solver):
         out.update(config.solver.summary())
     else:
-        out.update(rtol=config.rtol, atol=config.atol, adjoint=type(config.adjoint).__name__)
+        out.update(rtol=config.rtol, atol=config.atol, adjoint=type(config.adjoint).__name__,
+                   max_steps=config.max_steps)
     return out
 
 
@@ -326,11 +327,11 @@ def checked(value_aux, config: SolverConfig | None = None):
     """Raise `SimulationError` if an objective evaluation's aux (`simulate.solve_health`, plus
     anything else) reports a failure or the value is not finite."""
     (value, aux) = value_aux[0] if isinstance(value_aux[0], tuple) else value_aux
-    msg = health_failure(aux, config or SolverConfig())
-    if msg is None and not np.isfinite(float(value)):
-        msg = "non-finite objective value"
-    if msg is not None:
-        raise SimulationError(msg)
+    err = simulation_error(aux, config or SolverConfig())
+    if err is None and not np.isfinite(float(value)):
+        err = SimulationError("non-finite objective value")
+    if err is not None:
+        raise err
     return value_aux
 
 

@@ -91,10 +91,15 @@ class Solution(eqx.Module):
 
 # result code of a fixed-step solve reported not converged (diffrax's meaning)
 NOT_CONVERGED = int(diffrax.RESULTS.nonlinear_max_steps_reached._value)
+MAX_STEPS_REACHED = int(diffrax.RESULTS.max_steps_reached._value)
 
 
 class SimulationError(RuntimeError):
     """The solver failed (step budget, non-finite state); the message names the cause."""
+
+
+class StepBudgetError(SimulationError):
+    """The solve used its whole step budget (`SolverConfig.max_steps`) before the window ended."""
 
 
 def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = SolverConfig(),
@@ -252,11 +257,19 @@ def health_failure(health: dict, config: SolverConfig) -> str | None:
     return msg
 
 
+def simulation_error(health: dict, config: SolverConfig) -> SimulationError | None:
+    """The error a solve with these `solve_health` scalars raises (`health_failure`), or None."""
+    msg = health_failure(health, config)
+    if msg is None:
+        return None
+    return (StepBudgetError if int(health["result"]) == MAX_STEPS_REACHED else SimulationError)(msg)
+
+
 def failure_message(result: int, config: SolverConfig) -> str | None:
     """Human-readable cause of a non-zero diffrax result code, or None for success."""
     if int(result) == 0:
         return None
-    if int(result) == int(diffrax.RESULTS.max_steps_reached._value):
+    if int(result) == MAX_STEPS_REACHED:
         return (f"the solver hit its step budget (max_steps={config.max_steps}); the scene is too "
                 "stiff for the explicit solver at this tolerance, or the state blew up")
     if int(result) == NOT_CONVERGED and is_fixed_step(config.solver):
@@ -271,11 +284,12 @@ def failure_message(result: int, config: SolverConfig) -> str | None:
 
 def check_solution(sol: Solution, config: SolverConfig) -> Solution:
     """Raise `SimulationError` naming the cause if the solve failed (`health_failure`)."""
-    msg = health_failure(solve_health(sol, np), config)
-    if msg is not None and msg.startswith("non-finite state"):
+    err = simulation_error(solve_health(sol, np), config)
+    if err is not None and str(err).startswith("non-finite state"):
         bad = ~np.isfinite(np.asarray(sol.q)) | ~np.isfinite(np.asarray(sol.qdot))
         k = int(np.argmax(bad.reshape(bad.shape[0], -1).any(axis=1)))
-        msg = msg.replace("during the solve", f"from t = {float(sol.ts[k]):.4g} ms on")
-    if msg is not None:
-        raise SimulationError(msg)
+        err = SimulationError(str(err).replace("during the solve",
+                                               f"from t = {float(sol.ts[k]):.4g} ms on"))
+    if err is not None:
+        raise err
     return sol

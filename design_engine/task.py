@@ -10,7 +10,8 @@ keys are refused):
     [initial]      bias_angle_deg, random_amplitude (fraction of the spacing), seed
     [design_window] size = P, offset = [sx, sy]          (optional: only a P x P patch is free)
     [constraints]  min_void_angle_deg, min_vertex_angle_deg, min_edge_length_mm
-    [budget]       max_evals, max_time_s, ftol_rel
+    [budget]       max_evals, max_time_s, ftol_rel, max_solve_steps (steps one adaptive solve
+                   of an evaluation may take before the design counts as failed)
     [optimizer]    algorithm ("mma" | "nlopt-mma" | "nlopt-ccsaq"), initial_step_mm,
                    nlopt_dual_ftol_rel
     [targets.NAME] size = [w, h], offset = [sx, sy]      (spec 8 windows)
@@ -49,6 +50,11 @@ FORMAT = "metarig-task/1"
 GOALS = ("max", "min")
 ALGORITHMS = ("mma", "nlopt-mma", "nlopt-ccsaq")
 WEIGHT_RULES = ("complement", "protect")
+# steps one adaptive solve of an evaluation may take: 14x the 1443 Dopri8 steps of a deep-contact
+# 24x18 design at 8 % pre-compression (about 10 ms a step with its gradient on 2 cores); a design
+# of the focus-vs-protect front that needed more than 10 000 took over 45 min at the solver's
+# own 200 000 and its fallback
+DEFAULT_MAX_SOLVE_STEPS = 20_000
 # internal value of one term -> what the optimiser is fed (the reference's units, spec 8 / 9.1)
 OPTIMISER_SCALE = {"kinetic_energy": 1.0, "angular_momentum": 1e-3}  # mJ; g mm^2/ms -> t mm^2/s
 
@@ -78,11 +84,15 @@ class Term:
 
 @dataclass(frozen=True)
 class Budget:
-    """Stopping criteria: evaluations (MMA inner iterations included), wall time (s), ftol."""
+    """Stopping criteria: evaluations (MMA inner iterations included), wall time (s), ftol; and
+    the steps one adaptive solve of an evaluation may take (`max_solve_steps`): a design that
+    needs more (voids driven against the contact asymptote, where the barrier's frequency
+    grows without bound) is recorded as a failed evaluation, which MMA steps back from."""
 
     max_evals: int
     max_time_s: float
     ftol_rel: float = 0.0
+    max_solve_steps: int = DEFAULT_MAX_SOLVE_STEPS
 
 
 @dataclass(frozen=True)
@@ -281,7 +291,7 @@ def _scaled(offset: tuple[int, int], frm: tuple[int, int], to: tuple[int, int]) 
 
 def load_task(source: str | Path, *, size: tuple[int, int] | None = None,
               max_evals: int | None = None, max_time_s: float | None = None,
-              bias_angle_deg: float | None = None, seed: int | None = None,
+              max_solve_steps: int | None = None, bias_angle_deg: float | None = None, seed: int | None = None,
               algorithm: str | None = None, weights: tuple[float, ...] | None = None,
               material: str | Path | None = None) -> Task:
     """Read and resolve a task preset (by name) or task file, with command-line overrides.
@@ -290,7 +300,7 @@ def load_task(source: str | Path, *, size: tuple[int, int] | None = None,
         source: preset name (`preset_names()`) or path of a TOML task file.
         size: (nx, ny) lattice size replacing the file's; target offsets, input shifts and the
             design window's offset are scaled by the size ratio (rounded).
-        max_evals, max_time_s: budget overrides.
+        max_evals, max_time_s, max_solve_steps: budget overrides.
         bias_angle_deg: bias angle of the periodic initial design.
         seed: random initial guess (periodic design plus uniform noise of `random_amplitude`
             times the spacing, default 0.15, spec 3.1) drawn with this seed.
@@ -357,16 +367,19 @@ def load_task(source: str | Path, *, size: tuple[int, int] | None = None,
     )
 
     bud_t = _table(doc, "budget", where, required=False)
-    _known(bud_t, {"max_evals", "max_time_s", "ftol_rel"}, f"{where}.budget")
+    _known(bud_t, {"max_evals", "max_time_s", "ftol_rel", "max_solve_steps"}, f"{where}.budget")
     budget = Budget(
         max_evals=max_evals if max_evals is not None else _num(
             bud_t, "max_evals", f"{where}.budget", 80, integer=True, positive=True),
         max_time_s=max_time_s if max_time_s is not None else _num(
             bud_t, "max_time_s", f"{where}.budget", 28800.0, positive=True),
         ftol_rel=_num(bud_t, "ftol_rel", f"{where}.budget", 0.0, lo=0.0, hi=1.0),
+        max_solve_steps=max_solve_steps if max_solve_steps is not None else _num(
+            bud_t, "max_solve_steps", f"{where}.budget", DEFAULT_MAX_SOLVE_STEPS, integer=True,
+            positive=True),
     )
-    if budget.max_evals < 1 or not budget.max_time_s > 0:
-        _fail(f"{where}.budget", "max_evals and max_time_s must be positive")
+    if budget.max_evals < 1 or not budget.max_time_s > 0 or budget.max_solve_steps < 1:
+        _fail(f"{where}.budget", "max_evals, max_time_s and max_solve_steps must be positive")
 
     opt_t = _table(doc, "optimizer", where, required=False)
     _known(opt_t, {"algorithm", "initial_step_mm", "nlopt_dual_ftol_rel"}, f"{where}.optimizer")
@@ -501,7 +514,7 @@ def load_task(source: str | Path, *, size: tuple[int, int] | None = None,
                         "min_vertex_angle_deg": math.degrees(limits.min_vertex_angle),
                         "min_edge_length_mm": limits.min_edge_length},
         "budget": {"max_evals": budget.max_evals, "max_time_s": budget.max_time_s,
-                   "ftol_rel": budget.ftol_rel},
+                   "ftol_rel": budget.ftol_rel, "max_solve_steps": budget.max_solve_steps},
         "optimizer": {"algorithm": optimizer.algorithm,
                       "initial_step_mm": optimizer.initial_step_mm,
                       **({} if optimizer.nlopt_dual_ftol_rel is None else

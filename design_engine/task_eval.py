@@ -15,10 +15,15 @@ that an optimisation needs:
   non-finite is caught and redone with the fallback configuration;
 - a design whose voids reach the contact cutoff is re-solved as `auto.next_config` says (with
   contact at the same step, or with Dopri8 once the barrier outgrows it), and a failed solve is
-  retried with the fallback; if that fails too the evaluation raises `EvaluationFailed`.
+  retried with the fallback; if that fails too the evaluation raises `EvaluationFailed`;
+- every adaptive solve has the task's step budget (`budget.max_solve_steps`): one that uses it
+  up raises `EvaluationFailed` at once, with no fallback (a slower solver would grind on the same
+  near-singular contact), so the optimiser records a failed design and steps back instead of
+  spending an hour on it.
 Every such step is recorded with its reason.
 """
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 
@@ -33,8 +38,8 @@ from design_engine.fixed_step import is_fixed_step
 from design_engine.modal import prestressed_state
 from design_engine.objectives import objective_term
 from design_engine.run import checked, compile_key, config_summary
-from design_engine.simulate import (SimulationError, Solution, SolverConfig, make_simulator,
-                                   solve_health)
+from design_engine.simulate import (SimulationError, Solution, SolverConfig, StepBudgetError,
+                                   make_simulator, solve_health)
 from design_engine.task import OPTIMISER_SCALE, Task, Term
 
 STEP_RECHECK = 0.8  # re-choose the fixed step above this fraction of the stability limit
@@ -101,9 +106,11 @@ class TaskEvaluator:
 
     def __init__(self, task: Task, config: SolverConfig | None = None):
         """`config` forces one configuration on every scene, with no policy (no step checks,
-        no re-solves, no fallback): for comparisons against a fixed method."""
+        no re-solves, no fallback, its own step budget): for comparisons against a fixed
+        method."""
         self.task = task
         self.forced = config
+        self.max_solve_steps = task.budget.max_solve_steps
         self.compilations = 0
         self._estimators: dict[str, object] = {}
         self._state: dict[str, _SceneState] = {}
@@ -161,9 +168,22 @@ class TaskEvaluator:
         self.compilations += 1
         return fn
 
+    def _budgeted(self, config: SolverConfig) -> SolverConfig:
+        """`config` with the task's step budget if it is adaptive (a fixed step's count is set by
+        its step and the window)."""
+        if self.forced is not None or is_fixed_step(config.solver):
+            return config
+        return dataclasses.replace(config, max_steps=min(config.max_steps, self.max_solve_steps))
+
+    def _record(self, config: SolverConfig, why: list[str]) -> dict:
+        """What an evaluation records of the configuration that counted for a scene."""
+        return {"config": config_summary(self._budgeted(config)), "why": why}
+
     def _solve(self, name: str, config: SolverConfig, x: np.ndarray):
-        """One value-and-gradient solve; raises `SimulationError` on any failure."""
+        """One value-and-gradient solve; raises `SimulationError` on any failure
+        (`StepBudgetError` when an adaptive solve used up the task's step budget)."""
         scene = self.task.scenes[name]
+        config = self._budgeted(config)
         fn = self._function(name, config)
         terms = [t for t in self.task.terms if t.scene == name]
         weights = jnp.asarray([t.weight for t in terms])
@@ -225,7 +245,7 @@ class TaskEvaluator:
                 value, grad, terms, _ = self._solve(name, config, x)
             except SimulationError as exc:
                 raise EvaluationFailed(f"{name}: {exc}") from None
-            return value, grad, terms, {"config": config_summary(config), "why": why}
+            return value, grad, terms, self._record(config, why)
         try:
             self._check_step(name, x, events)
             config, why = st.config, list(st.reasons)
@@ -242,8 +262,12 @@ class TaskEvaluator:
             st.start_state = np.asarray(aux["start_state"])
             st.last_config, st.last_health = config, {k: np.asarray(v) for k, v in aux.items()
                                                       if k != "start_state"}
-            return value, grad, terms, {"config": config_summary(config), "why": why}
+            return value, grad, terms, self._record(config, why)
         except SimulationError as exc:
+            if isinstance(exc, StepBudgetError) and not is_fixed_step(config.solver):
+                raise EvaluationFailed(
+                    f"{name}: {exc}; over the evaluation's step budget (budget.max_solve_steps): "
+                    "the design counts as failed, with no fallback") from None
             fb, reason = fallback_config()
             if config == fb:
                 fb, reason = SolverConfig(), "retried with the reference Dopri5 configuration"
@@ -252,7 +276,7 @@ class TaskEvaluator:
                 value, grad, terms, _ = self._solve(name, fb, x)
             except SimulationError as exc2:
                 raise EvaluationFailed(f"{name}: {exc}; the fallback failed too: {exc2}") from None
-            return value, grad, terms, {"config": config_summary(fb), "why": why + [reason]}
+            return value, grad, terms, self._record(fb, why + [reason])
 
     def evaluate(self, x: np.ndarray) -> Evaluation:
         """Value and gradient of the scalarised objective at design `x` [n_design] (mm).

@@ -76,6 +76,7 @@ def test_a_user_task_file_equals_its_preset(tmp_path):
 @pytest.mark.parametrize("edit, message", [
     (lambda s: s.replace("max_evals = 80", "max_evals = -3"), "budget.max_evals"),
     (lambda s: s.replace("[budget]", "[budget]\nmax_evalz = 3"), "unknown key 'max_evalz'"),
+    (lambda s: s.replace("[budget]", "[budget]\nmax_solve_steps = 0"), "budget.max_solve_steps"),
     (lambda s: s.replace('goal = "max"', 'goal = "up"'), "goal"),
     (lambda s: s.replace('target = "target1"', 'target = "nowhere"'), "objective[0].target"),
     (lambda s: s.replace("offset = [5, 3]", "offset = [50, 3]"), "does not fit"),
@@ -271,6 +272,36 @@ def test_a_failed_solve_is_recorded_and_the_run_goes_on(tmp_path, monkeypatch, m
     assert ev[5]["objective"] is not None  # the run went on
     hist = json.loads((tmp_path / "history.json").read_text())
     assert hist["evaluations"][4]["event"] == ev[4]["event"]
+
+
+def test_an_adaptive_solve_over_the_step_budget_fails_the_design_at_once(make_task,
+                                                                          tmp_path):
+    """A design whose adaptive solve needs more steps than the task's budget is a failed
+    evaluation straight away: no fallback to a slower solver (which would grind on the same
+    stiffness), so the optimiser steps back. The budget is a task-file key, recorded with the
+    configuration; within it the same solve stands."""
+    from design_engine.auto import contact_config
+    from design_engine.task_eval import EvaluationFailed
+
+    path = tmp_path / "budget.toml"
+    path.write_text(preset_path("splitting").read_text().replace(
+        "[budget]", "[budget]\nmax_solve_steps = 40"))
+    assert load_task(path).budget.max_solve_steps == 40
+    assert load_task("splitting").budget.max_solve_steps == 20_000
+
+    tight, roomy = make_task(3, max_solve_steps=40), make_task(3)
+    for task in (tight, roomy):
+        ev = TaskEvaluator(task)
+        ev._state["pulse"].config = contact_config()  # as deep in contact: adaptive Dopri8
+        if task is tight:
+            with pytest.raises(EvaluationFailed) as err:
+                ev.evaluate(task.initial_design)
+            assert "max_steps=40" in str(err.value) and "no fallback" in str(err.value)
+            assert ev.compilations == 1  # nothing else was tried
+        else:
+            out = ev.evaluate(task.initial_design)
+            assert out.solver["pulse"]["config"]["max_steps"] == 20_000
+            assert math.isfinite(out.value) and not out.events
 
 
 def test_the_fixed_step_follows_the_design(make_task):

@@ -13,6 +13,7 @@ import threading
 import time
 
 from metarig_msgs.srv import FirePulse, SetStrain
+from rclpy.duration import Duration
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Empty, String
@@ -52,6 +53,7 @@ class SequencerNode(Node):
         self._stop_pub = self.create_publisher(Empty, T.RIG_STOP.name, qos_profile(T.RIG_STOP.qos))
         self._config_pub.publish(String(data=json.dumps(config, default=str)))
         self.sim_ns = 0
+        self._published_ns = -1  # the last time published on /clock
         self._limit_ns = 2**62
         self._run_clock = threading.Event()
         self._quit = threading.Event()
@@ -66,7 +68,9 @@ class SequencerNode(Node):
 
     # clock ------------------------------------------------------------------------------------
     def _publish_clock(self) -> None:
-        self._clock_pub.publish(convert.clock(self.sim_ns))
+        ns = self.sim_ns
+        self._clock_pub.publish(convert.clock(ns))
+        self._published_ns = ns
 
     def _clock_loop(self) -> None:
         step_ns = int(round(self.plan.clock_step_s * 1e9))
@@ -136,7 +140,11 @@ class SequencerNode(Node):
         self._run_clock.set()
 
     def clock_reached(self) -> bool:
-        return self.sim_ns >= self._limit_ns
+        """The clock is held at the requested time and every node has been handed that time:
+        a service call after this (the camera's stop, which ends the capture at its own clock)
+        reads the held time, not the step before it, which would drop the last frame."""
+        return (self._published_ns >= self._limit_ns
+                and self._clock_pub.wait_for_all_acked(Duration(seconds=0.5)))
 
     def pause_clock(self) -> None:
         self._run_clock.clear()

@@ -28,7 +28,7 @@ def main(argv=None) -> int:
                    default=ROOT / "benchmarks/results/design_focusing-24x16.json")
     p.add_argument("--frequencies", default="20,35,55", help="Hz")
     p.add_argument("--amplitudes", default="0.1,0.3,0.5,0.7", help="units of the spacing s")
-    p.add_argument("--chunk", type=int, default=None, help="points per batch (default: CPU 4)")
+    p.add_argument("--chunk", type=int, default=4, help="points per batch of the batched way")
     p.add_argument("--out", type=Path, default=ROOT / "benchmarks/results/bench_robustness.json")
     args = p.parse_args(argv)
 
@@ -42,7 +42,7 @@ def main(argv=None) -> int:
     amps = np.array([float(v) for v in args.amplitudes.split(",")]) * s_m
     pts = rb.grid_points(freqs, amps)
     f_min = float(freqs.min())
-    chunk = args.chunk or rb.default_chunk()
+    chunk = args.chunk
     load0 = os.getloadavg()
 
     def timed(fn):

@@ -45,8 +45,9 @@ log = logging.getLogger("metarig.robustness")
 
 DEFAULT_CHUNK = 24  # grid points per vmap batch on an accelerator (the 8 x 9 grid is 3 chunks)
 # On the CPU a vmap batch costs more per point than single solves (gathers in the batched force;
-# focusing-24x16, Verlet float32, 2 loaded cores: 0.11 s/point at 1, 0.14 at 4, 0.18 at 24)
-CPU_CHUNK = 4
+# focusing-24x16, Verlet float32, 2 loaded cores: 0.11 s/point at 1, 0.14 at 4, 0.18 at 24; the
+# spec's 8 x 9 map of the optimised 24x16 design on 2 workers: 282 s at 1, 441 s at 4)
+CPU_CHUNK = 1
 DELAY_PERIODS = 0.1  # input delay t_d = 0.1 / f_min (as the paper's 0.1 / f)
 
 _BATCHED: dict[tuple, object] = {}

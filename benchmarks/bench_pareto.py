@@ -4,6 +4,11 @@ Both sweeps run one after the other in this process, from empty folders, with th
 compilation cache warmed first (so neither pays compilation the other does not), and the ratio
 of their wall times is reported with the machine's load. JSON in --out/bench_pareto.json.
 
+It also splits the ratio: `eval_s_total` is the time the runs spent evaluating designs (the sum of
+every evaluation's `wall_s` in the runs' histories). With N workers busy at once an evaluation may
+take longer than alone (shared caches, memory bandwidth, clock): `contention` is the ratio of the
+two totals, and `speedup x contention / N` is the efficiency of the sweep's own scheduling.
+
     .venv/bin/python benchmarks/bench_pareto.py --workers 2
 """
 
@@ -47,14 +52,22 @@ def main(argv=None) -> int:
         t0 = time.perf_counter()
         res = run_sweep(args.task, folder, weights, starts, max_evals=args.max_evals, size=size,
                         workers=n, progress=True)
+        evals = [e for h in folder.glob("runs/*/history.json")
+                 for e in json.loads(h.read_text())["evaluations"]]
         report["runs"][str(n)] = {"wall_s": time.perf_counter() - t0, "points": res["points"],
+                                  "eval_s_total": sum(e["wall_s"] for e in evals),
                                   "load_average_before": load0,
                                   "load_average_after": os.getloadavg()}
         (args.out / "bench_pareto.json").write_text(json.dumps(report, indent=1))
     one, many = report["runs"]["1"]["wall_s"], report["runs"][str(args.workers)]["wall_s"]
     report["speedup"] = one / many
+    report["contention"] = (report["runs"][str(args.workers)]["eval_s_total"]
+                            / report["runs"]["1"]["eval_s_total"])
+    report["scheduling_efficiency"] = report["speedup"] * report["contention"] / args.workers
     (args.out / "bench_pareto.json").write_text(json.dumps(report, indent=1))
-    print(f"1 worker {one:.1f} s, {args.workers} workers {many:.1f} s: speedup {one / many:.2f}x")
+    print(f"1 worker {one:.1f} s, {args.workers} workers {many:.1f} s: speedup {one / many:.2f}x; "
+          f"an evaluation took {report['contention']:.2f}x as long with {args.workers} busy; "
+          f"scheduling efficiency {report['scheduling_efficiency']:.2f}")
     return 0
 
 

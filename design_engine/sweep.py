@@ -150,8 +150,8 @@ def run_sweep(source: str, out: Path, weights: list[float], starts: list[float],
 
     from design_engine.distributed import dask_client
 
-    specs = [RunSpec(str(source), float(w), float(s), max_evals, size)
-             for w in weights for s in starts]
+    weights, starts = [float(w) for w in weights], [float(s) for s in starts]  # as sweep.json
+    specs = [RunSpec(str(source), w, s, max_evals, size) for w in weights for s in starts]
     task = _task(specs[0])  # validates the task and the weights before any worker starts
     for spec in specs:
         task.pareto_weights(spec.w1)

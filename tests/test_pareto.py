@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from design_engine.pareto import dominates, front_indices, pareto_front
-from design_engine.sweep import RunSpec, evaluations_on_disk, run_sweep
+from design_engine.sweep import RunSpec, evaluations_on_disk, pareto_main, run_sweep
 from design_engine.task import TaskError, load_task
 
 SWEEP = dict(weights=[0.0, 0.5, 1.0], starts=[20.0, 30.0], max_evals=3, size=(8, 6))
@@ -121,12 +121,16 @@ def test_a_sweep_survives_a_killed_worker_and_finds_the_front(tmp_path, cluster)
     pareto_front(points, ("max", "max"))
 
 
+def _sweep_args(out: Path) -> list[str]:
+    """`metarig pareto` arguments of SWEEP's settings (without the workers)."""
+    return ["pareto", "splitting", "--out", str(out), "--size", "8x6", "--weight-list", "0,0.5,1",
+            "--starts", "20,30", "--max-evals", "3", "--quiet"]
+
+
 def _sweep_command(out: Path, until) -> subprocess.Popen:
     """Start `metarig pareto` (SWEEP's settings, 2 local workers, its own process group) and
     return once `until(run.json document)` holds for one of its runs (or after 300 s)."""
-    cmd = [sys.executable, "-m", "metarig", "pareto", "splitting", "--out", str(out),
-           "--size", "8x6", "--weight-list", "0,0.5,1", "--starts", "20,30", "--max-evals", "3",
-           "--workers", "2", "--quiet"]
+    cmd = [sys.executable, "-m", "metarig", *_sweep_args(out), "--workers", "2"]
     with open(out.parent / f"{out.name}.stderr", "w") as err:  # a file: a pipe could fill
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err,
                                 start_new_session=True)
@@ -150,9 +154,11 @@ def test_a_killed_sweep_command_resumes_to_the_uninterrupted_result(tmp_path, cl
     complete = {p.parent.name for p in out.glob("runs/*/run.json")
                 if json.loads(p.read_text()).get("status") == "complete"}
     assert complete
-    again = run_sweep("splitting", out, scheduler=lc.scheduler_address, progress=False, **SWEEP)
-    skipped = {r["run"] for r in again["runs"] if r["skipped"]}
-    assert complete <= skipped
+    written = {n: (out / "runs" / n / "history.json").stat().st_mtime_ns for n in complete}
+    # the same command again (on the test's cluster) continues the sweep
+    assert pareto_main(_sweep_args(out)[1:] + ["--scheduler", lc.scheduler_address]) == 0
+    assert {n: (out / "runs" / n / "history.json").stat().st_mtime_ns for n in complete} == \
+        written  # finished runs were not repeated
     assert _points(out) == _points(straight)
 
 

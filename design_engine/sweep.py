@@ -180,15 +180,22 @@ def run_sweep(source: str, out: Path, weights: list[float], starts: list[float],
             log.info("%d runs (%d weights x %d starts) of up to %d evaluations; dashboard %s",
                      len(specs), len(weights), len(starts), task.budget.max_evals,
                      client.dashboard_link)
-            pending = {client.submit(run_one, spec, str(out), key=f"run-{spec.name}-{out.name}",
-                                     pure=False, retries=2) for spec in specs}
+            runs = {client.submit(run_one, spec, str(out), key=f"run-{spec.name}-{out.name}",
+                                  pure=False, retries=2): spec.name for spec in specs}
+            pending = set(runs)
             while pending:
                 try:
                     finished, pending = wait(pending, timeout=PROGRESS_POLL_S,
                                              return_when="FIRST_COMPLETED")
                 except TimeoutError:
                     finished = set()
-                done.extend(fut.result() for fut in finished)
+                for fut in finished:
+                    try:
+                        done.append(fut.result())
+                    except Exception as exc:  # noqa: BLE001  one run's error: the others go on
+                        why = f"{type(exc).__name__}: {exc}".splitlines()[0]
+                        log.error("run %s failed: %s (its record so far is kept)", runs[fut], why)
+                        done.append({"run": runs[fut], "failed": why})
                 if bar is not None:  # evaluations as the runs' records on disk count them
                     bar.n = min(evaluations_on_disk(out, specs), total)
                     bar.set_postfix_str(f"{len(done)}/{len(specs)} runs done")
@@ -201,7 +208,8 @@ def run_sweep(source: str, out: Path, weights: list[float], starts: list[float],
         log.warning("stopped: %d evaluated designs so far, %d on the (partial) front",
                     counts["points"], counts["front"])
         raise KeyboardInterrupt
-    return {"runs": done, "wall_s": time.perf_counter() - t0, **counts}
+    return {"runs": done, "failed": [r for r in done if "failed" in r],
+            "wall_s": time.perf_counter() - t0, **counts}
 
 
 def pareto_main(argv: list[str] | None = None) -> int:
@@ -254,4 +262,8 @@ def pareto_main(argv: list[str] | None = None) -> int:
     log.info("%d runs, %d evaluated designs, %d on the front, %.0f s: wrote %s",
              len(result["runs"]), result["points"], result["front"], result["wall_s"],
              ", ".join(str(args.out / n) for n in ("points.json", "front.json", "pareto.png")))
+    if result["failed"]:
+        print(f"metarig pareto: {len(result['failed'])} run(s) failed: " + "; ".join(
+            f"{r['run']} ({r['failed']})" for r in result["failed"]), file=sys.stderr)
+        return 1
     return 0

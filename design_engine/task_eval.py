@@ -207,7 +207,13 @@ class TaskEvaluator:
             return
         # at the state the last solve started from (rest, or the static pre-compression of the
         # previous design: an optimiser's step moves it little)
-        st.omega, st.vector = self._frequency(name, x, st.vector, st.start_state)
+        omega, vector = self._frequency(name, x, st.vector, st.start_state)
+        if not (np.isfinite(omega) and omega > 0.0 and np.all(np.isfinite(vector))):
+            # the stiffness at the start state is not positive definite along the iterate (or
+            # the design is damaged): no stable fixed step exists; this design gets the fallback
+            raise SimulationError(f"the highest natural frequency of this design came out "
+                                  f"{omega:g} rad/ms: no stable fixed step")
+        st.omega, st.vector = omega, vector
         limit = 2.0 / st.omega
         dt = solver.max_dt
         if dt > STEP_RECHECK * limit:

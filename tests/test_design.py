@@ -347,6 +347,21 @@ def test_a_fixed_step_that_would_shrink_past_a_quarter_gives_way_to_dopri8(make_
     assert out.solver["pulse"]["config"]["solver"] == "Dopri8"
 
 
+def test_a_design_without_a_positive_frequency_gets_the_fallback(make_task, monkeypatch):
+    """When the frequency estimate of the current design is not positive (a start state whose
+    stiffness is not positive definite), no fixed step is stable: that evaluation is solved by
+    the fallback, and the estimate is not kept."""
+    task = make_task(3)
+    evaluator = TaskEvaluator(task)
+    st = evaluator._state["pulse"]
+    omega = st.omega
+    monkeypatch.setattr(evaluator, "_frequency", lambda *a, **k: (0.0, st.vector))
+    out = evaluator.evaluate(task.initial_design)
+    assert any("no stable fixed step" in e and "fell back" in e for e in out.events)
+    assert out.solver["pulse"]["config"]["solver"] == "Dopri8" and math.isfinite(out.value)
+    assert st.omega == omega
+
+
 def test_design_files_carry_task_objectives_and_provenance(tmp_path):
     from design_engine.design_cli import design_main
 

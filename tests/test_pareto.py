@@ -121,6 +121,26 @@ def test_a_sweep_survives_a_killed_worker_and_finds_the_front(tmp_path, cluster)
     pareto_front(points, ("max", "max"))
 
 
+def test_a_run_that_fails_leaves_the_others_to_finish(tmp_path, cluster):
+    """One run's error (here a damaged record that resume refuses) is reported with the run's
+    name; the other runs finish, the front is written, and the command exits with 1."""
+    lc, _ = cluster
+    out = tmp_path / "sweep"
+    bad = out / "runs" / "w0.000_start20"
+    bad.mkdir(parents=True)
+    (bad / "run.json").write_text("{}")
+    (bad / "checkpoint.npz").write_bytes(b"not a checkpoint")
+    args = ["splitting", "--out", str(out), "--size", "8x6", "--weight-list", "0,1", "--starts",
+            "20", "--max-evals", "2", "--quiet", "--scheduler", lc.scheduler_address]
+    assert pareto_main(args) == 1
+    res = run_sweep("splitting", out, weights=[0.0, 1.0], starts=[20.0], max_evals=2,
+                    size=(8, 6), scheduler=lc.scheduler_address, progress=False)
+    assert [r["run"] for r in res["failed"]] == ["w0.000_start20"]
+    assert "damaged run record" in res["failed"][0]["failed"]
+    assert {p["run"] for p in _points(out)} == {"w1.000_start20"}
+    assert len(_points(out)) == 2 and (out / "front.json").exists()
+
+
 def _sweep_args(out: Path) -> list[str]:
     """`metarig pareto` arguments of SWEEP's settings (without the workers)."""
     return ["pareto", "splitting", "--out", str(out), "--size", "8x6", "--weight-list", "0,0.5,1",

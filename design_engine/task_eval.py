@@ -279,9 +279,13 @@ class TaskEvaluator:
                 fb, reason = SolverConfig(), "retried with the reference Dopri5 configuration"
             events.append(f"{name}: {exc}; {reason}")
             try:
-                value, grad, terms, _ = self._solve(name, fb, x)
+                value, grad, terms, aux = self._solve(name, fb, x)
             except SimulationError as exc2:
                 raise EvaluationFailed(f"{name}: {exc}; the fallback failed too: {exc2}") from None
+            # the next step check measures at this design's start state (a resumed run's
+            # evaluator starts from the initial design's, where a far design's stiffness can
+            # be indefinite)
+            st.start_state = np.asarray(aux["start_state"])
             return value, grad, terms, self._record(fb, why + [reason])
 
     def evaluate(self, x: np.ndarray) -> Evaluation:

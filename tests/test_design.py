@@ -360,6 +360,7 @@ def test_a_design_without_a_positive_frequency_gets_the_fallback(make_task, monk
     assert any("no stable fixed step" in e and "fell back" in e for e in out.events)
     assert out.solver["pulse"]["config"]["solver"] == "Dopri8" and math.isfinite(out.value)
     assert st.omega == omega
+    assert st.start_state is not None and np.all(np.isfinite(st.start_state))  # measured there
 
 
 def test_design_files_carry_task_objectives_and_provenance(tmp_path):

@@ -291,7 +291,8 @@ def _scaled(offset: tuple[int, int], frm: tuple[int, int], to: tuple[int, int]) 
 
 def load_task(source: str | Path, *, size: tuple[int, int] | None = None,
               max_evals: int | None = None, max_time_s: float | None = None,
-              max_solve_steps: int | None = None, bias_angle_deg: float | None = None, seed: int | None = None,
+              max_solve_steps: int | None = None, bias_angle_deg: float | None = None,
+              seed: int | None = None,
               algorithm: str | None = None, weights: tuple[float, ...] | None = None,
               material: str | Path | None = None) -> Task:
     """Read and resolve a task preset (by name) or task file, with command-line overrides.

@@ -95,6 +95,37 @@ def resumable(out: Path) -> bool:
     return (Path(out) / "run.json").exists() and (Path(out) / "checkpoint.npz").exists()
 
 
+def read_record(out: Path) -> tuple[dict, dict, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """(run.json, history.json, (x, f, grad) of checkpoint.npz) of a run folder, read and
+    checked without changing a byte of it.
+
+    Raises:
+        ResumeError: nothing to resume, or one line naming the damaged file and what to do.
+    """
+    from metarig.readback import DamagedFileError, damaged, read_json, read_npz
+
+    out = Path(out)
+    if not resumable(out):
+        raise ResumeError(f"{out}: nothing to resume (no run.json and checkpoint.npz)")
+    remedy = ("restore it from a copy to resume (the run's other files are left as they are), "
+              "or start anew with another --out folder")
+    try:
+        run = read_json(out / "run.json", "design-run record", remedy)
+        hist = read_json(out / "history.json", "design-run history", remedy)
+        if not isinstance(hist.get("evaluations"), list):
+            raise damaged(out / "history.json", "design-run history", "no list of evaluations",
+                          remedy)
+        ck = out / "checkpoint.npz"
+        z = read_npz(ck, ("x", "f", "grad"), "design-run checkpoint", remedy)
+        xs, fs, gs = z["x"], z["f"], z["grad"]
+        if xs.ndim != 2 or fs.shape != xs.shape[:1] or gs.shape != xs.shape:
+            raise damaged(ck, "design-run checkpoint", f"arrays of shapes x {xs.shape}, "
+                          f"f {fs.shape}, grad {gs.shape} do not match", remedy)
+    except DamagedFileError as exc:
+        raise ResumeError(str(exc)) from None
+    return run, hist, (xs, fs, gs)
+
+
 class _Record:
     """The run's record on disk: history.json, checkpoint.npz, run.json (atomic writes)."""
 
@@ -108,22 +139,13 @@ class _Record:
         self.elapsed_before = 0.0
 
     def load(self) -> None:
-        run_path, ck = self.out / "run.json", self.out / "checkpoint.npz"
-        if not resumable(self.out):
-            raise ResumeError(f"{self.out}: nothing to resume (no run.json and checkpoint.npz)")
-        try:
-            run = json.loads(run_path.read_text())
-            hist = json.loads((self.out / "history.json").read_text())
-            with np.load(ck) as z:
-                xs, fs, gs = z["x"], z["f"], z["grad"]
-        except (OSError, ValueError, KeyError) as exc:
-            raise ResumeError(f"{self.out}: damaged run record ({exc})") from None
-        if run.get("format") != RUN_FORMAT:
+        run, hist, (xs, fs, gs) = read_record(self.out)
+        if run.get("format") != RUN_FORMAT or not isinstance(run.get("task"), dict):
             raise ResumeError(f"{self.out}/run.json is not a {RUN_FORMAT} file")
-        if _settings(run.get("task", {})) != _settings(self.task.document):
+        if _settings(run["task"]) != _settings(self.task.document):
             raise ResumeError(f"{self.out} was started with other task settings; resume with "
                               "the same task and options, or use a new --out folder")
-        n = min(len(hist.get("evaluations", [])), xs.shape[0])
+        n = min(len(hist["evaluations"]), xs.shape[0])
         if xs.shape[1:] != (self.task.free.size,):
             raise ResumeError(f"{self.out}: checkpoint has designs of size {xs.shape[1:]}")
         self.evaluations = hist["evaluations"][:n]
@@ -359,4 +381,5 @@ def _progress_bar(task: Task, enabled: bool, done: int):
                 unit="eval", dynamic_ncols=True)
 
 
-__all__ = ["run_design", "DesignRun", "ResumeError", "best_feasible", "FEASIBLE_TOL"]
+__all__ = ["FEASIBLE_TOL", "DesignRun", "ResumeError", "best_feasible", "read_record",
+           "run_design"]

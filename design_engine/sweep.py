@@ -24,10 +24,13 @@ from pathlib import Path
 import numpy as np
 
 from metarig.argtypes import number_list
+from metarig.readback import read_json, read_npz
 
 log = logging.getLogger("metarig.pareto")
 
 SWEEP_FORMAT = "metarig-pareto/1"
+RESTORE_RUN = ("restore it from a copy to go on (the sweep's other files are left as they are), "
+               "or start anew with another --out folder")
 
 
 @dataclass(frozen=True)
@@ -66,7 +69,7 @@ def run_one(spec: RunSpec, out: str) -> dict:
     task = _task(spec)
     run_path = folder / "run.json"
     if run_path.exists():
-        run = json.loads(run_path.read_text())
+        run = read_json(run_path, "design-run record", RESTORE_RUN)
         if run.get("status") == "complete" and run.get("evaluations", 0) >= task.budget.max_evals:
             return {"run": spec.name, "evaluations": run["evaluations"], "skipped": True,
                     "compilations": 0}
@@ -85,7 +88,8 @@ def collect_points(out: Path, specs: list[RunSpec], term_names: tuple[str, str])
         path = out / "runs" / spec.name / "history.json"
         if not path.exists():
             continue
-        for e in json.loads(path.read_text())["evaluations"]:
+        hist = read_json(path, "design-run history", RESTORE_RUN)
+        for e in hist.get("evaluations", []):
             obj = e["objectives"] or {}
             points.append({"run": spec.name, "eval": e["eval"], "weight": spec.w1,
                            "start_deg": spec.start_deg, "J1": obj.get(term_names[0]),
@@ -105,8 +109,9 @@ def write_results(out: Path, specs: list[RunSpec], task) -> dict:
     (out / "front").mkdir(exist_ok=True)
     for p in front:
         run_dir = out / "runs" / p["run"]
-        with np.load(run_dir / "checkpoint.npz") as z:
-            x = task.embed(z["x"][p["eval"] - 1])
+        xs = read_npz(run_dir / "checkpoint.npz", ("x",), "design-run checkpoint",
+                      RESTORE_RUN)["x"]
+        x = task.embed(xs[p["eval"] - 1])
         path = out / "front" / f"{p['run']}_eval{p['eval']}.json"
         save_design(path, task.lattice, x, name=f"{task.name} {p['run']} eval {p['eval']}",
                     task=task.name, objectives={names[0]: p["J1"], names[1]: p["J2"]},
@@ -144,11 +149,13 @@ def run_sweep(source: str, out: Path, weights: list[float], starts: list[float],
 
     Raises:
         TaskError: the task is not a two-objective task, or a weight lies outside [0, 1].
-        ValueError: `out` holds a sweep with other settings.
+        ValueError: `out` holds a sweep with other settings, or a damaged sweep.json.
+        ResumeError: a run's record in `out` is damaged (before any run starts).
     """
     from distributed import wait
 
     from design_engine.distributed import dask_client
+    from design_engine.optimize import read_record, resumable
 
     weights, starts = [float(w) for w in weights], [float(s) for s in starts]  # as sweep.json
     specs = [RunSpec(str(source), w, s, max_evals, size) for w in weights for s in starts]
@@ -161,11 +168,14 @@ def run_sweep(source: str, out: Path, weights: list[float], starts: list[float],
                 "size": list(task.lattice.shape)}
     sweep_path = out / "sweep.json"
     if sweep_path.exists():
-        old = json.loads(sweep_path.read_text())
+        old = read_json(sweep_path, "sweep settings file", RESTORE_RUN)
         if {k: v for k, v in old.items() if k != "max_evals"} != \
                 {k: v for k, v in settings.items() if k != "max_evals"}:
             raise ValueError(f"{out} holds a sweep with other settings ({sweep_path}); use "
                              "another --out")
+    for spec in specs:  # a damaged run record is refused before any worker starts
+        if resumable(out / "runs" / spec.name):
+            read_record(out / "runs" / spec.name)
     sweep_path.write_text(json.dumps(settings, indent=1))
     bar = None
     total = len(specs) * task.budget.max_evals
@@ -235,6 +245,7 @@ def pareto_main(argv: list[str] | None = None) -> int:
     logging.getLogger("metarig").setLevel(logging.INFO)
 
     from design_engine.design_cli import _size
+    from design_engine.optimize import ResumeError
     from design_engine.task import TaskError
 
     try:
@@ -252,7 +263,7 @@ def pareto_main(argv: list[str] | None = None) -> int:
                            args.starts, max_evals=args.max_evals, size=size,
                            workers=args.workers, scheduler=args.scheduler,
                            progress=not args.quiet)
-    except (TaskError, ValueError, OSError, argparse.ArgumentTypeError) as exc:
+    except (TaskError, ResumeError, ValueError, OSError, argparse.ArgumentTypeError) as exc:
         print(f"metarig pareto: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

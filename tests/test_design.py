@@ -247,6 +247,34 @@ def test_a_killed_run_resumes_exactly(tmp_path, small_file, make_task):
         [e["objective"] for e in resumed.evaluations]
 
 
+def test_a_damaged_run_record_is_refused_in_one_line_and_kept(tmp_path, capsys):
+    """`metarig design --resume` on a run whose checkpoint.npz (or history.json, run.json) was
+    cut to half its bytes: one line naming the file and what to do, exit code 2, and no byte of
+    the run folder changed; with the file restored the run goes on."""
+    from design_engine.design_cli import design_main
+
+    out = tmp_path / "run"
+    first = ["focusing-demo", "--out", str(out), "--quiet", "--no-plots"]
+    assert design_main([*first, "--max-evals", "1"]) == 0
+    capsys.readouterr()
+    intact = {f.name: f.read_bytes() for f in out.iterdir()}
+    assert {"checkpoint.npz", "history.json", "run.json", "design.json"} <= set(intact)
+    resume = [*first, "--max-evals", "2", "--resume"]
+    for name in ("checkpoint.npz", "history.json", "run.json"):
+        (out / name).write_bytes(intact[name][:len(intact[name]) // 2])
+        before = {f.name: f.read_bytes() for f in out.iterdir()}
+        assert design_main(resume) == 2
+        err = capsys.readouterr().err.splitlines()
+        assert len(err) == 1, err
+        assert err[0].startswith(f"metarig design: error: {out / name}: damaged")
+        assert "restore it from a copy" in err[0] and "another --out folder" in err[0]
+        assert {f.name: f.read_bytes() for f in out.iterdir()} == before
+        (out / name).write_bytes(intact[name])
+    assert design_main(resume) == 0
+    evals = json.loads((out / "history.json").read_text())["evaluations"]
+    assert [e["eval"] for e in evals] == [1, 2]
+
+
 def test_a_failed_solve_is_recorded_and_the_run_goes_on(tmp_path, monkeypatch, make_task):
     task = make_task(8)
     evaluator = TaskEvaluator(task)

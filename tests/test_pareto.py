@@ -121,22 +121,35 @@ def test_a_sweep_survives_a_killed_worker_and_finds_the_front(tmp_path, cluster)
     pareto_front(points, ("max", "max"))
 
 
+def _foreign_record(folder: Path, checkpoint: bytes | None = None) -> None:
+    """A readable design-run record of another task (or with the given checkpoint bytes)."""
+    import io
+
+    folder.mkdir(parents=True)
+    (folder / "run.json").write_text(json.dumps({"format": "metarig-design-run/1",
+                                                 "task": {"name": "other"}, "evaluations": 0}))
+    (folder / "history.json").write_text(json.dumps({"evaluations": []}))
+    if checkpoint is None:
+        buf = io.BytesIO()
+        np.savez(buf, x=np.zeros((0, 4)), f=np.zeros(0), grad=np.zeros((0, 4)))
+        checkpoint = buf.getvalue()
+    (folder / "checkpoint.npz").write_bytes(checkpoint)
+
+
 def test_a_run_that_fails_leaves_the_others_to_finish(tmp_path, cluster):
-    """One run's error (here a damaged record that resume refuses) is reported with the run's
-    name; the other runs finish, the front is written, and the command exits with 1."""
+    """One run's error (here a record of other task settings, which resume refuses) is reported
+    with the run's name; the other runs finish, the front is written, and the command exits
+    with 1."""
     lc, _ = cluster
     out = tmp_path / "sweep"
-    bad = out / "runs" / "w0.000_start20"
-    bad.mkdir(parents=True)
-    (bad / "run.json").write_text("{}")
-    (bad / "checkpoint.npz").write_bytes(b"not a checkpoint")
+    _foreign_record(out / "runs" / "w0.000_start20")
     args = ["splitting", "--out", str(out), "--size", "8x6", "--weight-list", "0,1", "--starts",
             "20", "--max-evals", "2", "--quiet", "--scheduler", lc.scheduler_address]
     assert pareto_main(args) == 1
     res = run_sweep("splitting", out, weights=[0.0, 1.0], starts=[20.0], max_evals=2,
                     size=(8, 6), scheduler=lc.scheduler_address, progress=False)
     assert [r["run"] for r in res["failed"]] == ["w0.000_start20"]
-    assert "damaged run record" in res["failed"][0]["failed"]
+    assert "other task settings" in res["failed"][0]["failed"]
     assert {p["run"] for p in _points(out)} == {"w1.000_start20"}
     assert len(_points(out)) == 2 and (out / "front.json").exists()
 
@@ -210,3 +223,30 @@ def test_pareto_cli_refuses_bad_input_in_one_line(tmp_path, capsys):
     assert pareto_main(["splitting", "--out", str(tmp_path / "o"), "--weight-list", "0.5,2"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "[0, 1]" in err[0]
+
+
+def test_a_damaged_sweep_record_is_refused_in_one_line_before_any_run(tmp_path, capsys):
+    """A truncated checkpoint of one run, or a truncated sweep.json, ends the re-run at once in
+    one line naming the file and what to do; no byte of the sweep folder changes."""
+    import io
+
+    out = tmp_path / "sweep"
+    buf = io.BytesIO()
+    np.savez(buf, x=np.zeros((2, 4)), f=np.zeros(2), grad=np.zeros((2, 4)))
+    _foreign_record(out / "runs" / "w0.000_start20", checkpoint=buf.getvalue()[:300])
+    args = ["splitting", "--out", str(out), "--size", "8x6", "--weight-list", "0,1", "--starts",
+            "20", "--max-evals", "2", "--quiet", "--workers", "1"]
+
+    def files():
+        return {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+
+    for damaged in ("runs/w0.000_start20/checkpoint.npz", "sweep.json"):
+        if damaged == "sweep.json":
+            (out / damaged).write_text('{"format": "metarig-pareto/1", "task": "spl')
+        before = files()
+        assert pareto_main(args) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "Traceback" not in err[0], err
+        assert err[0].startswith(f"metarig pareto: error: {out / damaged}: damaged")
+        assert "restore it from a copy" in err[0] and "another --out" in err[0]
+        assert files() == before

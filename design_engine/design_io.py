@@ -49,7 +49,7 @@ def load_design(path: str | Path) -> tuple[Lattice, np.ndarray]:
         doc = json.loads(path.read_text())
     except FileNotFoundError:
         raise InvalidDesignError(f"design file {path} does not exist") from None
-    except (OSError, json.JSONDecodeError) as exc:
+    except (OSError, ValueError) as exc:  # ValueError: not JSON, or bytes that are not text
         raise InvalidDesignError(f"design file {path} is not readable JSON: {exc}") from None
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise InvalidDesignError(f"{path}: not a {FORMAT} design file (missing or wrong 'format')")

@@ -171,6 +171,9 @@ def read_material_file(path) -> tuple[dict[str, float], dict[str, float]]:
     params = doc.get("parameters", {})
     if not isinstance(params, dict):
         raise MaterialFileError(f"{path}: parameters: must be a table")
+    if not params:  # the parameters come after the header: a cut-short file keeps only that
+        raise MaterialFileError(f"{path}: sets no parameter (no [parameters]; an empty or "
+                                "cut-short file?)")
     values, stderr = {}, {}
     try:
         for k, p in params.items():

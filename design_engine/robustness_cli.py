@@ -244,14 +244,16 @@ def _load_store(path: Path, fingerprint: dict) -> dict:
         return {"points": {}, "configs": []}
     try:
         doc = json.loads(path.read_text())
-        if doc.get("format") != FORMAT:
+        if not isinstance(doc, dict) or doc.get("format") != FORMAT:
             raise ValueError("not a metarig-robustness/1 file")
         old = doc["fingerprint"]
+        if not isinstance(old, dict):
+            raise TypeError("its fingerprint is not a table")
         points = {_key(p["frequency_hz"], p["amplitude_m"]): p for p in doc["points"]}
         configs = list(doc["configs"])
     except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise UserError(f"{path} exists but cannot be resumed ({exc}); remove it or choose "
-                        "another --out") from None
+        raise UserError(f"{path} exists but cannot be resumed (damaged? {exc}); restore it "
+                        "from a copy, or choose another --out (it is left as it is)") from None
     labels = {"design_sha256": "design", "timing": "timing (lowest frequency, window, samples)"}
     for k, value in fingerprint.items():
         if old.get(k) != json.loads(json.dumps(value)):

@@ -19,7 +19,7 @@ RESTORE = "restore it from a copy, or start anew in another folder"
 WRITE_AGAIN = "write it again with the command that made it"
 
 # what np.load / zipfile / json raise on a cut or garbled file
-_READ_ERRORS = (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zlib.error)
+READ_ERRORS = (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zlib.error)
 
 
 class DamagedFileError(ValueError):
@@ -41,16 +41,17 @@ def read_json(path: str | Path, what: str, remedy: str = RESTORE, kind: type = d
     """
     try:
         doc = json.loads(Path(path).read_text())
-    except _READ_ERRORS as exc:
+    except READ_ERRORS as exc:
         raise damaged(path, what, getattr(exc, "strerror", None) or exc, remedy) from None
     if not isinstance(doc, kind):
         raise damaged(path, what, f"a JSON {type(doc).__name__}, not a {kind.__name__}", remedy)
     return doc
 
 
-def read_npz(path: str | Path, keys: tuple[str, ...], what: str,
-             remedy: str = RESTORE) -> dict[str, np.ndarray]:
-    """The arrays `keys` of the `.npz` file `path`, read into memory (no pickles).
+def read_npz(path: str | Path, keys: tuple[str, ...], what: str, remedy: str = RESTORE,
+             optional: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
+    """The arrays `keys` (and those of `optional` that it holds) of the `.npz` file `path`, read
+    into memory (no pickles).
 
     Raises:
         DamagedFileError: the file cannot be read, is not a readable `.npz`, or lacks a key.
@@ -60,11 +61,12 @@ def read_npz(path: str | Path, keys: tuple[str, ...], what: str,
             missing = [k for k in keys if k not in f.files]
             if missing:
                 raise damaged(path, what, f"no {', '.join(missing)} in it", remedy)
-            return {k: np.asarray(f[k]) for k in keys}
+            return {k: np.asarray(f[k]) for k in (*keys, *optional) if k in f.files}
     except DamagedFileError:
         raise
-    except _READ_ERRORS as exc:
+    except READ_ERRORS as exc:
         raise damaged(path, what, getattr(exc, "strerror", None) or exc, remedy) from None
 
 
-__all__ = ["RESTORE", "WRITE_AGAIN", "DamagedFileError", "damaged", "read_json", "read_npz"]
+__all__ = ["READ_ERRORS", "RESTORE", "WRITE_AGAIN", "DamagedFileError", "damaged", "read_json",
+           "read_npz"]

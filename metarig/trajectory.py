@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from metarig.readback import READ_ERRORS
+
 OPTIONAL_KEYS = ("quality", "lost")
 
 
@@ -119,10 +121,12 @@ class Trajectory:
                            qdot=f["qdot"] if "qdot" in f.files else np.full_like(q, np.nan),
                            complete=bool(f["complete"]) if "complete" in f.files else True,
                            **opt)
-        except (OSError, ValueError) as e:
+        except READ_ERRORS as e:
             if isinstance(e, TrajectoryFileError):
                 raise
-            raise TrajectoryFileError(f"{path}: cannot read a trajectory ({e})") from None
+            hint = "" if isinstance(e, OSError) else ("; cut short? write it again with the "
+                                                      "command that made it")
+            raise TrajectoryFileError(f"{path}: cannot read a trajectory ({e}){hint}") from None
 
 
 def backward_rates(t: np.ndarray, q: np.ndarray) -> np.ndarray:

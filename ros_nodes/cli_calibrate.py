@@ -116,13 +116,14 @@ def calibrate_hinge(files, fit, material_path=None, progress=None):
 
 def read_oscillation_tracks(path: Path):
     """(t s [n], theta rad [n]) of the free unit in a tracks .npz (invalid frames dropped)."""
-    from metarig.trajectory import Trajectory, TrajectoryFileError
+    from metarig.readback import READ_ERRORS
+    from metarig.trajectory import Trajectory
 
     try:
-        traj = Trajectory.load_npz(path)
+        traj = Trajectory.load_npz(path)  # TrajectoryFileError is a ValueError
         with np.load(path) as f:
             unit = int(f["free_unit"]) if "free_unit" in f.files else None
-    except (TrajectoryFileError, ValueError, OSError) as exc:
+    except READ_ERRORS as exc:
         raise InputError(str(exc).splitlines()[0] if str(exc) else f"{path}: unreadable") from None
     if traj.n_units > 2:
         raise InputError(f"{path}: {traj.n_units} units tracked; a free-oscillation record holds "

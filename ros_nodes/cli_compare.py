@@ -10,7 +10,6 @@ trajectory format), and `recording.mcap` = the recording plus the comparison top
 """
 
 import argparse
-import json
 import logging
 import sys
 import time
@@ -42,14 +41,14 @@ def recorded_design(rec, run_dir: Path | None) -> dict:
     if rec.design is not None:
         return rec.design
     if run_dir is not None and (run_dir / "design.json").exists():
-        return json.loads((run_dir / "design.json").read_text())
+        return _read_run_file(run_dir / "design.json", "design of the recording")
     raise CompareError(f"{rec.path}: the recording holds no design (/rig/design) and no "
                        "design.json lies beside it")
 
 
 def camera_calibration_path(run_dir: Path | None, given: str | None) -> Path | None:
     """The camera calibration to track with: `given`, else the run folder's `calibration.json`."""
-    if given:
+    if given is not None:
         return Path(given)
     if run_dir is not None and (run_dir / "calibration.json").exists():
         return run_dir / "calibration.json"
@@ -154,6 +153,7 @@ def compare_recording(source: str | Path, out: Path | None = None, poses: str = 
     run_dir = Path(source) if Path(source).is_dir() else None
     out = Path(out) if out is not None else (run_dir or rec.path.parent)
     doc = recorded_design(rec, run_dir)
+    _calibration(out, rec)  # a damaged calibration.json is refused before any work
     scene, polygons = run.design_scene(doc, where=str(rec.path))
     tracked = measured_poses(rec, poses, polygons, camera_calibration_path(run_dir, calibration),
                              workers or os.cpu_count() or 1, progress, dic)
@@ -189,8 +189,19 @@ def _calibration(out: Path, rec) -> dict | None:
     for folder in (out, rec.path.parent):
         f = folder / "calibration.json"
         if f.exists():
-            return json.loads(f.read_text())
+            return _read_run_file(f, "camera calibration")
     return None
+
+
+def _read_run_file(path: Path, what: str) -> dict:
+    """A JSON file `metarig rig` wrote beside its recording; CompareError if damaged."""
+    from metarig.readback import DamagedFileError, read_json
+
+    try:
+        return read_json(path, what, "restore it from a copy (`metarig rig` writes it with "
+                         "the recording)")
+    except DamagedFileError as exc:
+        raise CompareError(str(exc)) from None
 
 
 def write_mcap(src: Path, dst: Path, tracked: Tracked, ec, summary: dict,

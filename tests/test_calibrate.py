@@ -169,6 +169,13 @@ def test_a_tracks_file_without_a_trajectory_gives_one_line(tmp_path, capsys):
     np.savez(tmp_path / "short.npz", t=t, q=np.zeros((20, 2, 3)))
     _one_line(capsys, [str(tmp_path / "short.npz"), "--out", str(tmp_path / "o")],
               "needs 50 or more")
+    from metarig.trajectory import Trajectory  # a tracks file cut to half its bytes
+
+    Trajectory.from_positions(t, np.zeros((20, 2, 3))).save_npz(tmp_path / "cut.npz")
+    data = (tmp_path / "cut.npz").read_bytes()
+    (tmp_path / "cut.npz").write_bytes(data[:len(data) // 2])
+    _one_line(capsys, [str(tmp_path / "cut.npz"), "--out", str(tmp_path / "o")],
+              "cut.npz: cannot read a trajectory")
 
 
 def test_a_recording_without_poses_gives_one_line(tmp_path, capsys):

@@ -83,6 +83,21 @@ def test_design_file_round_trip(tmp_path):
     assert len(json.loads(path.read_text())["polygons_m"]) == 20
 
 
+def test_a_cut_or_binary_design_file_is_refused_naming_it(tmp_path):
+    from design_engine.design_io import load_design, save_design
+    from design_engine.geometry import InvalidDesignError
+    from design_engine.lattice import periodic_design, quads
+
+    lat = quads(4, 3)
+    text = save_design(tmp_path / "d.json", lat, periodic_design(lat, 0.4)).read_bytes()
+    for name, data in (("cut.json", text[:len(text) // 2]), ("binary.json", b"\x89PNG\xff\xfe")):
+        (tmp_path / name).write_bytes(data)
+        with pytest.raises(InvalidDesignError, match=f"design file {tmp_path / name} is not "
+                           "readable JSON") as e:
+            load_design(tmp_path / name)
+        assert "\n" not in str(e.value)
+
+
 @pytest.mark.slow
 def test_a_precompressed_scene_starts_static_unless_ramp_is_asked_for(tmp_path):
     """The default starts the pulse from the static equilibrium (at rest at the first sample);

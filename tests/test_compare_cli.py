@@ -127,6 +127,8 @@ def _truth_messages(n: int | None = None, lose_all: bool = False):
     ("all-lost", "every unit was lost"),
     ("other-design", "does not match the recording"),
     ("no-poses-no-frames", "neither poses nor camera frames"),
+    ("cut-mcap", "not a readable MCAP recording"),  # cut to half its bytes
+    ("cut-calibration", "calibration.json: damaged or unreadable camera calibration"),
 ])
 def test_recordings_that_cannot_be_compared_give_one_line(case, message, tmp_path, capsys):
     src = SAMPLE / "recording.mcap"
@@ -147,6 +149,10 @@ def test_recordings_that_cannot_be_compared_give_one_line(case, message, tmp_pat
         doc["nx"] = 10
         msg = NewMessage(T.RIG_DESIGN.name, 0, convert.serialize(convert.json_text(doc)))
         path = _rewritten(src, tmp_path / "r", T.RIG_DESIGN.name, [msg])
+    elif case in ("cut-mcap", "cut-calibration"):  # a damaged copy of the run folder
+        path = Path(shutil.copytree(SAMPLE, tmp_path / "r"))
+        cut = path / ("recording.mcap" if case == "cut-mcap" else "calibration.json")
+        cut.write_bytes(cut.read_bytes()[:cut.stat().st_size // 2])
     else:
         from ros_nodes.logic.mcap_append import append_messages
 

@@ -109,6 +109,13 @@ def test_calibration_missing_key_and_file(tmp_path):
         load_calibration(path)
     with pytest.raises(CalibrationError, match="cannot read"):
         load_calibration(tmp_path / "nope.json")
+    text = json.dumps({"fps": 500, "m_per_px": 2e-4, "origin_px": [10, 300], "y_up": True})
+    for data, message in ((text[:len(text) // 2].encode(), "not valid JSON"),  # cut short
+                          (b"\xff\xfe\x00{", "not a text")):  # bytes that are not UTF-8
+        path.write_bytes(data)
+        with pytest.raises(CalibrationError, match=message) as info:
+            load_calibration(path)
+        assert str(path) in str(info.value) and "\n" not in str(info.value)
 
 
 def test_tracking_through_a_homography():

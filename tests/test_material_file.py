@@ -114,6 +114,9 @@ def test_missing_parameters_take_the_default_and_damping_is_rederived(tmp_path):
     ('format = "metarig-material/1"\n[parameters.k_shear]\nvalue = nan\n', "k_shear: value must be finite"),
     ('format = "metarig-material/1"\ncolour = "red"\n', "colour: unknown key"),
     ('format = "metarig-material/1"\n[parameters.density]\nvalu = 6.0\n', "density.valu: unknown"),
+    # the default file cut after its header (half its bytes): no parameter left
+    ('format = "metarig-material/1"\nsource = "x"\n# [parameters.k_stretch]\n',
+     "sets no parameter"),
 ])
 def test_bad_files_give_one_line_naming_the_file_and_key(tmp_path, text, message):
     path = tmp_path / "bad.toml"

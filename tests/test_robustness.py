@@ -253,12 +253,14 @@ def test_dask_workers_give_the_same_map_as_the_in_process_path(design_file, tmp_
     ("good", ["--workers", "0"], "at least 1"),
     ("good", ["--scene", "nope"], "unknown scene"),
     ("other-map", [], "the map of another design"),
+    ("cut-map", [], "robustness.json exists but cannot be resumed (damaged?"),
 ])
 def test_bad_inputs_end_in_one_error_line_and_exit_code_2(design_file, tmp_path, capsys, make,
                                                           extra, message):
     out = tmp_path / "out"
     path = {"good": design_file, "missing": tmp_path / "nope.json",
-            "damaged": tmp_path / "damaged.json", "other-map": tmp_path / "other.json"}[make]
+            "damaged": tmp_path / "damaged.json", "other-map": tmp_path / "other.json",
+            "cut-map": design_file}[make]
     if make == "damaged":
         path.write_text('{"format": "metarig-design/1", "lattice": ')
     if make == "other-map":  # --out already holds the map of another design
@@ -270,12 +272,18 @@ def test_bad_inputs_end_in_one_error_line_and_exit_code_2(design_file, tmp_path,
         (out / "robustness.json").write_text(json.dumps(
             {"format": "metarig-robustness/1", "fingerprint": fingerprint, "points": [],
              "configs": []}))
+    if make == "cut-map":  # a map cut to half its bytes: refused, and left as it is
+        out.mkdir()
+        text = json.dumps({"format": "metarig-robustness/1", "points": [], "configs": []})
+        (out / "robustness.json").write_text(text[:len(text) // 2])
+    before = {f.name: f.read_bytes() for f in out.iterdir()} if out.exists() else {}
     capsys.readouterr()
     rc = robustness_main([str(path), "--out", str(out), "--quiet", *extra])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2
     assert len(err) == 1, err
     assert err[0].startswith("metarig robustness: error: ") and message in err[0], err[0]
+    assert ({f.name: f.read_bytes() for f in out.iterdir()} if out.exists() else {}) == before
 
 
 def test_missing_out_is_a_one_line_error(design_file, capsys):

@@ -32,3 +32,22 @@ def test_rhs_evaluation_counts():
     assert rhs_evaluations(SolverConfig(solver=FixedStepVerlet(max_dt=0.01)), 500) == 501
     # one force evaluation per chord iteration, plus the initial acceleration
     assert rhs_evaluations(SolverConfig(solver=ImplicitNewmark(iterations=3)), 200) == 601
+
+
+def test_a_damaged_results_file_or_cache_ends_the_bench_in_one_line(tmp_path, capsys):
+    """A cut work_precision.json (the study's resume state) or reference cache is refused,
+    named, before any solve, and left as it is."""
+    from design_engine.studies.cli import bench_main
+
+    cases = {"work_precision.json": b'{"scenes": {"focusing-24x16": {"J_ref": 1.',
+             "reference_focusing-24x16.npz": b"PK\x03\x04\x14\x00\x00\x00"}
+    for name, data in cases.items():
+        out = tmp_path / name.split(".")[0]
+        out.mkdir()
+        (out / name).write_bytes(data)
+        code = bench_main(["work-precision", "--out", str(out), "--quick", "--scene",
+                           "focusing-24x16"])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(err) == 1, err
+        assert err[0].startswith(f"metarig bench: error: {out / name}: damaged"), err
+        assert [p.name for p in out.iterdir()] == [name] and (out / name).read_bytes() == data

@@ -117,7 +117,8 @@ def _image_topics(path: Path) -> dict[str, int]:
         with open(path, "rb") as f:
             summary = _mcap_reader(f).get_summary()
     except Exception as exc:  # noqa: BLE001 - the mcap reader raises assorted types
-        raise SourceError(f"{path}: not a readable MCAP file ({exc})") from None
+        raise SourceError(f"{path}: not a readable MCAP file ({exc}); cut short? "
+                          "`metarig recover` salvages what it can") from None
     if summary is None:
         raise SourceError(f"{path}: MCAP file has no summary (unfinished recording? run "
                           "`metarig recover` on it first)")

@@ -11,6 +11,8 @@ def read_json(path: str | Path, error: type[Exception], what: str):
         text = path.read_text()
     except OSError as exc:
         raise error(f"cannot read {what} file {path}: {exc.strerror}") from None
+    except UnicodeDecodeError as exc:  # bytes that are not text (a damaged or binary file)
+        raise error(f"{path}: not a text (JSON) file ({exc})") from None
     try:
         return json.loads(text)
     except json.JSONDecodeError as exc:

@@ -34,6 +34,7 @@ def bench_main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     import design_engine  # noqa: F401
+    from metarig.readback import DamagedFileError
 
     if args.study == "work-precision":
         from design_engine.studies.work_precision import (SCENES, fastest_acceptable, plot_study,
@@ -50,6 +51,9 @@ def bench_main(argv: list[str] | None = None) -> int:
         except KeyboardInterrupt:
             print("interrupted: finished methods are kept in work_precision.json; rerun to resume")
             return 130
+        except DamagedFileError as exc:
+            print(f"metarig bench: error: {exc}", file=sys.stderr)
+            return 2
         charts = plot_study(results, args.out)
         best = fastest_acceptable(results)
         summary = {"charts": [c.name for c in charts],
@@ -101,6 +105,9 @@ def bench_main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted: the tight reference, once computed, is kept in --out; rerun to resume")
         return 130
+    except DamagedFileError as exc:
+        print(f"metarig bench: error: {exc}", file=sys.stderr)
+        return 2
     print(f"value-and-gradient, {args.scene}: baseline {r['baseline_s']:.2f} s, default "
           f"{r['default_s']:.2f} s, ratio {r['ratio']:.1f}x; default vs reference: J "
           f"{r['J_rel_err']:.2e}, gradient {r['grad_rel_err']:.2e} (cosine {r['grad_cosine']:.6f})")

@@ -18,8 +18,10 @@ from design_engine.auto import choose_config
 from design_engine.scenes import build_scene
 from design_engine.studies.measure import errors, measure
 from design_engine.studies.methods import Method, reference_method, study_methods
+from metarig.readback import RESTORE, damaged, read_json, read_npz
 
 log = logging.getLogger("metarig.bench")
+CACHE_REMEDY = "remove it to compute it again"
 
 # name -> build_scene kwargs. The pre-compressed scene is reduced (12x10) to keep the study
 # affordable; at 5 % strain its voids close to within 1.1 deg of the contact asymptote.
@@ -41,8 +43,8 @@ FOCUSING_ONLY = ("Tsit5 rtol=1e-06 atol=0.001", "Dopri5 rtol=1e-06 atol=0.001",
 def _reference(scene, key: str, out: Path):
     path = out / f"reference_{key}.npz"
     if path.exists():
-        with np.load(path) as f:
-            return float(f["J"]), f["grad"]
+        f = read_npz(path, ("J", "grad"), "reference solution cache", CACHE_REMEDY)
+        return float(f["J"]), f["grad"]
     log.info("reference solution for %s (Dopri8, rtol 1e-11, atol 1e-9) ...", key)
     m = measure(scene, reference_method().config, repeats=0)
     if "error" in m:
@@ -61,7 +63,10 @@ def run_study(out: Path, *, quick: bool = False, scenes: list[str] | None = None
     """Run (or resume) the study; returns the results dict written to out/work_precision.json."""
     out.mkdir(parents=True, exist_ok=True)
     path = out / "work_precision.json"
-    results = json.loads(path.read_text()) if path.exists() else {"scenes": {}}
+    results = (read_json(path, "work-precision results", RESTORE) if path.exists()
+               else {"scenes": {}})
+    if not isinstance(results.get("scenes"), dict):
+        raise damaged(path, "work-precision results", "no table of scenes")
     for key in scenes or list(SCENES):
         kw = dict(SCENES[key])
         scene = build_scene(kw.pop("name"), **kw)

@@ -150,7 +150,8 @@ def read_recording(source: str | Path) -> Recording:
     except (OSError, ValueError, json.JSONDecodeError) as exc:
         raise RecordingError(f"{path}: not a readable recording ({exc})") from None
     except Exception as exc:  # noqa: BLE001 - the mcap reader raises assorted types
-        raise RecordingError(f"{path}: not a readable MCAP recording ({exc})") from None
+        raise RecordingError(f"{path}: not a readable MCAP recording ({exc}); cut short? "
+                             "`metarig recover` salvages what it can") from None
     sh = np.array(sorted(shaker)).reshape(-1, 2)
     sg = np.array(sorted(stage)).reshape(-1, 2)
     return Recording(path=path, design=design, config=config, shaker_t_s=sh[:, 0],

@@ -45,7 +45,9 @@ def test_offer_never_blocks_and_tracks_newest_frames():
             live.offer(k, f)
             worst = max(worst, time.perf_counter() - t0)
             time.sleep(0.002)  # a 500 fps camera
-        assert worst < 0.005
+        # blocking would wait for the consumer (>= 20 ms, its sleep above); the margin below
+        # that is for a loaded machine (the tracker thread can hold the GIL for a 5 ms slice)
+        assert worst < 0.015
         _wait(lambda: live.stats().offered == n_t and n_t - 1 in got)
     finally:
         live.close()

@@ -2,10 +2,15 @@
 
 The comparisons record the points at which each implementation calls the objective and require
 them to agree. What limits the agreement is NLopt's own dual solve (a nested MMA to 1e-14
-relative tolerance, good to ~1e-8 in x on small problems and ~1e-6 on the sparse one; ours is
-good to ~1e-12), and, after a dozen or so evaluations once rho has decayed to 1e-5, acceptance
-decisions that turn on differences at roundoff level, after which the sequences part. Each
-problem is compared over the stretch before that happens.
+relative tolerance, good to ~1e-9 in x on small problems and ~1e-6 on the sparse one; ours is
+good to ~1e-12), and, once rho has decayed, acceptance decisions that turn on differences at
+that level, after which the sequences part. Where they part depends on the rounding of the
+machine (CPU, BLAS, compiler), so no fixed count of evaluations is compared: each problem is
+compared over its well-conditioned stretch, the evaluations before the point where our own run,
+given perturbations of the size of the difference between the two procedures (relative 1e-9 on
+the objective and its gradient: NLopt's dual accuracy; 1e-15 where neither solves a dual), moves
+by more than a tenth of the tolerance. That stretch is measured on the machine running the test,
+so the comparison holds on any CPU; a minimum length keeps it from becoming vacuous.
 """
 
 import math
@@ -157,46 +162,81 @@ def point_differences(ours, theirs, count):
     return np.abs(ours[:count] - theirs[:count]).max(axis=1)
 
 
+def sensitivity(objective, constraints, x0, runs, precision, seeds=4, **options):
+    """How far our points move, per evaluation, when the objective and its gradient are given
+    random relative errors of size `precision` (max over `seeds` runs): what a difference of
+    that size between two procedures can explain at each evaluation."""
+    ours, _, _ = run_ours(objective, constraints, x0, runs, **options)
+    rng = np.random.default_rng(0)
+    spread = np.zeros(runs)
+    for _ in range(seeds):
+        def perturbed(x):
+            f, g = objective(x)
+            return (f * (1.0 + precision * rng.standard_normal()),
+                    g * (1.0 + precision * rng.standard_normal(g.shape)))
+
+        points, _, _ = run_ours(perturbed, constraints, x0, runs, **options)
+        spread = np.maximum(spread, np.abs(points - ours).max(axis=1))
+    return spread
+
+
+def well_conditioned(objective, constraints, x0, runs, precision, tol, **options):
+    """The number of evaluations before the first one that a relative error of `precision`
+    moves by more than tol / 10 (see the module docstring)."""
+    spread = sensitivity(objective, constraints, x0, runs, precision, **options)
+    beyond = np.flatnonzero(spread > 0.1 * tol)
+    return int(beyond[0]) if beyond.size else runs
+
+
 # ----------------------------------------------------------------------------- against NLopt
 
+NLOPT_DUAL = 1e-9  # NLopt's dual solve: the relative size of its error in the step
+ROUNDOFF = 1e-15  # no dual solve: the two procedures differ by rounding only
+
 CASES = {
-    # name: (objective, constraints, x0, evaluations run, evaluations compared, bounds,
-    #        NLopt dual parameters, tolerance); observed max differences in the comments
-    "tutorial, bound, 2 active": (  # 4e-7 (NLopt's dual error; 8e-8 with a tighter one)
-        tutorial_objective, tutorial_constraints, TUTORIAL_X0, 30, 30,
-        {"lower": TUTORIAL_LOWER}, None, 1e-6),
-    "circles, feasible start": (  # 2e-8 for 12 evaluations, then 6e-5 (roundoff decisions)
-        circles_objective, circles_constraints, np.array([0.1, 0.1, 0.1]), 30, 12,
-        {}, None, 1e-6),
-    "circles, box bounds": (  # 2e-7 (up to 4e-6 with NLopt's default dual tolerance)
-        circles_objective, circles_constraints, np.array([0.1, 0.1, 0.1]), 30, 30,
+    # name: (objective, constraints, x0, evaluations run, bounds, NLopt dual parameters,
+    #        relative precision of the comparison, tolerance, minimum well-conditioned stretch);
+    # measured on an AMD EPYC: the stretch, and the largest difference over it
+    "tutorial, bound, 2 active": (  # 30, 4e-7 (NLopt's dual error; 8e-8 with a tighter one)
+        tutorial_objective, tutorial_constraints, TUTORIAL_X0, 30,
+        {"lower": TUTORIAL_LOWER}, None, NLOPT_DUAL, 1e-6, 20),
+    "circles, feasible start": (  # 11, 2e-8 (then 6e-5: roundoff decisions)
+        circles_objective, circles_constraints, np.array([0.1, 0.1, 0.1]), 30,
+        {}, None, NLOPT_DUAL, 1e-6, 8),
+    "circles, box bounds": (  # 8, 1e-8 (up to 4e-6 with NLopt's default dual tolerance)
+        circles_objective, circles_constraints, np.array([0.1, 0.1, 0.1]), 30,
         {"lower": np.full(3, -0.6), "upper": np.full(3, 0.8)}, {"dual_ftol_rel": 1e-16},
-        1e-6),
-    "circles, infeasible start": (  # 7e-9 for 14 evaluations (the first step at y = 1e40)
-        circles_objective, circles_constraints, np.array([1.5, 1.5, 1.0]), 30, 14,
-        {}, None, 1e-6),
-    "circles, one variable fixed (lower == upper)": (  # 9e-8 (its sigma becomes 0)
-        circles_objective, circles_constraints, np.array([0.1, 0.1, -0.2]), 30, 30,
+        NLOPT_DUAL, 1e-6, 6),
+    "circles, infeasible start": (  # 10, 3e-9 (the first step at y = 1e40; then 3e-6)
+        circles_objective, circles_constraints, np.array([1.5, 1.5, 1.0]), 30,
+        {}, None, NLOPT_DUAL, 1e-6, 8),
+    "circles, one variable fixed (lower == upper)": (  # 10, 8e-9 (its sigma becomes 0)
+        circles_objective, circles_constraints, np.array([0.1, 0.1, -0.2]), 30,
         {"lower": np.array([-np.inf, -np.inf, -0.2]), "upper": np.array([np.inf, np.inf, -0.2])},
-        None, 1e-6),
-    "objective +inf beyond a wall": (  # 1e-8
-        walled_objective, walled_constraints, np.array([0.0, 1.0]), 30, 30, {}, None, 1e-6),
-    "unconstrained Rosenbrock": (  # 2e-14 (no dual: the outer/inner logic alone)
-        rosenbrock, None, np.array([-1.2, 1.0]), 40, 40, {}, None, 1e-12),
+        None, NLOPT_DUAL, 1e-6, 8),
+    "objective +inf beyond a wall": (  # 30, 1e-8
+        walled_objective, walled_constraints, np.array([0.0, 1.0]), 30, {}, None,
+        NLOPT_DUAL, 1e-6, 20),
+    "unconstrained Rosenbrock": (  # no dual: the outer/inner logic alone
+        rosenbrock, None, np.array([-1.2, 1.0]), 40, {}, None, ROUNDOFF, 1e-12, 10),
 }
 
 
 @pytest.mark.parametrize("name", list(CASES))
 def test_evaluation_points_match_nlopt(name):
-    objective, constraints, x0, runs, compared, bounds, dual_params, tol = CASES[name]
+    (objective, constraints, x0, runs, bounds, dual_params, precision, tol,
+     least) = CASES[name]
     theirs, nlopt_code = run_nlopt(objective, constraints, x0, runs, dual_params=dual_params,
                                    **bounds)
     ours, result, records = run_ours(objective, constraints, x0, runs, **bounds)
     assert nlopt_code == nlopt.MAXEVAL_REACHED
     assert result.stop_reason == "max_evals"
     assert len(ours) == len(theirs) == result.n_evals == len(records) == runs
+    compared = well_conditioned(objective, constraints, x0, runs, precision, tol, **bounds)
+    assert compared >= least, f"only {compared} well-conditioned evaluations"
     diff = point_differences(ours, theirs, compared)
-    assert diff.max() < tol, f"max |dx| per evaluation: {np.array2string(diff, precision=1)}"
+    assert diff.max() < tol, (f"max |dx| per evaluation over the {compared} well-conditioned: "
+                              f"{np.array2string(diff, precision=1)}")
     # both reject points the other rejects: in particular the same points hit f = +inf
     f_ours = np.array([objective(x)[0] for x in ours[:compared]])
     f_theirs = np.array([objective(x)[0] for x in theirs[:compared]])
@@ -321,7 +361,10 @@ def test_dense_and_sparse_jacobians_give_the_same_points():
 
     sparse_points, _, _ = run_ours(objective, constraints, np.zeros(40), 15)
     dense_points, _, _ = run_ours(objective, dense, np.zeros(40), 15)
-    np.testing.assert_allclose(dense_points, sparse_points, rtol=0, atol=1e-12)
+    # the two paths round differently (BLAS against scipy.sparse); a relative error of 1e-15 in
+    # the objective moves these points by up to 1e-11 (`sensitivity`), so 1e-9 holds on any
+    # machine while a mishandled Jacobian entry moves them by orders of magnitude more
+    np.testing.assert_allclose(dense_points, sparse_points, rtol=0, atol=1e-9)
 
 
 def test_records_and_result_are_consistent():
@@ -347,7 +390,9 @@ def test_max_time_stops():
     result = minimize(slow, circles_constraints, [0.1, 0.1, 0.1],
                       MMAOptions(max_evals=1000, max_time_s=0.1))
     assert result.stop_reason == "max_time"
-    assert 3 <= result.n_evals == len(calls) <= 7
+    # each call sleeps 20 ms, so at most 5 fit in 0.1 s, plus x0 and the one under way at the
+    # deadline; how many fewer depends on the load of the machine, so no lower bound but one
+    assert 1 <= result.n_evals == len(calls) <= 7
 
 
 def test_user_exceptions_propagate():

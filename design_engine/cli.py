@@ -57,12 +57,18 @@ def _build(args):
 
     design = None
     nx, ny = args.nx, args.ny
+    if getattr(args, "task", None) == "":
+        raise ValueError("--task is empty; give a task preset or a task file")
+    for flag, v in (("--nx", nx), ("--ny", ny)):  # None: not given (0 is no lattice size)
+        if v is not None and v < 2:
+            raise ValueError(f"{flag} must be at least 2 (a lattice needs 2x2 units), got {v}")
     if args.design is not None:
         lattice, design = load_design(args.design)
-        if (nx and nx != lattice.shape[0]) or (ny and ny != lattice.shape[1]):
+        if (nx is not None and nx != lattice.shape[0]) or \
+                (ny is not None and ny != lattice.shape[1]):
             raise ValueError(f"--nx/--ny disagree with the design file's lattice {lattice.shape}")
         nx, ny = lattice.shape
-    if getattr(args, "task", None):
+    if getattr(args, "task", None) is not None:
         task = _task(args, nx, ny, design)
         return task.scenes[task.terms[0].scene]
     if args.samples is not None and args.samples < 2:
@@ -77,7 +83,10 @@ def _task(args, nx, ny, design):
     """The task of `--task`, on the design's lattice, with the design in every scene."""
     from design_engine.task import load_task
 
-    task = load_task(args.task, size=(nx, ny) if nx and ny else None,
+    if (nx is None) != (ny is None):  # one of --nx/--ny: the other from the task
+        shape = load_task(args.task).lattice.shape
+        nx, ny = shape[0] if nx is None else nx, shape[1] if ny is None else ny
+    task = load_task(args.task, size=None if nx is None else (nx, ny),
                      bias_angle_deg=args.bias_angle_deg, material=getattr(args, "material", None))
     if design is not None:
         if design.size != task.lattice.n_design:
@@ -111,6 +120,9 @@ def _config(args):
     from design_engine.implicit_step import ImplicitNewmark
     from design_engine.simulate import SolverConfig
 
+    for flag, v in (("--rtol", args.rtol), ("--atol", args.atol)):
+        if not (math.isfinite(v) and v >= 0):
+            raise ValueError(f"{flag} must be a finite number >= 0, got {v}")
     model = dict(linearized=args.linearized, use_contact=not args.no_contact,
                  dtype="float32" if args.float32 else "float64",
                  progress=not args.quiet and sys.stderr.isatty())
@@ -162,7 +174,7 @@ def simulate_main(argv: list[str] | None = None) -> int:
     from design_engine.run import simulate_scene
     from design_engine.simulate import SimulationError
 
-    out = args.out or Path("runs") / args.preset
+    out = Path("runs") / args.preset if args.out is None else args.out
     try:
         scene = _build(args)
         config = _config(args)
@@ -174,7 +186,7 @@ def simulate_main(argv: list[str] | None = None) -> int:
     except (ValueError, InvalidDesignError, SimulationError, OSError) as exc:
         print(f"metarig simulate: error: {exc}", file=sys.stderr)
         return 2
-    if args.task:
+    if args.task is not None:
         try:
             task = _task(args, *scene.lattice.shape, scene.design)
             run.metrics["task"] = task_summary(task, task.terms[0].scene, run.solution, config)
@@ -260,7 +272,7 @@ def modes_main(argv: list[str] | None = None) -> int:
     print(f"{scene.name}: {f.size} free DOFs; lowest {n} modes [Hz]: "
           + ", ".join(f"{v:.2f}" for v in f[:n]))
     print(f"highest mode {f[-1]:.1f} Hz -> explicit-step bound ~ {2.8 / (2 * math.pi * f[-1]) * 1e3:.3f} ms")
-    if args.out:
+    if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "modes.json").write_text(json.dumps({"scene": scene.name,
                                                          "frequencies_hz": f.tolist()}))

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from metarig.argtypes import positive
+from metarig.argtypes import non_negative, positive
 
 log = logging.getLogger("metarig.design")
 
@@ -68,7 +68,7 @@ def design_main(argv: list[str] | None = None) -> int:
                    "task's; presets: 20000)")
     p.add_argument("--bias-angle-deg", type=float, help="bias angle of the periodic initial "
                    "design, degrees")
-    p.add_argument("--seed", type=int, help="start from a random initial guess drawn with this "
+    p.add_argument("--seed", type=non_negative(int), help="start from a random initial guess drawn with this "
                    "seed (periodic design + uniform noise, spec 3.1)")
     p.add_argument("--algorithm", choices=("mma", "nlopt-mma", "nlopt-ccsaq"),
                    help="optimiser (default the task's: mma)")
@@ -102,7 +102,7 @@ def design_main(argv: list[str] | None = None) -> int:
                          max_time_s=args.max_time, max_solve_steps=args.max_solve_steps,
                          bias_angle_deg=args.bias_angle_deg,
                          seed=args.seed, algorithm=args.algorithm, material=args.material)
-        out = args.out or Path("runs") / f"design-{task.name}"
+        out = Path("runs") / f"design-{task.name}" if args.out is None else args.out
         log.info("task %s (%s): %s lattice %dx%d, %d design variables, %d constraints, "
                  "%d scene(s), budget %d evaluations / %.0f s, optimiser %s",
                  task.name, task.source, task.lattice.kind, *task.lattice.shape, task.free.size,

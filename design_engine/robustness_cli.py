@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from metarig.argtypes import number_list, positive
+from metarig.argtypes import number_list, positive, text
 
 log = logging.getLogger("metarig.robustness")
 
@@ -78,7 +78,8 @@ def _parser() -> argparse.ArgumentParser:
     where = p.add_mutually_exclusive_group()
     where.add_argument("--workers", type=positive(int), default=None,
                        help="1 (default): in this process; N > 1: local Dask cluster of N workers")
-    where.add_argument("--scheduler", help="address of a running Dask scheduler (tcp://HOST:PORT)")
+    where.add_argument("--scheduler", type=text("--scheduler"),
+                       help="address of a running Dask scheduler (tcp://HOST:PORT)")
     p.add_argument("--no-plot", action="store_true", help="skip robustness.png")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
@@ -112,7 +113,8 @@ def _run(args) -> int:
     from design_engine.scenes import PRESETS
 
     t_start = time.perf_counter()
-    args.chunk = args.chunk or default_chunk()
+    if args.chunk is None:
+        args.chunk = default_chunk()
     if args.scene not in PRESETS:
         raise UserError(f"unknown scene {args.scene!r}; choose one of: {', '.join(PRESETS)}")
     lattice, x_mm = load_design(args.design)
@@ -143,7 +145,9 @@ def _run(args) -> int:
              path, len(todo))
     out.mkdir(parents=True, exist_ok=True)
     run = {"computed_points": 0, "reused_points": len(grid) - len(todo), "compute_s": 0.0,
-           "chunks": 0, "workers": args.scheduler or (args.workers or 1), "processes": []}
+           "chunks": 0,
+           "workers": args.scheduler if args.scheduler is not None else (args.workers or 1),
+           "processes": []}
 
     def write(status: str) -> None:
         doc = _document(scene, args, fingerprint, store, freqs, amps, status, run,

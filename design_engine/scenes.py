@@ -195,9 +195,11 @@ def build_scene(
     explicit_shift = shift is not None
     r.update({k: v for k, v in (("side", side), ("shift", shift), ("contact_deg", contact_deg),
                                 ("periods", periods)) if v is not None})
+    if n_samples is not None and n_samples < 2:
+        raise ValueError(f"the dynamic window needs at least 2 samples, got {n_samples}")
     if periods is not None and not (math.isfinite(periods) and periods > 0):
         raise ValueError(f"window length must be a positive number of periods, got {periods}")
-    shape = (nx or r["shape"][0], ny or r["shape"][1])
+    shape = (r["shape"][0] if nx is None else nx, r["shape"][1] if ny is None else ny)
     lattice = quads(*shape) if r["kind"] == "quads" else kagome(*shape)
     if frequency_hz <= 0 or not math.isfinite(frequency_hz):
         raise ValueError(f"frequency must be positive, got {frequency_hz} Hz")
@@ -258,7 +260,7 @@ def build_scene(
         design=x,
         window_start=window_start,
         window=r["periods"] / f,
-        n_samples=n_samples or r.get("n_samples", 200),
+        n_samples=r.get("n_samples", 200) if n_samples is None else n_samples,
         targets=targets,
         input_units=inputs,
         clamped_units=sets["clamped"],

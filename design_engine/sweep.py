@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from metarig.argtypes import number_list
+from metarig.argtypes import number_list, text
 from metarig.readback import read_json, read_npz
 
 log = logging.getLogger("metarig.pareto")
@@ -238,7 +238,8 @@ def pareto_main(argv: list[str] | None = None) -> int:
     h = p.add_mutually_exclusive_group()
     h.add_argument("--workers", type=int, help="worker processes of a local cluster "
                    "(default one per core)")
-    h.add_argument("--scheduler", help="address of an existing Dask scheduler (tcp://HOST:PORT)")
+    h.add_argument("--scheduler", type=text("--scheduler"),
+                   help="address of an existing Dask scheduler (tcp://HOST:PORT)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
@@ -249,8 +250,9 @@ def pareto_main(argv: list[str] | None = None) -> int:
     from design_engine.task import TaskError
 
     try:
-        size = _size(args.size) if args.size else None
-        weights = args.weight_list or list(np.linspace(0.0, 1.0, args.weights))
+        size = None if args.size is None else _size(args.size)
+        weights = (list(np.linspace(0.0, 1.0, args.weights)) if args.weight_list is None
+                   else args.weight_list)
         if args.weight_list is None and args.weights < 1:
             raise ValueError("--weights must be at least 1")
         if not args.starts:

@@ -21,6 +21,28 @@ def positive(kind=int):
     return parse
 
 
+def non_negative(kind=int):
+    """Parser of a `kind` (int or float) value >= 0 (where 0 has a meaning, e.g. "all")."""
+    def parse(text: str):
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a {kind.__name__}, got {text!r}") from None
+        if not (math.isfinite(v) and v >= 0):
+            raise argparse.ArgumentTypeError(f"must be 0 or more, got {text}")
+        return v
+    return parse
+
+
+def text(what: str):
+    """Parser of a non-empty text value (an empty one would read as "not given")."""
+    def parse(value: str) -> str:
+        if not value.strip():
+            raise argparse.ArgumentTypeError(f"{what} is empty")
+        return value
+    return parse
+
+
 def number_list(what: str, positive_only: bool = False, distinct_sorted: bool = False):
     """Parser of a comma list of numbers; optionally all positive, and distinct (then sorted)."""
     def parse(text: str) -> tuple[float, ...]:

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from metarig.argtypes import positive
+from metarig.argtypes import positive, text
 
 KINDS = ("auto", "hinge", "oscillation", "pulse")
 HINGE_SUFFIXES = (".csv", ".txt", ".dat")
@@ -352,11 +352,12 @@ def build_parser() -> argparse.ArgumentParser:
                    "k_stretch,k_shear,k_bend,damping_ratio by default, or damping_u and "
                    "damping_theta separately)")
     p.add_argument("--kind", choices=KINDS, default="auto", help="test kind (auto-detected)")
-    p.add_argument("--material", default=None, help="start material file (default: the default "
-                   "material)")
+    p.add_argument("--material", type=text("--material"), default=None,
+                   help="start material file (default: the default material)")
     p.add_argument("--poses", default="auto", choices=("auto", "dic", "track", "truth"),
                    help="pulse: which poses to fit (as `metarig compare --poses`)")
-    p.add_argument("--calibration", default=None, help="pulse: camera calibration for tracking")
+    p.add_argument("--calibration", type=text("--calibration"), default=None,
+                   help="pulse: camera calibration for tracking")
     p.add_argument("--workers", type=positive(int), default=None,
                    help="pulse: tracker processes")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
@@ -369,9 +370,12 @@ def calibrate_main(argv: list[str] | None = None) -> int:
     from design_engine.material_file import MaterialFileError
 
     args = build_parser().parse_args(argv)
-    fit = [s.strip() for s in args.fit.split(",") if s.strip()] if args.fit else None
+    fit = None if args.fit is None else [s.strip() for s in args.fit.split(",") if s.strip()]
     progress = Progress(not args.quiet)
     try:
+        if fit == []:
+            raise InputError(f"--fit names no parameter ({args.fit!r}); leave it out for the "
+                             "default set")
         doc = calibrate(args.source, args.out, fit, args.kind, args.material, args.poses,
                         args.calibration, args.workers, progress)
     except KeyboardInterrupt:

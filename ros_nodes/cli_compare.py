@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from metarig.argtypes import positive
+from metarig.argtypes import non_negative, positive, text
 from ros_nodes import topics
 from ros_nodes.logic.comparison_run import SUMMARY_KEYS, CompareError  # noqa: F401 (re-export)
 
@@ -245,14 +245,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--poses", choices=POSE_SOURCES, default="auto",
                    help="measurement: the recording's /dic/poses, track the frames now, or the "
                    "simulated rig's ground truth (auto: /dic/poses if recorded, else track)")
-    p.add_argument("--calibration", default=None,
+    p.add_argument("--calibration", type=text("--calibration"), default=None,
                    help="calibration JSON for tracking (default: calibration.json beside it)")
     p.add_argument("--workers", type=positive(int), default=None,
                    help="tracker processes (default: cores)")
     from tracking.dic import SMALL_UNIT_MARGIN_PX, SMALL_UNIT_MIN_POINTS, DICConfig
 
     d = DICConfig()
-    p.add_argument("--margin-px", type=float, default=None,
+    p.add_argument("--margin-px", type=non_negative(float), default=None,
                    help=f"tracking: subset distance from the unit outline, px (default "
                    f"{d.margin_px}, {SMALL_UNIT_MARGIN_PX} when the smallest unit needs it)")
     p.add_argument("--min-points", type=positive(int), default=None,

@@ -7,6 +7,8 @@ import logging
 import sys
 from pathlib import Path
 
+from metarig.argtypes import positive
+
 log = logging.getLogger("metarig.rig")
 
 
@@ -16,15 +18,28 @@ FLAG_NAMES = {"amplitude_m": "amplitude", "frequency_hz": "frequency", "real_tim
 NO_FLAG = ("clock_step_s",)
 
 
+class _Given(argparse.Action):
+    """Store the value and note that the flag was given (`namespace.given`)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        setattr(namespace, self.dest, values)
+        namespace.given = getattr(namespace, "given", set()) | {self.dest}
+
+
 def plan_flags(p: argparse.ArgumentParser, plan_cls) -> None:
     """One flag per plan field, from its metadata (default, description, choices)."""
     for f in dataclasses.fields(plan_cls):
         if f.name in NO_FLAG:
             continue
         default = getattr(plan_cls(), f.name)
-        flag = "--" + FLAG_NAMES.get(f.name, f.name).replace("_", "-")
-        p.add_argument(flag, dest=f.name, type=type(default), default=default,
-                       choices=f.metadata.get("choices"), help=f.metadata.get("description"))
+        p.add_argument(plan_flag(f.name), dest=f.name, type=type(default), default=default,
+                       action=_Given, choices=f.metadata.get("choices"),
+                       help=f.metadata.get("description"))
+
+
+def plan_flag(name: str) -> str:
+    """The command-line flag of plan field `name`."""
+    return "--" + FLAG_NAMES.get(name, name).replace("_", "-")
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -49,26 +64,35 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--live-dic", action="store_true",
                    help="also run the live DIC node (decimated preview on /dic/poses); the "
                    "run's MCAP gets the full-rate offline tracking in its place")
-    p.add_argument("--workers", type=int, default=None,
+    p.add_argument("--workers", type=positive(int), default=None,
                    help="tracker processes after the capture (default: all cores)")
     plan_flags(p, ExperimentPlan)
     return p
 
 
 def _plan(args):
-    """The plan of the flags; a `--design` file sets nx, ny from its lattice."""
+    """The plan of the flags; a `--design` file sets nx, ny from its lattice. A text flag given
+    empty is refused (empty is the plan's "not given", e.g. no design file)."""
     from ros_nodes.logic.sequence import ExperimentPlan
 
     values = {f.name: getattr(args, f.name)
               for f in dataclasses.fields(ExperimentPlan) if f.name not in NO_FLAG}
-    if values.get("design"):
+    given = getattr(args, "given", set())
+    for name in sorted(given):
+        if isinstance(values[name], str) and not values[name].strip():
+            raise ValueError(f"{plan_flag(name)} is empty; leave the flag out for the default")
+    if values["design"]:
         path = Path(values["design"])
         try:
-            values["nx"], values["ny"] = json.loads(path.read_text())["lattice"]["shape"]
+            shape = json.loads(path.read_text())["lattice"]["shape"]
+            nx, ny = (int(v) for v in shape)
         except (OSError, ValueError, KeyError, TypeError) as e:
             raise ValueError(f"--design {path}: not a readable design file ({e})") from None
+        if ("nx" in given and values["nx"] != nx) or ("ny" in given and values["ny"] != ny):
+            raise ValueError(f"--nx/--ny disagree with the design file's lattice {nx}x{ny}")
+        values["nx"], values["ny"] = nx, ny
         values["design"] = str(path.resolve())
-    if values.get("material"):
+    if values["material"]:
         from design_engine.material_file import read_material_file
 
         read_material_file(values["material"])  # MaterialFileError (a ValueError) names the key
@@ -195,7 +219,7 @@ def recover_main(argv: list[str] | None = None) -> int:
     if not args.file.is_file():
         print(f"metarig recover: no such file: {args.file}", file=sys.stderr)
         return 2
-    out = args.out or args.file.with_suffix(".recovered.mcap")
+    out = args.file.with_suffix(".recovered.mcap") if args.out is None else args.out
     if out.resolve() == args.file.resolve():
         print("metarig recover: the output must differ from the input", file=sys.stderr)
         return 2

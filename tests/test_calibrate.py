@@ -135,6 +135,7 @@ def _hinge_text(rows, test="shear"):
     ("no-test", "which hinge test"),
     ("unknown-param", "cannot fit"),
     ("mixed", "mix test kinds"),
+    ("empty-fit", "--fit names no parameter"),  # was the default set, silently
 ])
 def test_bad_hinge_and_tracks_inputs_give_one_line(case, message, tmp_path, capsys):
     good = [f"{i:.3f},{i * 1e-5:.6e},{i * 0.01:.4f}" for i in range(40)]
@@ -153,6 +154,9 @@ def test_bad_hinge_and_tracks_inputs_give_one_line(case, message, tmp_path, caps
     elif case == "unknown-param":
         f.write_text(_hinge_text(good))
         argv += ["--fit", "k_shear,damping_u"]
+    elif case == "empty-fit":
+        f.write_text(_hinge_text(good))
+        argv += ["--fit", " , "]
     else:
         f.write_text(_hinge_text(good))
         np.savez(tmp_path / "t.npz", t=np.zeros(3), q=np.zeros((3, 2, 3)))

@@ -45,6 +45,7 @@ def test_simulate_writes_summary_trajectory_design_and_plots(tmp_path):
 
 
 @pytest.mark.parametrize("args, message", [
+    (["--nx", "0"], "--nx must be at least 2"),  # was the default 24x16, silently
     (["--design", "does-not-exist.json"], "does not exist"),
     (["--amplitude", "-0.01"], "amplitude"),
     (["--precompression", "0.02"], "no stages"),
@@ -55,6 +56,46 @@ def test_bad_inputs_give_a_clear_error_and_no_traceback(tmp_path, args, message)
     assert r.returncode == 2
     assert message in r.stderr
     assert "Traceback" not in r.stderr
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--nx", "8", "--ny", "0"], "--ny must be at least 2 (a lattice needs 2x2 units), got 0"),
+    (["--nx", "1", "--ny", "6"], "--nx must be at least 2"),
+    (["--task", ""], "--task is empty"),
+    (["--solver", "dopri5", "--rtol", "-1"], "--rtol must be a finite number >= 0"),
+])
+def test_zero_or_empty_values_are_refused_not_taken_for_the_default(tmp_path, capsys, args,
+                                                                     message):
+    """0 and "" were read as "not given" (the preset's size, no task); now they are refused in
+    one line before anything is simulated or written."""
+    from design_engine.cli import modes_main, simulate_main
+
+    for main, name in ((simulate_main, "simulate"), (modes_main, "modes")):
+        out = tmp_path / name
+        if main is modes_main and "--solver" in args:
+            continue  # modes has no solver flags
+        assert main([*args, "--out", str(out), *(["--quiet"] if name == "simulate" else [])]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(f"metarig {name}: error: "), err
+        assert message in err[0] and not out.exists()
+
+
+def test_one_of_nx_ny_with_a_task_is_honoured():
+    """--task with only --nx (or --ny) resizes that side and keeps the task's other one (it was
+    dropped, silently): the lattice of the scene that `simulate` and `modes` would run."""
+    import argparse
+
+    from design_engine.cli import _build, _scene_args
+
+    p = argparse.ArgumentParser()
+    _scene_args(p)
+
+    def shape(*size):
+        return _build(p.parse_args(["--task", "focusing-demo", *size])).lattice.shape
+
+    assert shape() == (8, 6)  # the task file's size
+    assert shape("--nx", "6") == (6, 6) and shape("--ny", "4") == (8, 4)
+    assert shape("--nx", "5", "--ny", "3") == (5, 3)
 
 
 @pytest.mark.parametrize("count", ["-1", "0", "two"])

@@ -90,6 +90,19 @@ def test_a_rerun_of_compare_replaces_its_results_in_place(compared, tmp_path):
     assert by_topic[T.COMPARE_RESULT.name] == 1 and by_topic[T.POSES.name] == 51
 
 
+@pytest.mark.parametrize(("flag", "value", "message"), [
+    ("--margin-px", "-1", "must be 0 or more, got -1"),  # was DICConfig's traceback
+    ("--calibration", "", "--calibration is empty"),  # was the run folder's, silently
+    ("--workers", "0", "must be at least 1, got 0"),
+])
+def test_bad_tracking_flags_are_refused_in_one_line(tmp_path, capsys, flag, value, message):
+    with pytest.raises(SystemExit) as e:
+        compare_main([str(SAMPLE), "--out", str(tmp_path / "o"), "-q", flag, value])
+    lines = [line for line in capsys.readouterr().err.splitlines() if "error" in line]
+    assert e.value.code == 2 and lines == [f"metarig compare: error: argument {flag}: {message}"]
+    assert not (tmp_path / "o").exists()
+
+
 def _rewritten(src: Path, dst_dir: Path, topic: str, messages) -> Path:
     """A copy of the recording whose `topic` holds `messages` instead."""
     from ros_nodes.logic.mcap_append import append_messages

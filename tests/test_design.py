@@ -117,6 +117,13 @@ def test_design_cli_refuses_a_bad_task_in_one_line(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "lattice.kind" in err[0]
     assert design_main(["no-such-task", "--quiet"]) == 2
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as e:  # a negative seed ended in numpy's traceback
+        design_main(["focusing-demo", "--seed", "-1", "--out", str(tmp_path / "s")])
+    err = [line for line in capsys.readouterr().err.splitlines() if "error" in line]
+    assert e.value.code == 2
+    assert err == ["metarig design: error: argument --seed: must be 0 or more, got -1"]
+    assert not (tmp_path / "s").exists()
 
 
 def test_sparse_constraint_jacobian_equals_the_dense_one():

@@ -181,6 +181,30 @@ def test_user_errors_are_reported_without_traceback(recording, tmp_path, capsys,
     assert "metarig track: error:" in err and message in err and "Traceback" not in err
 
 
+@pytest.mark.parametrize(("flag", "value", "message"), [
+    ("--workers", "0", "must be at least 1"),  # 0 and -3 were one worker, silently
+    ("--workers", "-3", "must be at least 1"),
+    ("--block", "0", "must be at least 1"),
+    ("--threads", "-1", "must be 0 or more"),
+    ("--max-frames", "-1", "must be 0 or more"),
+    ("--min-points", "-5", "must be 0 or more"),
+    ("--search-radius-px", "-2", "must be 0 or more"),
+    ("--prefilter-sigma-px", "-1", "must be 0 or more"),
+    ("--out", "", "--out is empty"),
+])
+def test_a_bad_count_or_empty_flag_is_refused_in_one_line(tmp_path, capsys, flag, value,
+                                                          message):
+    args = [str(tmp_path), "--units", "u.json", "--calibration", "c.json", "--out",
+            str(tmp_path / "t.npz"), "-q", flag, value]
+    with pytest.raises(SystemExit) as e:
+        track_main(args)
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if "error" in line]
+    assert e.value.code == 2 and "Traceback" not in err
+    assert lines == [f"metarig track: error: argument {flag}: {message}, got {value}"
+                     if value else f"metarig track: error: argument {flag}: {message}"]
+
+
 def _gap_squares(scene):
     """Small squares (16 px) centred where four units meet: background only, no speckle."""
     mpp = scene.cfg.m_per_px

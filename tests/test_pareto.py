@@ -223,6 +223,16 @@ def test_pareto_cli_refuses_bad_input_in_one_line(tmp_path, capsys):
     assert pareto_main(["splitting", "--out", str(tmp_path / "o"), "--weight-list", "0.5,2"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "[0, 1]" in err[0]
+    # an empty --size was the task's size, silently; an empty --scheduler is no address
+    assert pareto_main(["splitting", "--out", str(tmp_path / "o"), "--size", ""]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "size must look like 24x16, got ''" in err[0], err
+    with pytest.raises(SystemExit) as e:
+        pareto_main(["splitting", "--out", str(tmp_path / "o"), "--scheduler", ""])
+    err = [line for line in capsys.readouterr().err.splitlines() if "error" in line]
+    assert e.value.code == 2
+    assert err == ["metarig pareto: error: argument --scheduler: --scheduler is empty"]
+    assert not (tmp_path / "o").exists()
 
 
 def test_a_damaged_sweep_record_is_refused_in_one_line_before_any_run(tmp_path, capsys):

@@ -1,4 +1,5 @@
-"""The run summary's frame accounting and the plan's frame count (pure logic, no ROS)."""
+"""The run summary's frame accounting, the plan's frame count, and the rig command's refusal of
+empty or contradicting flags (pure logic, no ROS)."""
 
 import pytest
 
@@ -28,3 +29,27 @@ def test_complete_recording_has_no_lost_frames_and_no_report_means_no_frame_sect
 def test_expected_frames_counts_the_multiples_of_the_period_inside_the_window(t_start, expected):
     # frames at k / fps with t_start <= k / fps <= t_start + record_s, k >= 1
     assert ExperimentPlan(record_s=0.1, fps=1000.0).expected_frames(t_start) == expected
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--design", ""], "--design is empty"),  # was the periodic design, silently
+    (["--material", " "], "--material is empty"),  # was the default material, silently
+    (["--nx", "10", "--design", "DESIGN"],  # --nx was dropped, silently
+     "--nx/--ny disagree with the design file's lattice 8x6"),
+])
+def test_the_rig_refuses_empty_or_contradicting_flags_before_it_starts(tmp_path, capsys, args,
+                                                                       message):
+    from design_engine.design_io import save_design
+    from design_engine.lattice import periodic_design, quads
+    from ros_nodes.cli_rig import rig_main
+
+    design = save_design(tmp_path / "d.json", quads(8, 6), periodic_design(quads(8, 6), 0.4))
+    out = tmp_path / "run"
+    argv = [str(design) if a == "DESIGN" else a for a in args]
+    assert rig_main([*argv, "--out", str(out), "--no-compare"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"metarig rig: {message}") and not out.exists()
+    with pytest.raises(SystemExit) as e:  # 0 workers was every core, silently
+        rig_main(["--workers", "0", "--out", str(out)])
+    assert e.value.code == 2 and "argument --workers: must be at least 1, got 0" in \
+        capsys.readouterr().err

@@ -251,6 +251,8 @@ def test_dask_workers_give_the_same_map_as_the_in_process_path(design_file, tmp_
     ("good", ["--amplitudes", "31", "--amplitude-unit", "mm"], "not below 2 s"),
     ("good", ["--workers", "2", "--scheduler", "tcp://127.0.0.1:1"], "not allowed with"),
     ("good", ["--workers", "0"], "at least 1"),
+    ("good", ["--scheduler", ""], "--scheduler is empty"),
+    ("good", ["--chunk", "0"], "at least 1"),
     ("good", ["--scene", "nope"], "unknown scene"),
     ("other-map", [], "the map of another design"),
     ("cut-map", [], "robustness.json exists but cannot be resumed (damaged?"),

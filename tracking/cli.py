@@ -15,6 +15,7 @@ import sys
 import time
 from pathlib import Path
 
+from metarig.argtypes import non_negative, positive, text
 from tracking.batch import save_tracks, track_source
 from tracking.calibration import CalibrationError, load_calibration
 from tracking.dic import DICConfig
@@ -43,30 +44,32 @@ def build_parser() -> argparse.ArgumentParser:
                    "file or a design file)")
     p.add_argument("--calibration", required=True, help="calibration JSON (fps, m_per_px, "
                    "origin_px, y_up; optional homography, rectified_size_px)")
-    p.add_argument("--out", default="tracks.npz", help="output .npz")
+    p.add_argument("--out", type=text("--out"), default="tracks.npz", help="output .npz")
     p.add_argument("--topic", default=None, help="MCAP image topic (default: the only one, or "
                    "the one ending in image_raw)")
     p.add_argument("--reference", default=None, help="image of the reference configuration "
                    "(default: the first frame)")
-    p.add_argument("--workers", type=int, default=1,
+    p.add_argument("--workers", type=positive(int), default=1,
                    help="worker processes; units are split between them (each decodes every "
                    "frame, so this pays off on many cores or slow-to-track scenes)")
-    p.add_argument("--threads", type=int, default=0,
+    p.add_argument("--threads", type=non_negative(int), default=0,
                    help="numba threads per worker (0: all cores shared out between workers)")
-    p.add_argument("--max-frames", type=int, default=0, help="stop after this many (0: all)")
-    p.add_argument("--block", type=int, default=8, help="frames per result block")
+    p.add_argument("--max-frames", type=non_negative(int), default=0,
+                   help="stop after this many (0: all)")
+    p.add_argument("--block", type=positive(int), default=8, help="frames per result block")
     p.add_argument("--margin-px", type=float, default=_DEFAULTS.margin_px,
                    help="subset distance from the unit outline, px")
-    p.add_argument("--min-points", type=int, default=_DEFAULTS.min_points,
+    p.add_argument("--min-points", type=non_negative(int), default=_DEFAULTS.min_points,
                    help="units with fewer subset pixels are not tracked")
     p.add_argument("--zncc-lost", type=float, default=_DEFAULTS.zncc_lost,
                    help="correlation below which a unit is declared lost")
     p.add_argument("--zncc-reacquire", type=float, default=None,
                    help="correlation that triggers a search / regains a lost unit "
                    "(default: max(zncc-lost, 0.9))")
-    p.add_argument("--search-radius-px", type=int, default=_DEFAULTS.search_radius_px,
+    p.add_argument("--search-radius-px", type=non_negative(int),
+                   default=_DEFAULTS.search_radius_px,
                    help="re-acquisition search half-width, px")
-    p.add_argument("--prefilter-sigma-px", type=float, default=0.0,
+    p.add_argument("--prefilter-sigma-px", type=non_negative(float), default=0.0,
                    help="Gaussian smoothing of frames before tracking, px")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     return p

@@ -1,7 +1,6 @@
 """Figures and Rerun recording of a comparison, on a synthetic lattice of squares (no ROS)."""
 
 import importlib.util
-import shutil
 import socket
 import subprocess
 import sys
@@ -9,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from PIL import Image
 
 from comparison import rerun_log
 from comparison.metrics import compare
@@ -258,15 +258,38 @@ def _bench_module():
     return module
 
 
-@pytest.mark.slow
-def test_web_viewer_draws_every_view_of_the_blueprint(case, tmp_path):
-    """The .rrd in the Rerun web viewer (headless Chromium): every view of the blueprint is drawn
-    (speed colours and magenta targets in both lattice views, the camera image, red and blue
-    target-energy curves, the other curves and the summary), checked on the screenshot."""
-    pytest.importorskip("selenium")
-    if not (shutil.which("chromium") and shutil.which("chromedriver")):
-        pytest.skip("chromium / chromedriver not installed")
+def test_screenshot_check_needs_curves_not_only_legends():
+    """The web-viewer check on a synthetic screenshot: a blank page draws nothing; in the
+    target-energy view, the legend's red and blue dots alone are not curves, lines across the
+    view are."""
     bench = _bench_module()
+    h, w = 600, 1000
+    page = np.full((h, w, 3), 248, np.uint8)
+    assert not any(bench.view_content(page)["drawn"].values())
+    r0, r1, c0, c1 = bench.view_regions(h, w)["target_ke"]
+    for row, rgb in ((r1 - 20, (214, 39, 40)), (r1 - 8, (31, 119, 180))):  # legend dots
+        page[row - 4 : row + 4, c0 + 10 : c0 + 18] = rgb
+    page[r0 + 10 : r0 + 14, c0 + 30 : c1 - 30] = 40  # an axis-like dark line, not a curve
+    report = bench.view_content(page)
+    assert not report["drawn"]["target_ke"], report
+    page[r0 + 30 : r0 + 32, c0 + 20 : c1 - 20] = (214, 39, 40)
+    assert not bench.view_content(page)["drawn"]["target_ke"]  # the blue curve is missing
+    page[r0 + 50 : r0 + 52, c0 + 20 : c1 - 20] = (31, 119, 180)
+    report = bench.view_content(page)
+    assert report["drawn"]["target_ke"], report
+    assert [k for k, v in report["drawn"].items() if v] == ["target_ke"]
+
+
+def test_web_viewer_draws_every_view_of_the_blueprint(case, tmp_path):
+    """The .rrd in the Rerun web viewer (headless Chromium, WebGL on SwiftShader): every view of
+    the blueprint is drawn (speed colours and magenta targets in both lattice views, the camera
+    image, red and blue target-energy curves, the other curves and the summary), checked on the
+    screenshot; blanking any one view's area of that screenshot makes exactly that view fail
+    the check, so the check reads each view's own pixels."""
+    bench = _bench_module()
+    missing = bench.find_browser()[2]
+    if missing:
+        pytest.skip(f"browser test: {missing}")
     c = case["comparison"]
     path = rerun_log.write_rrd(
         tmp_path / "comparison.rrd",
@@ -279,8 +302,20 @@ def test_web_viewer_draws_every_view_of_the_blueprint(case, tmp_path):
         m_per_px=1e-3,
         origin_px=(20.0, 75.0),
     )
+    # a 1000 x 640 window (not the benchmark's 1600 x 1000): SwiftShader draws every frame on
+    # the CPU, so fewer pixels make the test faster; the view areas are fractions of the page
     report = bench.screenshot_rrd(
-        path, tmp_path / "shot.png", web_port=_free_port(), grpc_port=_free_port()
+        path, tmp_path / "shot.png", web_port=_free_port(), window=(1000, 640)
     )
+    assert report["started"] and not report["panic"], report
     assert report["title"] == "Rerun Viewer" and report["nonblank"], report
     assert all(report["drawn"].values()), report
+    # negative controls on the same pixels: one view's area painted over with its background
+    shot = np.asarray(Image.open(report["png"]).convert("RGB"))
+    regions = bench.view_regions(*shot.shape[:2])
+    assert set(regions) == set(report["drawn"])
+    for name, (r0, r1, c0, c1) in regions.items():
+        blank = shot.copy()
+        blank[r0:r1, c0:c1] = np.median(shot[r0:r1, c0:c1].reshape(-1, 3), axis=0)
+        drawn = bench.view_content(blank)["drawn"]
+        assert [k for k, v in drawn.items() if not v] == [name], (name, drawn)

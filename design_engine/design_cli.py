@@ -93,7 +93,7 @@ def design_main(argv: list[str] | None = None) -> int:
 
     import design_engine  # noqa: F401  (x64, cache)
     from design_engine.geometry import InvalidDesignError
-    from design_engine.optimize import ResumeError, run_design
+    from design_engine.optimize import ResumeError, read_record, run_design
     from design_engine.simulate import SimulationError
     from design_engine.task import TaskError, load_task
 
@@ -103,6 +103,8 @@ def design_main(argv: list[str] | None = None) -> int:
                          bias_angle_deg=args.bias_angle_deg,
                          seed=args.seed, algorithm=args.algorithm, material=args.material)
         out = Path("runs") / f"design-{task.name}" if args.out is None else args.out
+        if args.resume:
+            read_record(out)  # a damaged record: one line, before anything else is said
         log.info("task %s (%s): %s lattice %dx%d, %d design variables, %d constraints, "
                  "%d scene(s), budget %d evaluations / %.0f s, optimiser %s",
                  task.name, task.source, task.lattice.kind, *task.lattice.shape, task.free.size,

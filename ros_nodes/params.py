@@ -217,8 +217,15 @@ def load_yaml(path: str | Path, node_name: str) -> dict[str, Any]:
     """
     try:
         doc = yaml.safe_load(Path(path).read_text()) or {}
-    except (OSError, yaml.YAMLError) as e:
+    except (OSError, UnicodeDecodeError) as e:
         raise ConfigError(f"cannot read parameter file {path}: {e}") from e
+    except yaml.YAMLError as e:  # its text spans lines: the problem and where, in one
+        mark = getattr(e, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        raise ConfigError(f"cannot read parameter file {path}: not valid YAML "
+                          f"({getattr(e, 'problem', None) or type(e).__name__}{where})") from e
+    if not isinstance(doc, dict):
+        raise ConfigError(f"cannot read parameter file {path}: not a map of node names")
     out: dict[str, Any] = {}
 
     def flatten(d, prefix=""):

@@ -85,9 +85,12 @@ def test_yaml_files_use_the_ros2_layout(tmp_path):
 
 def test_unreadable_yaml_is_a_config_error(tmp_path):
     bad = tmp_path / "bad.yaml"
-    bad.write_text("shaker: [unclosed\n")
-    with pytest.raises(P.ConfigError, match="cannot read parameter file"):
-        P.load_yaml(bad, "shaker")
+    for text, problem in (("shaker: [unclosed\n", "not valid YAML (expected ',' or ']'"),
+                          ("- 1\n- 2\n", "not a map of node names")):
+        bad.write_text(text)
+        with pytest.raises(P.ConfigError, match="cannot read parameter file") as e:
+            P.load_yaml(bad, "shaker")
+        assert problem in str(e.value) and "\n" not in str(e.value)  # one line
     with pytest.raises(P.ConfigError, match="cannot read parameter file"):
         P.load_yaml(tmp_path / "missing.yaml", "shaker")
 

@@ -1,8 +1,31 @@
-"""Shared test set-up: float64 JAX (via design_engine), the --runslow flag."""
+"""Shared test set-up: float64 JAX (via design_engine), the --runslow flag, an isolated DDS
+domain per test process, and a compilation cache under the pytest cache.
 
-import pytest
+Every test process (the session, or each xdist worker) picks its own `ROS_DOMAIN_ID` and sets
+`ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST` before any rclpy context exists, so node processes that
+tests start (they inherit the environment) never meet another test's nodes. The workers of one run
+(pytest-xdist) take consecutive ids of one block, so two of them never share a domain.
 
-import design_engine  # noqa: F401  (enables x64 and the compilation cache)
+Compiled XLA programs are kept in `.pytest_cache/jax` (unless `METARIG_JAX_CACHE` is set), so the
+worker processes and the commands that tests start as subprocesses reuse each other's programs.
+"""
+
+import os
+from pathlib import Path
+
+_worker = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0")[2:] or 0)
+_workers = max(1, int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")))
+# domains 1-100: the run picks a block of `_workers` consecutive ids, one per worker
+os.environ["ROS_DOMAIN_ID"] = str(1 + _worker % _workers
+                                  + _workers * (os.getppid() % max(1, 100 // _workers)))
+os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+os.environ.setdefault("RCUTILS_LOGGING_BUFFERED_STREAM", "1")
+os.environ.setdefault("METARIG_JAX_CACHE",
+                      str(Path(__file__).resolve().parent.parent / ".pytest_cache" / "jax"))
+
+import pytest  # noqa: E402
+
+import design_engine  # noqa: E402, F401  (enables x64 and the compilation cache)
 
 
 def pytest_addoption(parser):

@@ -1,8 +1,5 @@
-"""Fixtures for tests that run real ROS 2 nodes on an isolated, localhost-only DDS domain.
-
-Every test session picks its own `ROS_DOMAIN_ID` (from the pid) and sets
-`ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST` before any rclpy context exists; subprocesses started
-by the tests inherit both through `ros_env`.
+"""Fixtures for tests that run real ROS 2 nodes on the isolated, localhost-only DDS domain that
+tests/conftest.py gives each test process; subprocesses inherit it through `ros_env`.
 """
 
 import os
@@ -10,11 +7,7 @@ import os
 import pytest
 from rostools import node_command, popen
 
-DOMAIN_ID = str(1 + (os.getpid() * 7 + int(os.environ.get("PYTEST_XDIST_WORKER", "gw0")[2:] or 0))
-                % 200)
-os.environ["ROS_DOMAIN_ID"] = DOMAIN_ID
-os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-os.environ.setdefault("RCUTILS_LOGGING_BUFFERED_STREAM", "1")
+DOMAIN_ID = os.environ["ROS_DOMAIN_ID"]
 
 
 @pytest.fixture

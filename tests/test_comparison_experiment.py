@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 from comparison.experiment import compare_experiment, scene_of_design
-from design_engine.run import smooth_input
 from comparison.metrics import compare
 from design_engine.auto import contact_config
+from design_engine.run import smooth_input
 from hardware_sim import camera as cam
 from hardware_sim import specimen as sp
 from hardware_sim.rig import MotionRecord, capture_times, centred_origin, film, specimen_motion
@@ -66,47 +66,91 @@ def test_a_simulated_experiment_compared_with_its_truth_has_near_zero_error(nomi
     np.testing.assert_allclose(ec.simulated.q[0], 0.0, atol=0)  # both from the first frame
 
 
-def test_twenty_percent_stiffer_ligaments_are_detected(nominal):
-    _, scene, times, traj = nominal
-    base = _compare(scene, times, traj.q[1:]).comparison.metrics
-    _, stiff = _truth(_specimen(stiffer=1.2))
-    m = _compare(scene, times, stiff.q[1:]).comparison.metrics
-    assert m["velocity_nrmse"] > 3 * base["velocity_nrmse"]
-    assert abs(m["target_peak_ke_rel_err"]) > 5 * abs(base["target_peak_ke_rel_err"])
+# The filmed experiments: a 10 ms pulse (100 Hz) instead of the 30 Hz one above. On 8x6 units a
+# 30 Hz pulse is nearly quasi-static: 20 % stiffer ligaments change the motion by a velocity NRMSE
+# of 0.010 on truth poses, five times less than the camera noise adds (0.048), so no threshold
+# could tell them apart through the camera. At 100 Hz the stiffer specimen is 0.16 off on truth
+# poses (the nominal one 0.015: rig physics against the engine) and the faster motion halves the
+# noise's share. Same frames and input as above, so the compiled programs are shared.
+F_FILMED = 100.0
+U_FILMED = 1e-3 * (1 - np.cos(2 * np.pi * F_FILMED * np.clip(T_IN - 0.005, 0, 1 / F_FILMED)))
+FILMED_TIMES = capture_times(0.001, 0.07, FPS)
+# Measured with camera noise seeds 0-3 (this scene, 1000 fps, 0.4 mm/px, 1 % read noise):
+#   velocity NRMSE   nominal 0.034-0.042, 20 % stiffer 0.133-0.147
+#   target peak KE   nominal -0.010..+0.010, 20 % stiffer -0.074..-0.087
+# The thresholds sit near the geometric middle, >= 1.75x from either side. They hold on any CPU:
+# the frames are a deterministic function of a seeded PCG64 stream, and what a CPU or BLAS can
+# change (rounding in the physics, the renderer, the DIC solves) moves these metrics by far less
+# than another noise realisation does (the spread over the four seeds, 0.008 and 0.02).
+FILMED_NRMSE_MAX = 0.075
+FILMED_PEAK_KE_MAX = 0.03
 
 
-def test_tracked_against_simulated_motion(nominal, tmp_path):
-    """Film the truth with camera noise, track it by DIC, compare: tracking error is small
-    against the signal, and the lost units are none."""
+def _film_and_track(specimen, scene, seed: int, folder):
+    """Film the specimen's true motion under the filmed pulse (1 % camera noise), track it by DIC
+    with the nominal outlines and compare with the nominal scene. Returns (true motion, tracked
+    motion, comparison)."""
     from tracking.batch import track_source
     from tracking.calibration import Calibration
     from tracking.dic import DICConfig
     from tracking.frame_sources import open_source
 
-    specimen, scene, times, traj = nominal
-    mpp = 4e-4
-    w, h = 340, 260
+    traj = specimen_motion(specimen, FILMED_TIMES, MotionRecord(T_IN, U_FILMED), None, FPS)
+    mpp, w, h = 4e-4, 340, 260
     origin = centred_origin(specimen.polygons_m, w, h, mpp)
     ccfg = cam.CameraConfig(width_px=w, height_px=h, fps=FPS, m_per_px=mpp, origin_px=origin,
-                            noise_std=0.01, seed=0)
-    for k, (_, frame, _) in enumerate(film(specimen, ccfg, traj, np.random.default_rng(0))):
-        cv2.imwrite(str(tmp_path / f"{k:04d}.png"), frame)
+                            noise_std=0.01, seed=seed)
+    for k, (_, frame, _) in enumerate(film(specimen, ccfg, traj, np.random.default_rng(seed))):
+        cv2.imwrite(str(folder / f"{k:04d}.png"), frame)
     calib = Calibration(fps=FPS, m_per_px=mpp, origin_px=origin, y_up=True)
-    tracked, bad = track_source(open_source(tmp_path), specimen.polygons_m, calib, DICConfig())
+    tracked, bad = track_source(open_source(folder), specimen.polygons_m, calib, DICConfig())
     assert not bad.any() and not tracked.lost.any()
+    times = FILMED_TIMES
     tracked = Trajectory.from_positions(times - times[0], tracked.q, tracked.quality,
                                         tracked.lost)
-    ec = compare_experiment(scene, tracked, times[0], T_IN, U_IN, config=contact_config())
+    ec = compare_experiment(scene, tracked, times[0], T_IN, U_FILMED, config=contact_config())
+    return traj, tracked, ec
+
+
+@pytest.fixture(scope="module")
+def filmed_nominal(nominal, tmp_path_factory):
+    specimen, scene, _, _ = nominal
+    return _film_and_track(specimen, scene, 0, tmp_path_factory.mktemp("nominal_frames"))
+
+
+def test_tracked_against_simulated_motion(nominal, filmed_nominal):
+    """Film the truth with camera noise, track it by DIC, compare: tracking error is small
+    against the signal, and the lost units are none."""
+    _, scene, _, _ = nominal
+    traj, tracked, ec = filmed_nominal
     m = ec.comparison.metrics
-    # the tracking part of the error: tracked against the true motion, same fields
-    truth = Trajectory.from_positions(tracked.t, traj.q[1:] - traj.q[1])
+    # the tracking part of the error: tracked against the true motion, same fields; the tracker
+    # sees a blurred exposure that ends at the frame time and lasts half a period, so the truth
+    # it measures is the pose a quarter period earlier (linear between samples, as rendered)
+    mid = traj.q[1:] - 0.25 * np.diff(traj.q, axis=0)
+    truth = Trajectory.from_positions(tracked.t, mid - mid[0])
     mt = compare(ec.measured, truth, scene.unit_masses_kg(), scene.unit_inertias_kgm2(),
                  np.arange(scene.n_units), np.arange(8), m["onset_s"]).metrics
-    assert m["lost_units"] == 0 and m["energy_map_correlation"] > 0.99
-    # a 2 mm pulse on 8x6 units at 0.4 mm/px: differentiated camera noise dominates
-    assert m["velocity_nrmse"] < 0.2 and abs(m["target_peak_ke_rel_err"]) < 0.1
-    # ... and the tracking error explains it (the model adds little on top)
+    assert m["lost_units"] == 0 and m["energy_map_correlation"] > 0.999  # measured 0.99998
+    # a 2 mm, 100 Hz pulse on 8x6 units at 0.4 mm/px: differentiated camera noise dominates
+    # (tracking alone 0.030-0.031 NRMSE over seeds 0 and 3; the others: see FILMED_NRMSE_MAX)
+    assert mt["velocity_nrmse"] < 0.06
+    assert m["velocity_nrmse"] < FILMED_NRMSE_MAX
+    assert abs(m["target_peak_ke_rel_err"]) < FILMED_PEAK_KE_MAX
+    # ... and the tracking error explains it: the model's own 0.015 (truth poses) adds in
+    # quadrature (measured 0.037 <= 0.044 and 0.034 <= 0.043 for seeds 0 and 3)
     assert m["velocity_nrmse"] <= 1.1 * mt["velocity_nrmse"] + 0.01
+
+
+def test_twenty_percent_stiffer_ligaments_are_detected(nominal, filmed_nominal, tmp_path):
+    """Through the camera and DIC, under tracking noise: the nominal specimen's comparison with
+    the nominal model stays below absolute thresholds that a 20 % stiffer one crosses."""
+    _, scene, _, _ = nominal
+    base = filmed_nominal[2].comparison.metrics
+    m = _film_and_track(_specimen(stiffer=1.2), scene, 1, tmp_path)[2].comparison.metrics
+    assert base["velocity_nrmse"] < FILMED_NRMSE_MAX < m["velocity_nrmse"]
+    assert abs(base["target_peak_ke_rel_err"]) < FILMED_PEAK_KE_MAX \
+        < abs(m["target_peak_ke_rel_err"])
 
 
 def test_the_input_is_resampled_smoothly():

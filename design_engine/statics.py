@@ -18,13 +18,13 @@ max |g| <= GRADIENT_TOL. The Hessian is exact and sparse: one Hessian-vector pro
 and DOF of a distance-2 colouring of the bond graph (21 products for the 1146 free DOFs of
 24x18; `make_sparse_hessian`); the solves are dense Cholesky factorisations.
 
-The step bound follows the branch a slow loading follows. A pre-compressed lattice has several
-equilibria under the same stage closing, and a coarse continuation lands on another (lower)
-branch than the one the stages reach. Measured on the 24x18 protection scene at 8 %: 8, 32 and
-48 equal levels end at 519.5, 523.1 and 523.1 mJ. 64 and 100 levels end at 525.371 mJ, which
-is the equilibrium that the dynamic ramp settles into (its end state relaxed by Newton:
-525.371 mJ; at 5 %, 225.439 mJ both). 64 levels there are 0.16 mm per stage row and level;
-the bound is 0.1 mm.
+The step bound is a margin for the branch a slow loading follows. A pre-compressed lattice has
+several equilibria under the same stage closing, and a coarse continuation may land on another
+branch than the one the stages reach. With the secant predictor and the asymptote check, on the
+24x18 protection scene at 8 %, 8, 32, 48, 64 and 100 equal levels all end at 525.371 mJ, the
+equilibrium that the dynamic ramp settles into (its end state relaxed by Newton: 525.371 mJ;
+at 5 %, 225.439 mJ both): `benchmarks/bench_statics.py --parts branches`. With the bound of
+0.1 mm the continuation takes 103 levels there.
 
 Gradients: the returned state is q_s + (s - stop_gradient(s)), s = -H_s^-1 g(q_s; theta), with
 q_s and H_s held constant: its value is exactly q_s and its derivative with respect to any

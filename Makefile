@@ -20,11 +20,16 @@ install: $(STAMP)
 demo: install
 	$(BIN)/metarig demo --out runs/demo
 
+# The fast suite on every core (at most 4 workers; one DDS domain and one process per worker),
+# a file's tests on one worker so module fixtures are built once; benchmarks/bench_suite.py
+# times exactly this command.
+PYTEST_ARGS ?= -n auto --maxprocesses 4 --dist loadfile
+
 test: install
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest $(PYTEST_ARGS)
 
 test-slow: install
-	$(BIN)/python -m pytest --runslow
+	$(BIN)/python -m pytest $(PYTEST_ARGS) --runslow
 
 # Speed-accuracy studies: charts + JSON in runs/bench (about 2 hours on 2 cores).
 bench: install

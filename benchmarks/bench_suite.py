@@ -1,0 +1,97 @@
+"""The fast test suite as `make test` runs it: wall time, counts and the slowest tests, with the
+machine and its load. Writes benchmarks/results/bench_suite.json (the README's "Tests" figures).
+
+    .venv/bin/python benchmarks/bench_suite.py [--cold] [--out benchmarks/results/bench_suite.json]
+                                               [-- extra pytest arguments]
+
+`--cold` empties the suite's compilation cache (`.pytest_cache/jax`) first, as on a fresh clone
+(CI); without it the cache of an earlier run is reused. The load average is read before and
+after the run: a figure taken beside other work says so. The pytest arguments are those of the
+Makefile's `test` target (`PYTEST_ARGS` there), so the figure is what a user gets.
+"""
+
+import argparse
+import json
+import os
+import platform
+import re
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+# the Makefile's `test` target: keep the two in step
+MAKE_TEST_ARGS = ["-n", "auto", "--maxprocesses", "4", "--dist", "loadfile"]
+SUMMARY = re.compile(r"=+ (.*) in ([\d.]+)s")
+DURATION = re.compile(r"^([\d.]+)s (setup|call|teardown)\s+(\S+)")
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def _counts(text: str) -> dict[str, int]:
+    return {word: int(n) for n, word in re.findall(r"(\d+) (\w+)", text)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--cold", action="store_true",
+                        help="empty .pytest_cache/jax first (a fresh clone's first run)")
+    parser.add_argument("--out", type=Path, default=ROOT / "benchmarks/results/bench_suite.json")
+    parser.add_argument("pytest_args", nargs="*", help="extra pytest arguments (after --)")
+    args = parser.parse_args(argv)
+
+    if args.cold:
+        shutil.rmtree(ROOT / ".pytest_cache" / "jax", ignore_errors=True)
+    cmd = [sys.executable, "-m", "pytest", *MAKE_TEST_ARGS, "-q", "--durations=10",
+           *args.pytest_args]
+    load_before = os.getloadavg()
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
+    lines = []
+    assert proc.stdout is not None
+    for line in proc.stdout:  # show the run as it goes
+        sys.stdout.write(line)
+        lines.append(line.rstrip("\n"))
+    rc = proc.wait()
+    wall = time.perf_counter() - t0
+    load_after = os.getloadavg()
+
+    summary = next((m for m in map(SUMMARY.search, reversed(lines)) if m), None)
+    slowest = [{"seconds": float(m[1]), "phase": m[2], "test": m[3]}
+               for m in map(DURATION.match, lines) if m]
+    result = {
+        "command": " ".join(["python -m pytest", *MAKE_TEST_ARGS, *args.pytest_args]),
+        "cold_cache": args.cold,
+        "exit_code": rc,
+        "wall_s": round(wall, 1),
+        "pytest_s": float(summary[2]) if summary else None,
+        "counts": _counts(summary[1]) if summary else {},
+        "slowest": slowest[:10],
+        "machine": {"cpu": _cpu_model(), "cores": os.cpu_count(),
+                    "python": platform.python_version()},
+        "load_average_1min": {"before": round(load_before[0], 2),
+                              "after": round(load_after[0], 2)},
+        "date": time.strftime("%Y-%m-%d %H:%M", time.gmtime()) + " UTC",
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    print(f"-> {args.out}: {result['wall_s']} s wall, {result['counts']}, exit code {rc}")
+    return rc
+
+
+if __name__ == "__main__":
+    try:
+        sys.exit(main())
+    except KeyboardInterrupt:
+        sys.exit(130)

@@ -61,10 +61,12 @@ def test_equilibrium_is_a_stable_minimum_in_contact(scene, solver):
 
 @pytest.fixture(scope="module")
 def ramp_solve(scene):
-    """Dopri8 with contact through the ramp and a long hold (no pulse): (config, solution)."""
+    """Dopri8 with contact through the ramp and a long hold (no pulse): (config, solution).
+    atol 1e-7 (the default 1e-4 stalls at its own error, 2.1e-6 mm, before the ramp's motion
+    has died out)."""
     ld = dataclasses.replace(scene.loading, amplitude=0.0)
     tc = ld.precompression_time
-    config = SolverConfig(solver=diffrax.Dopri8())
+    config = SolverConfig(solver=diffrax.Dopri8(), atol=1e-7)
     sim = make_simulator(scene.lattice, scene.supports, config)
     ts = jnp.asarray([tc, tc + 200.0, tc + 600.0])
     return config, sim(jnp.asarray(scene.design), scene.material, ld, ts)
@@ -77,7 +79,11 @@ def test_the_dynamic_ramp_settles_onto_the_static_state(scene, solver, ramp_solv
     free = np.asarray(scene.supports.free)
     err = [np.abs(np.asarray(sol.q).reshape(3, -1)[k, free] - np.asarray(q)).max()
            for k in range(3)]
-    assert err[2] < 1e-4 * np.abs(np.asarray(q)).max()  # settled: within 1e-4 of the motion
+    # settled (mm and rad): measured 3.4e-3, 3.0e-4, 1.07e-7 after 0, 200, 600 ms of hold; the
+    # ramp's own motion decays ~40x per 200 ms (2.4e-9 at 800 ms), so what is left at 600 ms is
+    # physics, not the integrator's error (below 2.4e-9), and rounding on another CPU, which
+    # moves the solve by that error at most, cannot bring it near the bound (2x, ~20 ms of decay)
+    assert err[2] < 2e-7
     assert err[2] < err[1] < err[0] or err[2] < 1e-9
 
 

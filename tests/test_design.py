@@ -194,7 +194,13 @@ def test_small_focusing_run_improves_and_stays_feasible(tmp_path, make_task):
     assert again.compilations == 0  # a second run in this process reuses the programs
     assert all(e["feasible"] and not e["failed"] for e in ev)
     best = ev[res.best]
-    assert best["objective"] > 1.05 * ev[0]["objective"]
+    # the README's headline (>400x on 24x16, slow: test_full_focusing_run_reaches_the_paper) at
+    # small scale: at least 20x the task's start, feasible. Measured: 1.0 1.0 1.1 2.5 14.5 109
+    # 203 574 x the start over the 8 evaluations (best 574x). The ascent is smooth, so rounding
+    # on another CPU cannot take two evaluations' growth off it (109x, 5x the bound, by the
+    # sixth). With the gradient negated or replaced by a random vector of the same norm the run
+    # stays at 1.0x: the gain is the gradient's work, not a lucky step.
+    assert best["objective"] >= 20.0 * ev[0]["objective"]
     assert best["max_constraint"] <= 1e-8
     hist = json.loads((tmp_path / "history.json").read_text())
     assert [e["eval"] for e in hist["evaluations"]] == list(range(1, 9))

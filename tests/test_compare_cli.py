@@ -38,7 +38,13 @@ def test_run_folder_holds_summary_plots_trajectories(compared):
         assert key in s
     assert s["lost_units"] == 0 and s["input_source"] == "tracked"
     assert s["precompression_m"] == pytest.approx(0.02 * 0.105, rel=0.02)  # 2 % of (8-1) s
-    assert 0.0 < s["velocity_nrmse"] < 0.5 and s["energy_map_correlation"] > 0.9
+    # 12 px units at 1.2 mm/px: the tracking noise dominates (measured: velocity NRMSE 0.128
+    # tracked, 0.020 on the recording's ground-truth poses; energy-map correlation 0.99944;
+    # target peak KE -0.037; max displacement error 1.0 mm = 0.84 px). Bounds at ~2x: the
+    # recording is fixed and tracking and simulation are deterministic, so another CPU moves
+    # these by rounding in the DIC solves and the engine only, orders below the margins.
+    assert s["velocity_nrmse"] < 0.25 and s["energy_map_correlation"] > 0.998
+    assert abs(s["target_peak_ke_rel_err"]) < 0.08 and s["max_displacement_error_m"] < 2e-3
     for png in ("velocity_maps.png", "target_ke.png", "row_peak_ke.png", "tracking_quality.png"):
         assert (compared / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     from metarig.trajectory import Trajectory

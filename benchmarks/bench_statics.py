@@ -239,9 +239,9 @@ def main(argv=None) -> int:
         p.error(f"unknown parts: {', '.join(sorted(unknown))}")
     doc = json.loads(OUT.read_text()) if OUT.exists() else {}
     doc["scene"] = SCENE
-    machine = {"cpus": os.cpu_count(), "platform": platform.platform(),
-               "load_before": os.getloadavg()}
     for part in parts:
+        machine = {"cpus": os.cpu_count(), "platform": platform.platform(),
+                   "load_before": os.getloadavg()}
         if part == "timing":
             doc["strains"] = parts_timing([float(v) for v in args.strains.split(",")])
             doc["machine"] = dict(machine, load_after=os.getloadavg())

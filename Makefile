@@ -5,7 +5,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install demo test test-slow bench bench-design clean
+.PHONY: install demo lint test test-slow bench bench-design clean
 
 $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
@@ -24,6 +24,9 @@ demo: install
 # a file's tests on one worker so module fixtures are built once; benchmarks/bench_suite.py
 # times exactly this command.
 PYTEST_ARGS ?= -n auto --maxprocesses 4 --dist loadfile
+
+lint: install
+	$(BIN)/ruff check .
 
 test: install
 	$(BIN)/python -m pytest $(PYTEST_ARGS)

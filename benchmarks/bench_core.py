@@ -63,7 +63,9 @@ def main(argv=None) -> int:
             x = jnp.asarray(scene.design)
             ts = jnp.asarray(scene.sample_times)
             sim = compiled_simulator(scene, config)
-            fwd = lambda: jax.block_until_ready(sim(x, scene.material, scene.loading, ts))  # noqa: E731
+            def fwd(sim=sim, x=x, scene=scene, ts=ts):
+                return jax.block_until_ready(sim(x, scene.material, scene.loading, ts))
+
             first, runs, sol = _time(fwd, args.repeats)
             check_solution(sol, config)
             case = {"config": label, "size": f"{nx}x{ny}", "n_units": scene.n_units,
@@ -74,7 +76,8 @@ def main(argv=None) -> int:
                     "accepted_steps": int(sol.num_accepted), "rejected_steps": int(sol.num_rejected)}
             if not args.no_grad:
                 vg, _ = make_objective(scene, config)
-                g_first, g_runs, out = _time(lambda: jax.block_until_ready(vg(x)), args.repeats)
+                g_first, g_runs, out = _time(lambda vg=vg, x=x: jax.block_until_ready(vg(x)),
+                                             args.repeats)
                 checked(out, config)
                 case.update({"value_and_grad_first_call_s": g_first,
                              "value_and_grad_s": statistics.median(g_runs),

@@ -25,7 +25,6 @@ The default policy, read off the work-precision and speed-up charts (README, `me
 from dataclasses import dataclass
 
 import diffrax
-
 import jax
 import jax.numpy as jnp
 import numpy as np

@@ -472,7 +472,7 @@ def _maximise_dual(model: _SeparableModel, y0: np.ndarray, y_upper: float, tol: 
     best = (math.inf, y, t)
     since_best = 0
     it = 0
-    for it in range(_DUAL_MAX_ITER):
+    for it in range(_DUAL_MAX_ITER):  # noqa: B007 (the count is returned)
         res = model.kkt_residual(y, t, y_upper)
         if res < best[0]:
             best, since_best = (res, y, t), 0

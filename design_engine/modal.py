@@ -69,7 +69,7 @@ def prestressed_state(scene: Scene, config=None) -> np.ndarray:
     without stages.
     """
     from design_engine.run import compiled_simulator
-    from design_engine.simulate import SolverConfig, SimulationError, check_solution
+    from design_engine.simulate import SimulationError, SolverConfig, check_solution
     from design_engine.statics import EquilibriumError, equilibrium_state
 
     if scene.loading.strain <= 0.0:

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from design_engine._types import Array, Float, Scalar
-from design_engine.energy import kinetic_energy, make_bond_terms, bond_geometry
+from design_engine.energy import bond_geometry, kinetic_energy, make_bond_terms
 from design_engine.geometry import block_geometry
 from design_engine.simulate import Solution
 

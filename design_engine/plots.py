@@ -33,7 +33,7 @@ def plot_ke_map(path: str | Path, polygons_m: np.ndarray, q: np.ndarray, mean_ke
                                                                        vmax=vals.max()),
                         edgecolors="0.4", linewidths=0.2)
     ax.add_collection(pc)
-    for name, ids in targets.items():
+    for ids in targets.values():
         for b in ids:
             ax.add_patch(plt.Polygon(polys[b], fill=False, edgecolor="cyan", linewidth=1.2))
     ax.autoscale_view()

@@ -6,8 +6,8 @@ solution (so value-and-gradient can run under jit) and turned into `SimulationEr
 `check_solution`, never into silent NaNs.
 """
 
-import equinox as eqx
 import diffrax
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np

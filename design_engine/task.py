@@ -42,8 +42,8 @@ from design_engine import units
 from design_engine.constraints import ConstraintLimits
 from design_engine.geometry import InvalidDesignError, block_geometry, check_design
 from design_engine.lattice import Lattice, kagome, periodic_design, quads
-from design_engine.objectives import QUANTITIES
 from design_engine.loading import PRECOMPRESSION
+from design_engine.objectives import QUANTITIES
 from design_engine.scenes import PRESETS, Scene, build_scene
 
 FORMAT = "metarig-task/1"

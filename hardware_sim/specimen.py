@@ -125,7 +125,6 @@ def simulate(specimen: Specimen, times_s, shaker_t_s, shaker_u_m, stage_t_s=None
     """
     import design_engine as de
     from design_engine.auto import contact_config
-
     from design_engine.run import smooth_input
 
     has_stages = len(specimen.scene.stage_units_top) > 0

@@ -15,9 +15,8 @@ from enum import Enum
 
 import numpy as np
 
-from metarig.fields import param
-
 from hardware_sim.shaker import LimitError
+from metarig.fields import param
 
 
 class StageMode(str, Enum):

@@ -261,7 +261,7 @@ def plot(fit, kind: str, path: Path) -> Path:
         tests = list(dict.fromkeys(c[0] for c in curves))
         fig, axes = plt.subplots(1, len(tests), figsize=(4.2 * len(tests), 3.6), squeeze=False)
         for ax, test in zip(axes[0], tests):
-            for i, (t, d, data, f, s) in enumerate(c for c in curves if c[0] == test):
+            for i, (_, d, data, f, s) in enumerate(c for c in curves if c[0] == test):
                 ax.plot(d * 1e3, data, ".", ms=2, color="0.4", label="data" if i == 0 else None)
                 ax.plot(d * 1e3, s, "--", color="tab:orange", label="start" if i == 0 else None)
                 ax.plot(d * 1e3, f, "-", color="tab:blue", label="fitted" if i == 0 else None)

@@ -9,13 +9,13 @@ import json
 import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from metarig_msgs.msg import ComparisonResult, UnitPose2DArray
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo, Image, JointState
 from std_msgs.msg import Float64, String
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from metarig.trajectory import to_absolute
-from metarig_msgs.msg import ComparisonResult, UnitPose2DArray
 
 SHAKER_JOINT = "shaker"
 STAGE_JOINTS = ("stage_bottom", "stage_top")

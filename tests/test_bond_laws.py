@@ -94,7 +94,9 @@ def test_a_new_law_is_one_function_that_the_bond_map_calls():
     terms = make_bond_terms(lat, laws=laws)(q, bonds, mat)
     assert list(terms) == ["stretch", "shear", "bend", "contact", "bend4"]
     bend = make_bond_measures(lat)(q, bonds).bend
-    extra = lambda qq: jnp.sum(0.25 * mat.k_bend * make_bond_measures(lat)(qq, bonds).bend ** 4)
+    def extra(qq):
+        return jnp.sum(0.25 * mat.k_bend * make_bond_measures(lat)(qq, bonds).bend ** 4)
+
     np.testing.assert_allclose(np.asarray(terms["bend4"]), np.asarray(0.25 * 1.5 * bend**4),
                                rtol=1e-14)
     extended = make_energy(lat, laws=laws)

@@ -12,10 +12,10 @@ the same (for pre-compressed scenes that includes the ramp's residual motion, a 
 
 import json
 import os
-import zlib
 import platform
 import statistics
 import time
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 

@@ -1,10 +1,5 @@
 """In-process launch: every rig node in one process on one MultiThreadedExecutor."""
 
-# Every node's executor work is Python holding the GIL; with the default 5 ms switch interval the
-# sequencer's clock thread waited tens of ms per 1 ms tick behind the executor threads (0.1 s of
-# simulated time took 6-7 s of wall time instead of 0.2 s); 0.5 ms lets it keep its pace.
-GIL_SWITCH_INTERVAL_S = 0.0005
-
 import logging
 import sys
 import threading
@@ -17,6 +12,11 @@ from rclpy.parameter import Parameter
 from ros_nodes.registry import NODES
 
 log = logging.getLogger("metarig.rig")
+
+# Every node's executor work is Python holding the GIL; with the default 5 ms switch interval the
+# sequencer's clock thread waited tens of ms per 1 ms tick behind the executor threads (0.1 s of
+# simulated time took 6-7 s of wall time instead of 0.2 s); 0.5 ms lets it keep its pace.
+GIL_SWITCH_INTERVAL_S = 0.0005
 
 
 def overrides(params: dict) -> list[Parameter]:

@@ -71,8 +71,9 @@ def stop_process(proc: subprocess.Popen, timeout_s: float = 15.0) -> str:
         proc.send_signal(subprocess.signal.SIGINT)
     try:
         out, _ = proc.communicate(timeout=timeout_s)
-    except subprocess.TimeoutExpired:
+    except subprocess.TimeoutExpired as exc:
         proc.kill()
         out, _ = proc.communicate()
-        raise AssertionError(f"process did not stop on SIGINT within {timeout_s} s:\n{out}")
+        raise AssertionError(
+            f"process did not stop on SIGINT within {timeout_s} s:\n{out}") from exc
     return out

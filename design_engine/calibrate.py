@@ -892,6 +892,9 @@ def fit_pulse(scene, frame_t_s, tracked_q, valid, input_t_s, input_u_m, stage_t_
             raise
         config = contact_forward_config()
         out, simulate = continuation(config)
+    # the fitted and the start curves: one compiled program for both (called as it is, each
+    # call traced the whole solve op by op, which cost more than the fit's own iterations)
+    simulate = jax.jit(simulate)
     sol = simulate(jnp.asarray(out.extra["p"]))
     out.wall_s = time.perf_counter() - t0
     out.extra["windows"] = frames

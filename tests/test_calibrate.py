@@ -200,25 +200,56 @@ def test_the_camera_calibration_of_a_run_folder_is_never_overwritten(tmp_path, c
     _one_line(capsys, [str(f), "--out", str(tmp_path)], "not a material calibration")
 
 
+def _simulated_pulse_fit(half_amplitude_m, fit, start_factors):
+    """A simulated 8x6 focusing experiment under the 1 - cos pulse u = a (1 - cos 2 pi 30 t)
+    (peak 2a), 1 kHz frames for 70 ms, truth by the rig's physics (Dopri8 with contact, not the
+    fit's fixed-step Verlet), tracked-position noise `POSITION_NOISE_M` (seed 0) on u, v; the
+    fit of `fit` from the nominal material scaled by `start_factors`. Returns (fit, truth)."""
+    from hardware_sim import specimen as sp
+    from hardware_sim.rig import MotionRecord, capture_times, specimen_motion
+
+    t_in = np.arange(0.0, 0.08, 1e-4)
+    u_in = half_amplitude_m * (1 - np.cos(2 * np.pi * 30 * np.clip(t_in - 0.005, 0, 1 / 30)))
+    s = sp.build(sp.SpecimenConfig(scene="focusing-24x16", nx=8, ny=6, bias_angle_deg=25.0))
+    times = capture_times(0.001, 0.07, 1000.0)
+    q = specimen_motion(s, times, MotionRecord(t_in, u_in), None, 1000.0).q[1:]
+    q = q + np.random.default_rng(0).normal(0, ch.POSITION_NOISE_M, q.shape) * [1, 1, 0]
+    m = s.scene.material
+    fit = cal.fit_pulse(s.scene, times, q, np.ones(q.shape[:2], bool), t_in, u_in,
+                        fit=fit, start=m.scaled(start_factors))
+    return fit, m
+
+
+def test_pulse_calibration_recovers_k_shear_within_2_percent():
+    """The README's pulse calibration on a small scene: 8x6 under a 4 mm pulse, k_shear and
+    k_bend fitted from a start 20 % off. k_shear comes back within 2 % and within 3 of its
+    standard errors, and the residual is the tracking noise.
+
+    Margins (measured): k_shear off by 0.12 %, 0.6 of its stderr (0.19 %); over noise seeds
+    0-3 the error stays within 0.4 % (stderr 0.2-0.3 %), so the 2 % bound is 5x any draw's
+    error. The noise is seeded (numpy's generator, the same draws on every machine) and the
+    fit converges to its optimum, so another CPU's rounding moves the result by orders of
+    magnitude less than that slack. Noise-free the fit is within 0.06 %: the error is the
+    noise, not a bias of the model. A 5 % slip in the model's k_shear fails the test (4.7 %
+    off). The slow test below uses the 2 mm pulse, whose k_shear scatter over seeds reaches
+    2 % (1-1.3 % stderr)."""
+    fit, m = _simulated_pulse_fit(2e-3, ("k_shear", "k_bend"),
+                                  {"k_shear": 1.2, "k_bend": 0.8})
+    t = _truth_si(m, "k_shear")
+    assert abs(fit.values["k_shear"] / t - 1) < 0.02, (fit.values["k_shear"], t)
+    assert abs(fit.values["k_shear"] - t) < 3 * fit.stderr["k_shear"], (fit.stderr, t)
+    assert fit.stderr["k_shear"] < 0.01 * t  # the data determine it (measured 0.19 %)
+    assert fit.rms == pytest.approx(ch.POSITION_NOISE_M, rel=0.2)  # measured 0.07 % below
+
+
 @pytest.mark.slow
 def test_pulse_calibration_recovers_perturbed_parameters():
     """A simulated 8x6 focusing experiment (2 mm pulse, 1 kHz frames, truth by the rig's
     physics), tracked-position noise 1.2e-5 m, fitted from a start 20 % off: k_shear within
     2 %, k_bend within 10 % (it is seen less), every error within 3 stderr; damping_u is
     barely seen by this short, quasi-static record and gets a large stderr."""
-    from hardware_sim import specimen as sp
-    from hardware_sim.rig import MotionRecord, capture_times, specimen_motion
-
-    t_in = np.arange(0.0, 0.08, 1e-4)
-    u_in = 1e-3 * (1 - np.cos(2 * np.pi * 30 * np.clip(t_in - 0.005, 0, 1 / 30)))
-    s = sp.build(sp.SpecimenConfig(scene="focusing-24x16", nx=8, ny=6, bias_angle_deg=25.0))
-    times = capture_times(0.001, 0.07, 1000.0)
-    q = specimen_motion(s, times, MotionRecord(t_in, u_in), None, 1000.0).q[1:]
-    q = q + np.random.default_rng(0).normal(0, ch.POSITION_NOISE_M, q.shape) * [1, 1, 0]
-    m = s.scene.material
-    start = m.scaled({"k_shear": 1.2, "k_bend": 0.8, "damping_u": 1.2})
-    fit = cal.fit_pulse(s.scene, times, q, np.ones(q.shape[:2], bool), t_in, u_in,
-                        fit=("k_shear", "k_bend", "damping_u"), start=start)
+    fit, m = _simulated_pulse_fit(1e-3, ("k_shear", "k_bend", "damping_u"),
+                                  {"k_shear": 1.2, "k_bend": 0.8, "damping_u": 1.2})
     for name, tol in (("k_shear", 0.02), ("k_bend", 0.10)):
         t = _truth_si(m, name)
         assert abs(fit.values[name] / t - 1) < tol, (name, fit.values[name], t)

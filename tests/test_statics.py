@@ -145,6 +145,28 @@ def test_a_static_precompression_starts_at_rest_in_the_equilibrium(scene, solver
     assert np.abs(np.asarray(sol.qdot)).max() < 1e-8  # mm/ms
 
 
+def test_the_pulse_objective_through_a_static_start_in_contact_matches_finite_differences():
+    """The slow 8x8 check below at small scale, with the start in contact: 6x6 at 7 % (its
+    equilibrium closes voids past the contact cutoff, 4.3 deg above the asymptote), a 2 mm
+    pulse, fixed-step Verlet with contact in float64 at 0.025 ms (0.53 x the stability limit at
+    the equilibrium). dJ/dx includes the implicit derivative of the start state.
+
+    A fixed-step solve is a smooth function of the design whose exact derivative autodiff
+    gives, so the central difference at h = 1e-3 mm differs from it only by O(h^2) truncation
+    and by the static solve's convergence noise over 2h: measured 5.7e-9 relative. The bound
+    1e-6 is 170x that, and far above what another CPU's rounding moves (1e-16 relative on
+    J ~ 1 mJ becomes ~2e-12 of the derivative after the division by 2h). Without the implicit derivative of the start (the equilibrium's gradient
+    cut) autodiff gives -0.080 against the difference's +0.0265: the test fails."""
+    from design_engine.fixed_step import FixedStepVerlet
+    from gradcheck import directional_check
+
+    sc = build_scene("protection-24x18", nx=6, ny=6, strain=0.07, amplitude_m=2e-3)
+    assert sc.loading.is_static
+    config = SolverConfig(solver=FixedStepVerlet(max_dt=0.025), use_contact=True,
+                          dtype="float64")
+    directional_check(sc, config, h=1e-3, seed=3, rel=1e-6, one_program=True)
+
+
 @pytest.mark.slow
 def test_the_pulse_objective_through_the_static_start_matches_finite_differences(static_scene):
     """dJ/dx of the pulse objective includes the implicit derivative of the start state."""

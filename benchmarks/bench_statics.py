@@ -136,11 +136,12 @@ def _relax(total, q0, iters: int = 60):
     (q, energy, max |g|, iterations)."""
     grad, hess = jax.jit(jax.grad(total)), jax.jit(jax.hessian(total))
     f = jax.jit(total)
-    q, mu = jnp.asarray(q0), 1e-8
-    for k in range(iters):
+    q, mu, done = jnp.asarray(q0), 1e-8, 0
+    for _ in range(iters):
         g = grad(q)
         if float(jnp.max(jnp.abs(g))) <= statics.GRADIENT_TOL:
             break
+        done += 1
         h = hess(q)
         scale = float(jnp.max(jnp.abs(jnp.diag(h))))
         e0 = float(f(q))
@@ -151,7 +152,7 @@ def _relax(total, q0, iters: int = 60):
                 q, mu = q + d, max(mu / 3, 1e-12)
                 break
             mu *= 10
-    return q, float(f(q)), float(jnp.max(jnp.abs(grad(q)))), k
+    return q, float(f(q)), float(jnp.max(jnp.abs(grad(q)))), done
 
 
 def part_branches() -> dict:

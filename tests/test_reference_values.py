@@ -17,7 +17,7 @@ FULL = SolverConfig()  # the reference configuration the anchors were produced w
 # 1e-10 on each scene below). Different integrators, precisions and contact handling: a fault
 # in either path (a force, a waveform, the stages, the policy's step) splits them. What
 # separates them when both are right is the policy's discretisation, measured per scene; the
-# bounds are 10x or more above it. The scenes respond smoothly (no jammed lattice under a
+# bounds are 9x or more above it. The scenes respond smoothly (no jammed lattice under a
 # violent pulse), so rounding on another CPU (float32 sums in another order: ~1e-6 relative)
 # moves the results far less than the slack.
 def _policy_and_reference(scene, keys):

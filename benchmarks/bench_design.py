@@ -31,7 +31,7 @@ def main(argv=None) -> int:
     import jax
 
     import design_engine  # noqa: F401
-    from design_engine.design_cli import write_outputs
+    from design_engine.run_outputs import write_outputs
     from design_engine.optimize import run_design
     from design_engine.task import load_task, preset_names
 

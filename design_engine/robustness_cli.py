@@ -302,7 +302,7 @@ def _machine() -> dict:
 
 
 def _document(scene, args, fingerprint, store, freqs, amps, status, run, wall_s) -> dict:
-    from design_engine.design_cli import provenance
+    from design_engine.run_outputs import provenance
 
     nf, na = freqs.size, amps.size
     ratio = [[None] * na for _ in range(nf)]

@@ -62,7 +62,7 @@ def run_one(spec: RunSpec, out: str) -> dict:
     Returns a small summary; everything that matters is in the run folder.
     """
     import design_engine  # noqa: F401  (x64, cache)
-    from design_engine.design_cli import write_outputs
+    from design_engine.run_outputs import write_outputs
     from design_engine.optimize import resumable, run_design
 
     folder = Path(out) / "runs" / spec.name
@@ -245,12 +245,12 @@ def pareto_main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     logging.getLogger("metarig").setLevel(logging.INFO)
 
-    from design_engine.design_cli import _size
+    from metarig.argtypes import grid_size
     from design_engine.optimize import ResumeError
     from design_engine.task import TaskError
 
     try:
-        size = None if args.size is None else _size(args.size)
+        size = None if args.size is None else grid_size(args.size)
         weights = (list(np.linspace(0.0, 1.0, args.weights)) if args.weight_list is None
                    else args.weight_list)
         if args.weight_list is None and args.weights < 1:

@@ -7,31 +7,38 @@ import argparse
 import math
 
 
-def positive(kind=int):
-    """Parser of a positive `kind` (int or float) value."""
+def _number(kind, ok, bound: str):
+    """Parser of a finite `kind` (int or float) value v with ok(v), else "must be {bound}"."""
     def parse(text: str):
         try:
             v = kind(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"expected a {kind.__name__}, got {text!r}") from None
-        if not (math.isfinite(v) and v > 0):
-            bound = "at least 1" if kind is int else "positive"
+        if not (math.isfinite(v) and ok(v)):
             raise argparse.ArgumentTypeError(f"must be {bound}, got {text}")
         return v
     return parse
 
 
+def positive(kind=int):
+    """Parser of a positive `kind` (int or float) value."""
+    return _number(kind, lambda v: v > 0, "at least 1" if kind is int else "positive")
+
+
 def non_negative(kind=int):
     """Parser of a `kind` (int or float) value >= 0 (where 0 has a meaning, e.g. "all")."""
-    def parse(text: str):
-        try:
-            v = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a {kind.__name__}, got {text!r}") from None
-        if not (math.isfinite(v) and v >= 0):
-            raise argparse.ArgumentTypeError(f"must be 0 or more, got {text}")
-        return v
-    return parse
+    return _number(kind, lambda v: v >= 0, "0 or more")
+
+
+def grid_size(text: str) -> tuple[int, int]:
+    """Parser of a lattice size NXxNY (e.g. 24x16), at least 2x2."""
+    try:
+        nx, ny = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"size must look like 24x16, got {text!r}") from None
+    if nx < 2 or ny < 2:
+        raise argparse.ArgumentTypeError(f"size needs at least 2x2, got {text!r}")
+    return nx, ny
 
 
 def text(what: str):

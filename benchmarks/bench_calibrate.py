@@ -127,7 +127,7 @@ def bench_rig(out=ROOT / "runs" / "bench-calibrate"):
     import subprocess
 
     from design_engine.material_file import default_si, save_material
-    from ros_nodes.cli_calibrate import pulse_inputs
+    from ros_nodes.recorded_run import pulse_inputs
 
     run = out / "rig"
     rig_s = None  # the recording of an earlier run is reused: no rig time measured

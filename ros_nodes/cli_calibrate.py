@@ -24,13 +24,10 @@ from pathlib import Path
 import numpy as np
 
 from metarig.argtypes import positive, text
+from ros_nodes.recorded_run import InputError, pulse_inputs
 
 KINDS = ("auto", "hinge", "oscillation", "pulse")
 HINGE_SUFFIXES = (".csv", ".txt", ".dat")
-
-
-class InputError(ValueError):
-    """A calibration input that cannot be used (one line)."""
 
 
 def detect_kind(sources: list[Path]) -> tuple[str, list[Path]]:
@@ -149,38 +146,6 @@ def calibrate_oscillation(files, fit, material_path=None, progress=None):
                               _start_material(material_path, sample.lattice), sample,
                               progress=progress)
     return out, {}
-
-
-def pulse_inputs(source: Path, poses_source: str = "auto", calibration: str | None = None,
-                 workers: int | None = None):
-    """(scene, tracked Trajectory, frame t0 s, input (t, u) as the engine takes it, stage
-    (t, closing) or None) of a run folder or .mcap: the poses and measured input exactly as
-    `metarig compare` takes them."""
-    import os
-
-    from comparison.experiment import engine_input, measured_input_of
-    from ros_nodes.cli_compare import camera_calibration_path, measured_poses, recorded_design
-    from ros_nodes.logic import comparison_run as run
-    from ros_nodes.logic.comparison_run import CompareError
-    from ros_nodes.logic.recording import RecordingError, read_recording
-
-    try:
-        rec = read_recording(source)
-        run_dir = source if source.is_dir() else None
-        scene, polygons = run.design_scene(recorded_design(rec, run_dir), where=str(rec.path))
-        tracked = measured_poses(rec, poses_source, polygons,
-                                 camera_calibration_path(run_dir, calibration),
-                                 workers or os.cpu_count() or 1, progress=False)
-        run.check_poses(scene, tracked.poses, where=str(rec.path), min_frames=5)
-        measured = measured_input_of(scene, tracked.poses, tracked.t0_s, rec.shaker_t_s,
-                                     rec.shaker_u_m, rec.stage_t_s, rec.stage_closing_m,
-                                     rec.closing_speed_m_s, rec.stage_hold_s)
-    except (RecordingError, CompareError) as exc:
-        raise InputError(str(exc)) from None
-    except ValueError as exc:
-        raise InputError(f"{source}: {exc}") from None
-    stage = None if measured.stage_t_s is None else (measured.stage_t_s, measured.stage_closing_m)
-    return scene, tracked.poses, tracked.t0_s, engine_input(measured), stage
 
 
 def calibrate_pulse(files, fit, material_path=None, poses_source="auto", calibration=None,

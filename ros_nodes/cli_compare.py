@@ -13,7 +13,6 @@ import argparse
 import logging
 import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -21,94 +20,10 @@ import numpy as np
 from metarig.argtypes import non_negative, positive, text
 from ros_nodes import topics
 from ros_nodes.logic.comparison_run import SUMMARY_KEYS, CompareError  # noqa: F401 (re-export)
+from ros_nodes.recorded_run import (POSE_SOURCES, Tracked, camera_calibration_path,
+                                    measured_poses, read_run_file, recorded_design)
 
 log = logging.getLogger("metarig.compare")
-POSE_SOURCES = ("auto", "dic", "track", "truth")
-
-
-@dataclass(frozen=True)
-class Tracked:
-    """Poses used as the measurement: their trajectory, first stamp and where they came from."""
-
-    poses: object  # metarig.trajectory.Trajectory
-    t0_s: float
-    source: str
-    tracked_here: bool
-
-
-def recorded_design(rec, run_dir: Path | None) -> dict:
-    """The design document of a recording (/rig/design), else `design.json` beside it."""
-    if rec.design is not None:
-        return rec.design
-    if run_dir is not None and (run_dir / "design.json").exists():
-        return _read_run_file(run_dir / "design.json", "design of the recording")
-    raise CompareError(f"{rec.path}: the recording holds no design (/rig/design) and no "
-                       "design.json lies beside it")
-
-
-def camera_calibration_path(run_dir: Path | None, given: str | None) -> Path | None:
-    """The camera calibration to track with: `given`, else the run folder's `calibration.json`."""
-    if given is not None:
-        return Path(given)
-    if run_dir is not None and (run_dir / "calibration.json").exists():
-        return run_dir / "calibration.json"
-    return None
-
-
-def track_recording(mcap: Path, polygons_m: np.ndarray, calibration: Path, workers: int,
-                    progress: bool, dic=None):
-    """Track every frame of the recording with the offline tracker (all cores); `dic`: a
-    `tracking.dic.DICConfig` (None: the defaults, fitted to the smallest unit)."""
-    from tracking.batch import track_source
-    from tracking.calibration import load_calibration
-    from tracking.dic import settings_for_units
-    from tracking.frame_sources import open_source
-
-    spec = open_source(mcap, topics.IMAGE.name, kind="mcap")
-    calib = load_calibration(calibration)
-    dic = dic or settings_for_units(polygons_m, calib.m_per_px)
-    traj, _bad = track_source(spec, polygons_m, calib, dic, workers=workers, progress=progress)
-    return traj
-
-
-def measured_poses(rec, source: str, polygons_m: np.ndarray, calibration: Path | None,
-                   workers: int, progress: bool, dic=None) -> Tracked:
-    """The measurement to compare, by `source` (auto: dic, else track, else an error)."""
-    from metarig.polygon import area_centroids
-    from tracking.calibration import CalibrationError
-    from tracking.frame_sources import SourceError
-
-    ref = area_centroids(polygons_m)
-    has_dic = bool(rec.pose_messages.get(topics.POSES.name))
-    if source == "auto":
-        source = "dic" if has_dic else "track"
-    if source in ("dic", "truth"):
-        topic = topics.POSES.name if source == "dic" else topics.GROUND_TRUTH.name
-        if not rec.pose_messages.get(topic):
-            raise CompareError(f"{rec.path}: no poses on {topic}"
-                               + (" (not a simulated-rig recording)" if source == "truth" else
-                                  "; use --poses track to track the frames"))
-        traj, t0 = rec.poses(topic, ref)
-        return Tracked(traj, t0, topic, False)
-    if rec.frame_t_s.size == 0:
-        raise CompareError(f"{rec.path}: the recording holds neither poses nor camera frames")
-    if calibration is None:
-        raise CompareError(f"{rec.path}: tracking the frames needs a calibration "
-                           "(calibration.json in the run folder, or --calibration FILE)")
-    try:
-        traj = track_recording(rec.path, polygons_m, calibration, workers, progress, dic)
-    except (SourceError, CalibrationError) as exc:
-        raise CompareError(str(exc)) from None
-    if traj.n_t == rec.frame_t_s.size:  # stamps, not k / fps: dropped frames stay honest
-        from dataclasses import replace
-
-        traj = replace(traj, t=rec.frame_t_s - rec.frame_t_s[0])
-        from metarig.trajectory import Trajectory
-
-        traj = Trajectory.from_positions(traj.t, traj.q, traj.quality, traj.lost, traj.complete)
-    return Tracked(traj, float(rec.frame_t_s[0]), "tracked (offline DIC)", True)
-
-
 def _frames(mcap: Path, stamps_s: np.ndarray) -> np.ndarray | None:
     """The camera frames at the given stamps, [n, H, W], or None if they do not all exist."""
     from tracking.frame_sources import SourceError, open_source, replay_frames
@@ -189,19 +104,8 @@ def _calibration(out: Path, rec) -> dict | None:
     for folder in (out, rec.path.parent):
         f = folder / "calibration.json"
         if f.exists():
-            return _read_run_file(f, "camera calibration")
+            return read_run_file(f, "camera calibration")
     return None
-
-
-def _read_run_file(path: Path, what: str) -> dict:
-    """A JSON file `metarig rig` wrote beside its recording; CompareError if damaged."""
-    from metarig.readback import DamagedFileError, read_json
-
-    try:
-        return read_json(path, what, "restore it from a copy (`metarig rig` writes it with "
-                         "the recording)")
-    except DamagedFileError as exc:
-        raise CompareError(str(exc)) from None
 
 
 def write_mcap(src: Path, dst: Path, tracked: Tracked, ec, summary: dict,

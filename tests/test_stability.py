@@ -182,6 +182,26 @@ def test_a_small_static_precompression_in_contact_starts_with_contact(jammed):
     assert not choose_config(mild).config.use_contact
 
 
+def _contact_step_sweep(scene, factors):
+    """Verlet with contact at `factors` x the stability limit (the policy's own step first)
+    against the tight reference: each row a reported failure, one `next_config` sends on to
+    Dopri8, or accepted within 0.5 % of the reference. Returns the rows."""
+    from design_engine.statics import equilibrium_state
+    from design_engine.studies.methods import reference_method
+    from design_engine.studies.stability import step_sweep_in_contact
+
+    ref = simulate_scene(scene, reference_method().config).metrics["target_ke_mean_J"]
+    rows = step_sweep_in_contact(scene, factors, ref, equilibrium_state(scene))
+    for row in rows:
+        if not row["ok"]:
+            assert re.search("diverged|non-finite|barrier", row["error"]), row
+        elif row["verdict"] == "accepted":
+            assert row["J_rel_err"] < 5e-3, row
+        else:
+            assert row["verdict"] == "Dopri8", row
+    return rows
+
+
 def test_a_small_fixed_step_in_contact_is_accurate_or_rejected(jammed):
     """The README's rule "a fixed step in contact is accurate or rejected, never silently
     wrong" on the small scene: Verlet with contact (float64) at the policy's step and 1.4x past
@@ -195,19 +215,8 @@ def test_a_small_fixed_step_in_contact_is_accurate_or_rejected(jammed):
     the design and the step (above), so rounding on another CPU moves them by far less. A
     rule that let a diverged or drifting solve through as numbers would fail here."""
     from design_engine.auto import STABILITY_SAFETY
-    from design_engine.statics import equilibrium_state
-    from design_engine.studies.methods import reference_method
-    from design_engine.studies.stability import step_sweep_in_contact
 
-    ref = simulate_scene(jammed, reference_method().config).metrics["target_ke_mean_J"]
-    rows = step_sweep_in_contact(jammed, (STABILITY_SAFETY, 1.4), ref, equilibrium_state(jammed))
-    for row in rows:
-        if not row["ok"]:
-            assert re.search("diverged|non-finite|barrier", row["error"]), row
-        elif row["verdict"] == "accepted":
-            assert row["J_rel_err"] < 5e-3, row
-        else:
-            assert row["verdict"] == "Dopri8", row
+    rows = _contact_step_sweep(jammed, (STABILITY_SAFETY, 1.4))
     assert rows[0]["ok"] and rows[0]["verdict"] == "accepted" and rows[0]["J_rel_err"] < 1e-4
     assert not rows[-1]["ok"]  # past the limit: a reported failure, not numbers
 
@@ -234,19 +243,7 @@ def test_a_fixed_step_in_contact_is_accurate_or_rejected_never_silently_wrong():
     (12x10 at 5 %): every result is a reported failure, or one `next_config` sends on to Dopri8,
     or within 0.5 % of the tight reference; at the policy's step it is accepted."""
     from design_engine.auto import STABILITY_SAFETY
-    from design_engine.statics import equilibrium_state
-    from design_engine.studies.methods import reference_method
-    from design_engine.studies.stability import step_sweep_in_contact
 
     scene = build_scene("protection-24x18", nx=12, ny=10, strain=0.05)
-    ref = simulate_scene(scene, reference_method().config).metrics["target_ke_mean_J"]
-    rows = step_sweep_in_contact(scene, (STABILITY_SAFETY, 1.0, 1.4), ref,
-                                 equilibrium_state(scene))
-    for row in rows:
-        if not row["ok"]:
-            assert re.search("diverged|non-finite|barrier", row["error"]), row
-        elif row["verdict"] == "accepted":
-            assert row["J_rel_err"] < 5e-3, row
-        else:
-            assert row["verdict"] == "Dopri8", row
+    rows = _contact_step_sweep(scene, (STABILITY_SAFETY, 1.0, 1.4))
     assert rows[0]["ok"] and rows[0]["verdict"] == "accepted"

@@ -2,7 +2,8 @@
 
 Public API re-exported here. The engine runs in float64 (enabled on import) and keeps a
 persistent XLA compilation cache (directory `$METARIG_JAX_CACHE`, default
-`~/.cache/metarig/jax`; set it to an empty string to disable). Errors inside compiled code are
+`~/.cache/metarig/jax`; set it to an empty string to disable; programs that took at least
+`$METARIG_JAX_CACHE_MIN_S` seconds to compile are kept, default 0.5; the test suite keeps all). Errors inside compiled code are
 turned into NaN (`EQX_ON_ERROR=nan`, required for the cache to hold diffrax programs) and every
 run checks its results for NaN and solver failure itself.
 """
@@ -22,7 +23,8 @@ jax.config.update("jax_enable_x64", True)
 _cache = os.environ.get("METARIG_JAX_CACHE", os.path.expanduser("~/.cache/metarig/jax"))
 if _cache:
     jax.config.update("jax_compilation_cache_dir", _cache)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs",
+                      float(os.environ.get("METARIG_JAX_CACHE_MIN_S", "0.5")))
 
 from design_engine.constraints import ConstraintLimits as ConstraintLimits  # noqa: E402
 from design_engine.constraints import make_constraints as make_constraints  # noqa: E402

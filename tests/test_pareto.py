@@ -16,7 +16,13 @@ from design_engine.pareto import dominates, front_indices, pareto_front
 from design_engine.sweep import RunSpec, evaluations_on_disk, pareto_main, run_sweep
 from design_engine.task import TaskError, load_task
 
-SWEEP = dict(weights=[0.0, 0.5, 1.0], starts=[20.0, 30.0], max_evals=3, size=(8, 6))
+# 2 weights x 1 start x 2 evaluations: a run per worker of the test cluster, a killed run
+# resumes between its evaluations, a killed or stopped one-worker command has a run left, and
+# the front is that of 4 points (3 weights x 2 starts x 3 evaluations proved no more)
+SWEEP = dict(weights=[0.0, 1.0], starts=[20.0], max_evals=2, size=(8, 6))
+N_RUNS, N_EVALS = 2, 2
+SPECS = [RunSpec("splitting", w, s, N_EVALS, (8, 6)) for w in SWEEP["weights"]
+         for s in SWEEP["starts"]]
 
 
 def _brute_force(points, senses):
@@ -73,7 +79,22 @@ def _points(out: Path):
     return json.loads((out / "points.json").read_text())["points"]
 
 
-def test_a_sweep_survives_a_killed_worker_and_finds_the_front(tmp_path, cluster):
+@pytest.fixture(scope="module")
+def straight(tmp_path_factory, cluster):
+    """SWEEP run once without interruption on the test cluster: the reference of the resumes."""
+    from design_engine.sweep import run_one
+
+    lc, client = cluster
+    out = tmp_path_factory.mktemp("pareto") / "straight"
+    # its first run alone on one worker: the other worker then loads the compiled programs from
+    # the cache instead of compiling them at the same time (the sweep skips the finished run)
+    first = next(iter(client.scheduler_info()["workers"]))
+    client.submit(run_one, SPECS[0], str(out), workers=[first], pure=False).result()
+    run_sweep("splitting", out, scheduler=lc.scheduler_address, progress=False, **SWEEP)
+    return _points(out)
+
+
+def test_a_sweep_survives_a_killed_worker_and_finds_the_front(tmp_path, cluster, straight):
     lc, client = cluster
     out = tmp_path / "sweep"
     result = {}
@@ -96,15 +117,14 @@ def test_a_sweep_survives_a_killed_worker_and_finds_the_front(tmp_path, cluster)
         time.sleep(0.05)
     th.join(timeout=600)
     assert killed is not None and "r" in result
-    assert len(result["r"]["runs"]) == 6
+    assert len(result["r"]["runs"]) == N_RUNS
     points = _points(out)
-    assert len(points) == 6 * 3  # every run finished its budget despite the lost worker
-    specs = [RunSpec("splitting", w, s, 3, (8, 6)) for w in SWEEP["weights"]
-             for s in SWEEP["starts"]]
-    assert evaluations_on_disk(out, specs) == len(points)  # what the progress bar counts
+    assert len(points) == N_RUNS * N_EVALS  # every run finished its budget despite the lost worker
+    assert points == straight  # and the killed run resumed to the uninterrupted result
+    assert evaluations_on_disk(out, SPECS) == len(points)  # what the progress bar counts
     for run in {p["run"] for p in points}:
         hist = json.loads((out / "runs" / run / "history.json").read_text())["evaluations"]
-        assert [e["eval"] for e in hist] == [1, 2, 3]
+        assert [e["eval"] for e in hist] == list(range(1, N_EVALS + 1))
     front = json.loads((out / "front.json").read_text())["front"]
     brute = _brute_force(points, ("max", "max"))
     assert [(p["J1"], p["J2"]) for p in front] == [(p["J1"], p["J2"]) for p in brute]
@@ -156,14 +176,15 @@ def test_a_run_that_fails_leaves_the_others_to_finish(tmp_path, cluster):
 
 def _sweep_args(out: Path) -> list[str]:
     """`metarig pareto` arguments of SWEEP's settings (without the workers)."""
-    return ["pareto", "splitting", "--out", str(out), "--size", "8x6", "--weight-list", "0,0.5,1",
-            "--starts", "20,30", "--max-evals", "3", "--quiet"]
+    return ["pareto", "splitting", "--out", str(out), "--size", "8x6", "--weight-list", "0,1",
+            "--starts", "20", "--max-evals", str(N_EVALS), "--quiet"]
 
 
 def _sweep_command(out: Path, until) -> subprocess.Popen:
-    """Start `metarig pareto` (SWEEP's settings, 2 local workers, its own process group) and
-    return once `until(run.json document)` holds for one of its runs (or after 300 s)."""
-    cmd = [sys.executable, "-m", "metarig", *_sweep_args(out), "--workers", "2"]
+    """Start `metarig pareto` (SWEEP's settings, its own local cluster of one worker, its own
+    process group) and return once `until(run.json document)` holds for one of its runs (or
+    after 300 s). One worker: each starts JAX and traces the programs again."""
+    cmd = [sys.executable, "-m", "metarig", *_sweep_args(out), "--workers", "1"]
     with open(out.parent / f"{out.name}.stderr", "w") as err:  # a file: a pipe could fill
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err,
                                 start_new_session=True)
@@ -175,10 +196,9 @@ def _sweep_command(out: Path, until) -> subprocess.Popen:
     return proc
 
 
-def test_a_killed_sweep_command_resumes_to_the_uninterrupted_result(tmp_path, cluster):
+def test_a_killed_sweep_command_resumes_to_the_uninterrupted_result(tmp_path, cluster,
+                                                                     straight):
     lc, _ = cluster
-    straight = tmp_path / "straight"
-    run_sweep("splitting", straight, scheduler=lc.scheduler_address, progress=False, **SWEEP)
     out = tmp_path / "killed"
     proc = _sweep_command(out, lambda run: run.get("status") == "complete")
     os.killpg(proc.pid, signal.SIGKILL)  # the command, its scheduler and its workers
@@ -192,7 +212,7 @@ def test_a_killed_sweep_command_resumes_to_the_uninterrupted_result(tmp_path, cl
     assert pareto_main(_sweep_args(out)[1:] + ["--scheduler", lc.scheduler_address]) == 0
     assert {n: (out / "runs" / n / "history.json").stat().st_mtime_ns for n in complete} == \
         written  # finished runs were not repeated
-    assert _points(out) == _points(straight)
+    assert _points(out) == straight
 
 
 def test_a_stopped_sweep_writes_the_front_of_what_it_has(tmp_path):
@@ -207,9 +227,8 @@ def test_a_stopped_sweep_writes_the_front_of_what_it_has(tmp_path):
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
     assert proc.returncode == 130, (tmp_path / "stopped.stderr").read_text()[-2000:]
-    specs = [RunSpec("splitting", w, s, 3, (8, 6)) for w in (0.0, 0.5, 1.0) for s in (20.0, 30.0)]
     points = _points(out)
-    assert 1 <= len(points) == evaluations_on_disk(out, specs) < 18
+    assert 1 <= len(points) == evaluations_on_disk(out, SPECS) < N_RUNS * N_EVALS
     front = json.loads((out / "front.json").read_text())["front"]
     assert [(p["J1"], p["J2"]) for p in front] == \
         [(p["J1"], p["J2"]) for p in _brute_force(points, ("max", "max"))]

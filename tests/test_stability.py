@@ -8,13 +8,18 @@ import numpy as np
 import pytest
 
 from design_engine import run as run_mod
-from design_engine.auto import Choice, choose_config, contact_config, max_angular_frequency
+from design_engine.auto import (STABILITY_SAFETY, Choice, choose_config, contact_config,
+                                max_angular_frequency)
 from design_engine.fixed_step import FixedStepVerlet
 from design_engine.modal import modal_analysis
 from design_engine.run import simulate_scene
 from design_engine.scenes import build_scene
 from design_engine.simulate import SimulationError, SolverConfig
 from gradcheck import directional_check
+
+# the tight Dopri8 reference (`studies.methods.reference_method`): one compiled program for the
+# 8x6 focusing lattice, shared by the two tests that solve its designs with it
+TIGHT = SolverConfig(solver=contact_config().solver, rtol=1e-11, atol=1e-9, max_steps=400_000)
 
 
 @pytest.fixture(scope="module")
@@ -36,7 +41,7 @@ def test_fixed_step_above_the_stability_limit_is_reported(small, factor):
 
 
 def test_fixed_step_below_the_limit_matches_the_adaptive_reference(small):
-    ref = simulate_scene(small, SolverConfig(rtol=1e-10, atol=1e-9)).metrics["target_ke_mean_J"]
+    ref = simulate_scene(small, TIGHT).metrics["target_ke_mean_J"]
     dt = 0.6 * 2.0 / max_angular_frequency(small)
     for dtype in ("float64", "float32"):
         got = simulate_scene(small, SolverConfig(solver=FixedStepVerlet(max_dt=dt), dtype=dtype))
@@ -45,16 +50,21 @@ def test_fixed_step_below_the_limit_matches_the_adaptive_reference(small):
 
 def test_fixed_step_gradient_matches_finite_differences(small):
     config = SolverConfig(solver=FixedStepVerlet(max_dt=0.6 * 2.0 / max_angular_frequency(small)))
-    directional_check(small, config, h=1e-4, seed=4, rel=1e-5)
+    directional_check(small, config, h=1e-4, seed=4, rel=1e-5, one_program=True)
 
 
-def test_contact_stiffened_precompression_breaks_a_too_large_fixed_step():
-    # 8 % pre-compression closes voids onto the contact barrier: a step that is fine at rest fails,
-    # and the failure is detected (never returned as numbers)
-    scene = build_scene("protection-24x18", nx=8, ny=8, strain=0.08)
-    dt = 0.9 * 2.0 / max_angular_frequency(scene)
-    with pytest.raises(SimulationError, match="diverged|non-finite|barrier"):
-        simulate_scene(scene, SolverConfig(solver=FixedStepVerlet(max_dt=dt)))
+def test_contact_stiffened_precompression_breaks_a_too_large_fixed_step(jammed_omega,
+                                                                        jammed_sweep):
+    """7 % pre-compression closes voids past the contact cutoff: a step that is fine at rest
+    (below 2 / omega_max of the lattice at rest) fails, and the failure is detected (never
+    returned as numbers). The step is the small sweep's last, 1.4 x the limit at the
+    equilibrium (Verlet with contact, float64): measured 0.955 x the limit at rest (omega_max
+    29.0 rad/ms at rest, 42.5 in the equilibrium, from power iterations converged to 1e-3)."""
+    rest, equilibrium = jammed_omega
+    dt = jammed_sweep[-1]["dt_over_limit"] * 2.0 / equilibrium
+    assert dt < 0.97 * 2.0 / rest  # fine at rest
+    assert not jammed_sweep[-1]["ok"]
+    assert re.search("diverged|non-finite|barrier", jammed_sweep[-1]["error"])
 
 
 def test_automatic_choice_says_what_it_picked_and_falls_back(small, monkeypatch):
@@ -64,8 +74,9 @@ def test_automatic_choice_says_what_it_picked_and_falls_back(small, monkeypatch)
     run = simulate_scene(small)
     assert any("Verlet" in r for r in run.metrics["solver"]["choice"])
     # a choice that cannot work is replaced by the adaptive solver, and the summary says so
-    bad = Choice(SolverConfig(solver=FixedStepVerlet(max_dt=5 * choice.config.solver.max_dt)),
-                 ("deliberately unstable",))
+    # 1.6 x the stability limit, the step (and so the program) of the test above
+    bad = Choice(SolverConfig(solver=FixedStepVerlet(
+        max_dt=1.6 / STABILITY_SAFETY * choice.config.solver.max_dt)), ("deliberately unstable",))
     monkeypatch.setattr(run_mod, "default_choice", lambda scene: bad)
     run = simulate_scene(small)
     assert run.metrics["solver"]["solver"] == "Dopri8"
@@ -90,8 +101,7 @@ def test_contact_left_out_only_while_it_is_exactly_zero():
     assert auto.metrics["solver"]["dtype"] == "float64"
     assert "re-solved with contact (Verlet at the same step)" in why[-1]
     assert auto.metrics["solver"]["resolves"] == why[-1:]
-    tight = SolverConfig(solver=contact_config().solver, rtol=1e-11, atol=1e-9, max_steps=400_000)
-    full = simulate_scene(scene, tight)
+    full = simulate_scene(scene, TIGHT)
     assert auto.metrics["target_ke_mean_J"] == pytest.approx(full.metrics["target_ke_mean_J"],
                                                              rel=0.05)
 
@@ -126,17 +136,18 @@ def test_a_barrier_stiffer_than_the_fixed_step_moves_on_to_dopri8():
         np.sqrt(2.0 * float(mat.k_contact) / inertia), rel=1e-12)
 
 
-def test_precompressed_scenes_step_from_the_static_state_and_the_ramp_uses_dopri8():
-    static = build_scene("protection-24x18", nx=8, ny=8, strain=0.05)
-    choice = choose_config(static)
+def test_precompressed_scenes_step_from_the_static_state_and_the_ramp_uses_dopri8(
+        jammed_choice, jammed_omega):
+    """On the small static pre-compression below (6x6 at 7 %) and its ramp variant."""
+    choice = jammed_choice
     assert isinstance(choice.config.solver, FixedStepVerlet)
     assert "in the static pre-compression" in choice.reasons[0]
-    # the step follows the stiffer pre-compressed state, not the state at rest
-    from design_engine.modal import prestressed_state
-    assert choice.omega_max == pytest.approx(
-        max_angular_frequency(static, state=prestressed_state(static)), rel=1e-9)
-    assert choice.omega_max > 1.05 * max_angular_frequency(static)
-    ramp = build_scene("protection-24x18", nx=8, ny=8, strain=0.05, precompression="ramp")
+    # the step follows the stiffer pre-compressed state, not the state at rest (measured 1.47 x)
+    rest, equilibrium = jammed_omega
+    assert choice.omega_max == pytest.approx(equilibrium, rel=1e-9)
+    assert choice.omega_max > 1.05 * rest
+    ramp = build_scene("protection-24x18", nx=6, ny=6, strain=0.07, amplitude_m=2e-3,
+                       precompression="ramp")
     choice = choose_config(ramp)
     assert choice.config == contact_config() and "Dopri8" in choice.reasons[0]
 
@@ -166,15 +177,39 @@ def jammed():
     return build_scene("protection-24x18", nx=6, ny=6, strain=0.07, amplitude_m=2e-3)
 
 
-def test_a_small_static_precompression_in_contact_starts_with_contact(jammed):
+@pytest.fixture(scope="module")
+def jammed_state(jammed):
+    from design_engine.modal import prestressed_state
+
+    return prestressed_state(jammed)
+
+
+@pytest.fixture(scope="module")
+def jammed_omega(jammed, jammed_state):
+    """omega_max (rad/ms) of the jammed scene at rest and in its equilibrium."""
+    return max_angular_frequency(jammed), max_angular_frequency(jammed, state=jammed_state)
+
+
+@pytest.fixture(scope="module")
+def jammed_choice(jammed):
+    return choose_config(jammed)
+
+
+@pytest.fixture(scope="module")
+def jammed_sweep(jammed):
+    """The small scene's contact step sweep (see the test below), run once for the module."""
+    return _contact_step_sweep(jammed, (STABILITY_SAFETY, 1.4))
+
+
+def test_a_small_static_precompression_in_contact_starts_with_contact(jammed, jammed_state,
+                                                                      jammed_choice):
     """The slow 12x10 check below at small scale: the policy sees the equilibrium's contact and
     solves with it from the first solve; at 1 % the same lattice is out of contact."""
     from design_engine.auto import static_void_margin
-    from design_engine.modal import prestressed_state
 
     span = float(jammed.material.contact_cutoff - jammed.material.contact_min)
-    assert static_void_margin(jammed, prestressed_state(jammed)) < span  # measured 0.86 span
-    choice = choose_config(jammed)
+    assert static_void_margin(jammed, jammed_state) < span  # measured 0.86 span
+    choice = jammed_choice
     assert choice.config.use_contact and choice.config.dtype == "float64"
     assert isinstance(choice.config.solver, FixedStepVerlet)
     assert "already closes voids past the contact cutoff" in choice.reasons[-1]
@@ -202,7 +237,7 @@ def _contact_step_sweep(scene, factors):
     return rows
 
 
-def test_a_small_fixed_step_in_contact_is_accurate_or_rejected(jammed):
+def test_a_small_fixed_step_in_contact_is_accurate_or_rejected(jammed_sweep):
     """The README's rule "a fixed step in contact is accurate or rejected, never silently
     wrong" on the small scene: Verlet with contact (float64) at the policy's step and 1.4x past
     the stability limit, against the tight Dopri8 reference (the slow 12x10 test below also
@@ -214,9 +249,7 @@ def test_a_small_fixed_step_in_contact_is_accurate_or_rejected(jammed):
     and 1e-4 bounds are 800x and 16x the error at the policy's step; the solves are smooth in
     the design and the step (above), so rounding on another CPU moves them by far less. A
     rule that let a diverged or drifting solve through as numbers would fail here."""
-    from design_engine.auto import STABILITY_SAFETY
-
-    rows = _contact_step_sweep(jammed, (STABILITY_SAFETY, 1.4))
+    rows = jammed_sweep  # _contact_step_sweep(jammed, (STABILITY_SAFETY, 1.4))
     assert rows[0]["ok"] and rows[0]["verdict"] == "accepted" and rows[0]["J_rel_err"] < 1e-4
     assert not rows[-1]["ok"]  # past the limit: a reported failure, not numbers
 
@@ -242,8 +275,6 @@ def test_a_fixed_step_in_contact_is_accurate_or_rejected_never_silently_wrong():
     """Verlet with contact at and past the policy's step on a static pre-compression in contact
     (12x10 at 5 %): every result is a reported failure, or one `next_config` sends on to Dopri8,
     or within 0.5 % of the tight reference; at the policy's step it is accepted."""
-    from design_engine.auto import STABILITY_SAFETY
-
     scene = build_scene("protection-24x18", nx=12, ny=10, strain=0.05)
     rows = _contact_step_sweep(scene, (STABILITY_SAFETY, 1.0, 1.4))
     assert rows[0]["ok"] and rows[0]["verdict"] == "accepted"

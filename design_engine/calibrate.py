@@ -24,6 +24,7 @@ engine's `Material` (k_stretch, k_shear N/m; k_bend N m/rad; damping_u N s/m; da
 N m s) plus `damping_ratio` (1).
 """
 
+import functools
 import math
 import time
 from dataclasses import dataclass, field
@@ -203,7 +204,7 @@ def covariance(J: np.ndarray, r: np.ndarray, clusters=None) -> tuple[np.ndarray,
 
 def run_fit(residual, names: list, log_params: list, start_si: dict, units: dict,
             residual_unit: str, scale: float = 1.0, max_iter: int = 40, p0=None,
-            progress=None, stage: str = "", clusters=None) -> Fit:
+            progress=None, stage: str = "", clusters=None, residual_and_jacobian=None) -> Fit:
     """Fit `residual(p) -> r [n]` (jax, internal units) over p (log-ratio or linear per name).
 
     Args:
@@ -221,18 +222,28 @@ def run_fit(residual, names: list, log_params: list, start_si: dict, units: dict
         clusters: optional [n] group id per residual, or a pair of them (two-way): standard
             errors from the cluster-robust covariance (`covariance`);
             `extra["stderr_gauss_newton"]` keeps the plain ones.
+        residual_and_jacobian: optional `p -> (r [n], dr/dp [n, n_p])` used instead of
+            `jax.jacfwd` of `residual` (which may then be None): for models whose compiled
+            programs are shared with other fits.
+
+    `extra["r"]`: the residual at the returned p (internal units).
     """
     t0 = time.perf_counter()
-    def with_value(p):
-        r = residual(p)
-        return r, r  # the residual once: its Jacobian and (as aux) its value
+    if residual_and_jacobian is None:
+        def with_value(p):
+            r = residual(p)
+            return r, r  # the residual once: its Jacobian and (as aux) its value
 
-    jac = jax.jit(jax.jacfwd(with_value, has_aux=True))
+        jac = jax.jit(jax.jacfwd(with_value, has_aux=True))
+
+        def residual_and_jacobian(p):
+            J, r = jac(jnp.asarray(p))
+            return r, J
 
     count = [0]
 
     def fun(p):
-        J, r = jac(jnp.asarray(p))
+        r, J = residual_and_jacobian(p)
         r, J = np.asarray(r, np.float64), np.asarray(J, np.float64)
         count[0] += 1
         if progress is not None:
@@ -265,7 +276,7 @@ def run_fit(residual, names: list, log_params: list, start_si: dict, units: dict
                sigma=math.sqrt(s2) * scale, n=int(r.size), dof=dof, iterations=iters,
                converged=ok, correlation=corr, residual_unit=residual_unit,
                wall_s=time.perf_counter() - t0,
-               extra={"p": p, "stderr_gauss_newton": stderr_gn})
+               extra={"p": p, "r": r, "stderr_gauss_newton": stderr_gn})
 
 
 def start_damping_ratio(start: Material, lattice: Lattice) -> float:
@@ -349,8 +360,13 @@ class HingeSample:
     free: np.ndarray
 
 
+@functools.lru_cache(maxsize=8)
 def hinge_sample(nx: int = 4, ny: int = 6, bias_angle_deg: float = 20.0) -> HingeSample:
-    """The spec 12.1 sample (4 x 4 free units plus a clamped row top and bottom, bias 20 deg)."""
+    """The spec 12.1 sample (4 x 4 free units plus a clamped row top and bottom, bias 20 deg).
+
+    One object per set of arguments (cached, immutable): the compiled hinge-test programs
+    (`make_hinge_forces`) are kept per sample, so the file generation, every fit and the plot
+    share them."""
     lat = quads(nx, ny)
     x = periodic_design(lat, math.radians(bias_angle_deg))
     bottom, top = row_units(lat, 0), row_units(lat, ny - 1)
@@ -360,7 +376,8 @@ def hinge_sample(nx: int = 4, ny: int = 6, bias_angle_deg: float = 20.0) -> Hing
 
 
 def make_hinge_forces(sample: HingeSample, test: str, newton_steps: int = 3):
-    """Factory: `forces(k [3], d_mm [n]) -> F [n]` reaction force of the test, N.
+    """Factory: `forces(k [3], d_mm [n]) -> F [n]` reaction force of the test, N (jitted), with
+    `forces.with_jacobian(k, d_mm) -> (F [n], dF/dk [n, 3])` (jitted, forward mode).
 
     `k` = (k_stretch N/mm, k_shear N/mm, k_bend N mm/rad); `d_mm` = displacement magnitudes,
     increasing from 0 in small steps, mm. Quasi-static path following: at each displacement
@@ -369,38 +386,58 @@ def make_hinge_forces(sample: HingeSample, test: str, newton_steps: int = 3):
     dq/dk (exact at an equilibrium). The
     force is the sum over the top row of dV/dq on the loaded DOF times the sign of the motion
     (spec 12.1: +1, -1, +1 for tension, compression, shear), so every test reads positive.
+
+    The three tests run one compiled program per sample (the loaded DOFs and the sign are its
+    arguments), kept per (sample, newton_steps) (samples compare by identity): the generation
+    of test files, every fit and their plots share it.
     """
     if test not in HINGE_TESTS:
         raise CalibrationError(f"unknown hinge test {test!r} (choose from {', '.join(HINGE_TESTS)})")
     dof, sign, _ = HINGE_TESTS[test]
+    forces_j, with_jacobian_j = _hinge_programs(sample, newton_steps)
+    loaded = jnp.asarray(3 * np.asarray(sample.top) + dof)
+    sign = jnp.asarray(sign, jnp.float64)
+
+    def forces(k, d_mm):
+        return forces_j(k, d_mm, loaded, sign)
+
+    def with_jacobian(k, d_mm):
+        return with_jacobian_j(k, d_mm, loaded, sign)
+
+    forces.with_jacobian = with_jacobian
+    return forces
+
+
+@functools.lru_cache(maxsize=16)
+def _hinge_programs(sample: HingeSample, newton_steps: int):
+    """The jitted `forces(k, d_mm, loaded, sign)` and `with_jacobian(...)` of a sample
+    (`make_hinge_forces`): `loaded` [nx] the driven DOF ids of the top row, `sign` +-1."""
     lat = sample.lattice
     energy = make_energy(lat, use_contact=False)
     geom = block_geometry(lat, jnp.asarray(sample.design))
     bonds = bond_geometry(lat, geom)
     free = jnp.asarray(sample.free)
-    loaded = jnp.asarray(3 * np.asarray(sample.top) + dof)
     nb = lat.n_blocks
 
-    def full(qf, d):
+    def full(qf, d, loaded, sign):
         return jnp.zeros(3 * nb, qf.dtype).at[free].set(qf).at[loaded].set(sign * d)
 
     def total(qfull, k):
         mat = sample.material.replaced(**dict(zip(STIFFNESSES, (k[0], k[1], k[2]))))
         return energy(qfull.reshape(nb, 3), bonds, mat)
 
-    def grad_f(qf, d, k):
-        return jax.grad(lambda z: total(full(z, d), k))(qf)
+    def grad_f(qf, d, k, loaded, sign):
+        return jax.grad(lambda z: total(full(z, d, loaded, sign), k))(qf)
 
-    def hess_f(qf, d, k):
-        return jax.hessian(lambda z: total(full(z, d), k))(qf)
+    def hess_f(qf, d, k, loaded, sign):
+        return jax.hessian(lambda z: total(full(z, d, loaded, sign), k))(qf)
 
-    @jax.jit
-    def path(k, d_mm):
+    def path(k, d_mm, loaded, sign):
         """[n, n_f] equilibria along the ramp (no derivatives), secant predictor + Newton."""
         def step(carry, d):
             q1, q2 = carry
             def newton(_, z):
-                return z - spd_solve(hess_f(z, d, k), grad_f(z, d, k))
+                return z - spd_solve(hess_f(z, d, k, loaded, sign), grad_f(z, d, k, loaded, sign))
 
             q = jax.lax.fori_loop(0, newton_steps, newton, 2.0 * q1 - q2)
             return (q, q1), q
@@ -408,19 +445,27 @@ def make_hinge_forces(sample: HingeSample, test: str, newton_steps: int = 3):
         z = jnp.zeros(free.size)
         return jax.lax.scan(step, (z, z), d_mm)[1]
 
-    def force_at(qs, d, k):
-        h = jax.lax.stop_gradient(hess_f(qs, d, jax.lax.stop_gradient(k)))
-        qd = implicit_point(qs, -spd_solve(h, grad_f(qs, d, k)))
-        g = jax.grad(lambda qq: total(qq, k))(full(qd, d))
+    def force_at(qs, d, k, loaded, sign):
+        h = jax.lax.stop_gradient(hess_f(qs, d, jax.lax.stop_gradient(k), loaded, sign))
+        qd = implicit_point(qs, -spd_solve(h, grad_f(qs, d, k, loaded, sign)))
+        g = jax.grad(lambda qq: total(qq, k))(full(qd, d, loaded, sign))
         return sign * jnp.sum(g[loaded])
 
-    def forces(k, d_mm):
+    def forces(k, d_mm, loaded, sign):
         k = jnp.asarray(k, jnp.float64)
         d_mm = jnp.asarray(d_mm, jnp.float64)
-        qs = path(jax.lax.stop_gradient(k), d_mm)  # the path carries no derivative
-        return jax.vmap(force_at, in_axes=(0, 0, None))(qs, d_mm, k)
+        qs = path(jax.lax.stop_gradient(k), d_mm, loaded, sign)  # the path carries no derivative
+        return jax.vmap(force_at, in_axes=(0, 0, None, None, None))(qs, d_mm, k, loaded, sign)
 
-    return forces
+    def with_jacobian(k, d_mm, loaded, sign):
+        def both(kk):
+            f = forces(kk, d_mm, loaded, sign)
+            return f, f
+
+        jac, f = jax.jacfwd(both, has_aux=True)(jnp.asarray(k, jnp.float64))
+        return f, jac
+
+    return jax.jit(forces), jax.jit(with_jacobian)
 
 
 @dataclass(frozen=True)
@@ -518,26 +563,34 @@ def fit_hinge(records: list, fit=STIFFNESSES, start: Material | None = None,
     names = _check_fit_names(list(fit), STIFFNESSES, "hinge")
     sample = sample or hinge_sample()
     start = start or sample.material
-    k0 = jnp.asarray([getattr(start, n) for n in STIFFNESSES])
-    models = {t: make_hinge_forces(sample, t) for t in {r.test for r in records}}
+    k0 = np.asarray([float(getattr(start, n)) for n in STIFFNESSES], np.float64)
+    models = {t: make_hinge_forces(sample, t).with_jacobian for t in {r.test for r in records}}
     grids = [hinge_grid(r, n_grid) for r in records]
-    idx = jnp.asarray([STIFFNESSES.index(n) for n in names])
-
-    def stiff(p):
-        return k0 * jnp.exp(jnp.zeros(3).at[idx].set(p))
+    idx = np.asarray([STIFFNESSES.index(n) for n in names])
 
     def model(p):
-        k = stiff(p)
-        return [models[r.test](k, np.r_[0.0, g[0] * 1e3])[1:] for r, g in zip(records, grids)]
+        """Per run: (force [k], d force / d p [k, n_p]); p = log(k / k0) at `idx`. The path
+        starts from rest: its first point is d = 0 (dropped)."""
+        lk = np.zeros(3)
+        lk[idx] = p
+        k = k0 * np.exp(lk)
+        out = []
+        for r, g in zip(records, grids):
+            f, dk = models[r.test](k, np.r_[0.0, g[0] * 1e3])
+            out.append((np.asarray(f, np.float64)[1:],
+                        np.asarray(dk, np.float64)[1:, idx] * k[idx]))  # d k / d p = k
+        return out
 
-    def residual(p):
-        return jnp.concatenate([m - g[1] for m, g in zip(model(p), grids)])
+    def residual_and_jacobian(p):
+        m = model(np.asarray(p, np.float64))
+        return (np.concatenate([f - g[1] for (f, _), g in zip(m, grids)]),
+                np.concatenate([j for _, j in m]))
 
     start_si = start.to_si()
-    out = run_fit(residual, names, names, start_si, SI_UNITS, "N", progress=progress,
-                  stage="hinge")
-    fitted, first = model(jnp.asarray(out.extra["p"])), model(jnp.zeros(len(names)))
-    out.extra["curves"] = [(r.test, g[0], g[1], np.asarray(f), np.asarray(s))
+    out = run_fit(None, names, names, start_si, SI_UNITS, "N", progress=progress,
+                  stage="hinge", residual_and_jacobian=residual_and_jacobian)
+    fitted, first = model(out.extra["p"]), model(np.zeros(len(names)))
+    out.extra["curves"] = [(r.test, g[0], g[1], f[0], s[0])
                            for r, g, f, s in zip(records, grids, fitted, first)]
     return out
 
@@ -565,9 +618,11 @@ class OscillationSample:
         return 1
 
 
+@functools.lru_cache(maxsize=8)
 def oscillation_sample(spacing_mm: float = 15.0) -> OscillationSample:
     """The spec 12.2 sample: the bottom row of a 2 x 2 square-unit lattice with its one
-    horizontal ligament (the smallest `quads` lattice, cut down to two units and one bond)."""
+    horizontal ligament (the smallest `quads` lattice, cut down to two units and one bond).
+    One object per spacing (cached, immutable)."""
     import dataclasses
 
     big = quads(2, 2, spacing=spacing_mm)
@@ -589,16 +644,29 @@ def oscillation_config(rtol: float = 1e-8, atol: float = 1e-7):
 
 
 def make_oscillation_model(sample: OscillationSample, ts_ms, config=None):
-    """Factory: `rotation(material, phi0, omega0) -> theta [n_t]` of the free unit, rad.
+    """Factory: `rotation(material, phi0, omega0) -> theta [n_t]` of the free unit, rad (jitted).
 
     The unit is held at rotation `phi0` (rad, its translation in equilibrium: Newton on u, v)
     with angular velocity `omega0` (rad/ms) at t = 0 and then free; `ts_ms` [n_t] >= 0 sample
-    times, ms. Differentiable in the material, phi0 and omega0.
+    times, ms. Differentiable in the material, phi0 and omega0. With the default `config` the
+    model is kept per (sample, sample times): the simulated video and its fit share its trace.
     """
+    if config is None:
+        ts = np.ascontiguousarray(ts_ms, np.float64)
+        return _default_oscillation_model(sample, ts.tobytes())
+    return _oscillation_model(sample, ts_ms, config)
+
+
+@functools.lru_cache(maxsize=8)
+def _default_oscillation_model(sample: OscillationSample, ts_bytes: bytes):
+    return _oscillation_model(sample, np.frombuffer(ts_bytes, np.float64), oscillation_config())
+
+
+def _oscillation_model(sample: OscillationSample, ts_ms, config):
     from design_engine.simulate import make_simulator
 
     lat = sample.lattice
-    sim = make_simulator(lat, sample.supports, config or oscillation_config())
+    sim = make_simulator(lat, sample.supports, config)
     energy = make_energy(lat, use_contact=False)
     geom = block_geometry(lat, jnp.asarray(sample.design))
     bonds = bond_geometry(lat, geom)
@@ -623,7 +691,7 @@ def make_oscillation_model(sample: OscillationSample, ts_ms, config=None):
         sol = sim(jnp.asarray(sample.design), mat, Loading(), ts, initial=(q0, v0))
         return sol.q[:, 1, 2]
 
-    return rotation
+    return jax.jit(rotation)  # one program (called as it is, it ran op by op)
 
 
 OSC_PARAMS = ("damping_ratio", "damping_u", "damping_theta", "k_bend", "k_shear", "k_stretch")
@@ -726,7 +794,8 @@ def fit_oscillation(t_s, theta, fit=DEFAULT_OSC_FIT, start: Material | None = No
                   stage="oscillation")
     p = jnp.asarray(out.extra["p"])
     m = material(p)
-    out.extra["curves"] = {"t_s": t, "data": y, "fitted": np.asarray(curve(p))}
+    # the fitted curve is the data plus the residual at the optimum (no further solve)
+    out.extra["curves"] = {"t_s": t, "data": y, "fitted": np.asarray(out.extra["r"]) + y}
     if "damping_ratio" in names:
         out.extra["derived"] = derived_damping(out, m)
     try:

@@ -69,14 +69,15 @@ class HingeTestConfig:
 
 
 def hinge_curve(material, test: str, d_max_m: float, n_points: int, sample=None):
-    """The noise-free test: (displacement m [n], force N [n]) for an engine `Material`."""
-    import jax
-    import jax.numpy as jnp
+    """The noise-free test: (displacement m [n], force N [n]) for an engine `Material`.
 
+    Evaluated as `fit_hinge` evaluates its model (the path from rest at d = 0 prepended, the
+    forces with their Jacobian) so that both run one compiled program."""
     sample = sample or hinge_sample()
     d = np.linspace(0.0, d_max_m, n_points)
-    k = jnp.asarray([material.k_stretch, material.k_shear, material.k_bend])
-    return d, np.asarray(jax.jit(make_hinge_forces(sample, test))(k, d * 1e3))
+    k = np.asarray([float(material.k_stretch), float(material.k_shear), float(material.k_bend)])
+    f, _ = make_hinge_forces(sample, test).with_jacobian(k, np.r_[0.0, d * 1e3])
+    return d, np.asarray(f, np.float64)[1:]
 
 
 def hinge_test(material, cfg: HingeTestConfig, sample=None, curve=None):
@@ -132,6 +133,7 @@ def free_oscillation(material, cfg: OscillationConfig = OscillationConfig(), sam
     sample's lattice): a `Trajectory` (t from the release, noisy q, qdot by differences)."""
     sample = sample or oscillation_sample()
     t = np.arange(cfg.n_frames) / cfg.fps
+    # the model is kept per sample and times (`make_oscillation_model`): repeats share it
     theta = np.asarray(make_oscillation_model(sample, t * 1e3)(material, cfg.initial_rotation_rad,
                                                                 0.0))
     rng = np.random.default_rng(cfg.seed)

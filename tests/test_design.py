@@ -32,6 +32,16 @@ def small_file(tmp_path_factory):
     return path
 
 
+@pytest.fixture(scope="module")
+def focus_run(tmp_path_factory, small_file):
+    """One small focusing run (8x6, 8 evaluations), made once and read by several tests: the
+    headline check, and the uninterrupted run that the resumed, killed and NLopt runs are
+    compared with (the sequence of designs does not depend on the evaluation budget)."""
+    out = tmp_path_factory.mktemp("focus") / "run"
+    task = load_task(small_file, max_evals=8, **SMALL)
+    return task, run_design(task, out, progress=False), out
+
+
 @pytest.fixture
 def make_task(small_file):
     def make(max_evals, **kw):
@@ -68,10 +78,18 @@ def test_a_user_task_file_equals_its_preset(tmp_path):
     assert np.array_equal(mine.initial_design, preset.initial_design)
     assert {k: v.tolist() for k, v in mine.targets.items()} == \
         {k: v.tolist() for k, v in preset.targets.items()}
+    # a two-term energy task: the ratio J1/J2 is its metric
+    assert set(mine.metrics({t.name: 1.0 for t in mine.terms})) == {"ratio"}
+    # the same objective, value and gradient: evaluated on the focusing preset, whose 8x6
+    # programs the other tests of this file share (a splitting program alone costs ~12 s CPU)
+    path = tmp_path / "focusing.toml"
+    path.write_text(preset_path("focusing").read_text())
+    mine, preset = load_task(path, **SMALL), load_task("focusing", **SMALL)
     x = mine.initial_design
+    assert np.array_equal(x, preset.initial_design)
     a, b = TaskEvaluator(mine).evaluate(x), TaskEvaluator(preset).evaluate(x)
     assert a.value == b.value and np.array_equal(a.grad, b.grad)
-    assert set(mine.metrics(a.terms)) == {"ratio"}
+    assert set(a.terms) == {"target"}
 
 
 @pytest.mark.parametrize("edit, message", [
@@ -161,9 +179,8 @@ def test_wide_voids_are_not_taken_for_units_through_the_barrier():
     assert float(run.solution.min_void_margin) > 0.0
 
 
-def test_small_focusing_run_improves_and_stays_feasible(tmp_path, make_task):
-    task = make_task(8)
-    res = run_design(task, tmp_path, progress=False)
+def test_small_focusing_run_improves_and_stays_feasible(tmp_path, focus_run):
+    task, res, out = focus_run
     ev = res.evaluations
     assert len(ev) == 8 and res.status == "complete" and res.stop_reason == "max_evals"
     seq = [e["solver"]["pulse"]["config"] for e in ev]
@@ -202,7 +219,7 @@ def test_small_focusing_run_improves_and_stays_feasible(tmp_path, make_task):
     # stays at 1.0x: the gain is the gradient's work, not a lucky step.
     assert best["objective"] >= 20.0 * ev[0]["objective"]
     assert best["max_constraint"] <= 1e-8
-    hist = json.loads((tmp_path / "history.json").read_text())
+    hist = json.loads((out / "history.json").read_text())
     assert [e["eval"] for e in hist["evaluations"]] == list(range(1, 9))
     assert set(hist["evaluations"][0]) >= {"eval", "objective", "objectives", "max_constraint",
                                            "feasible", "wall_s", "event"}
@@ -216,9 +233,9 @@ def test_small_focusing_run_improves_and_stays_feasible(tmp_path, make_task):
 
 
 def test_resume_after_an_interrupt_repeats_the_uninterrupted_run(tmp_path, monkeypatch,
-                                                                make_task):
-    n = 9
-    straight = run_design(make_task(n), tmp_path / "a", progress=False)
+                                                                make_task, focus_run):
+    _, straight, straight_out = focus_run
+    n = len(straight.evaluations)  # 8: the step is re-chosen at evaluation 6, after the resume
 
     task = make_task(n)
     evaluator = TaskEvaluator(task)
@@ -241,14 +258,14 @@ def test_resume_after_an_interrupt_repeats_the_uninterrupted_run(tmp_path, monke
                    progress=False)
     resumed = run_design(make_task(n), tmp_path / "b", resume=True, progress=False)
     assert resumed.status == "complete" and len(resumed.evaluations) == n
-    a = np.load(tmp_path / "a" / "checkpoint.npz")
+    a = np.load(straight_out / "checkpoint.npz")
     b = np.load(tmp_path / "b" / "checkpoint.npz")
     assert np.array_equal(a["x"], b["x"]) and np.array_equal(a["f"], b["f"])
     assert [e["objective"] for e in straight.evaluations] == \
         [e["objective"] for e in resumed.evaluations]
 
 
-def test_a_killed_run_resumes_exactly(tmp_path, small_file, make_task):
+def test_a_killed_run_resumes_exactly(tmp_path, small_file, make_task, focus_run):
     """SIGKILL in the middle of a run loses at most the evaluation in flight; --resume then
     walks the same designs as an uninterrupted run."""
     import os
@@ -257,7 +274,8 @@ def test_a_killed_run_resumes_exactly(tmp_path, small_file, make_task):
     import sys
     import time
 
-    n = 30
+    _, straight, straight_out = focus_run
+    n = len(straight.evaluations)  # 8; killed after >= 3 (evaluations 3-7 take ~2 s CPU)
     out = tmp_path / "killed"
     cmd = [sys.executable, "-m", "metarig", "design", str(small_file), "--size", "8x6",
            "--max-evals", str(n), "--out", str(out), "--quiet", "--no-plots"]
@@ -275,9 +293,8 @@ def test_a_killed_run_resumes_exactly(tmp_path, small_file, make_task):
     done = len(np.load(out / "checkpoint.npz")["x"])
     assert 3 <= done < n, f"the run was not killed in the middle ({done} evaluations)"
     resumed = run_design(make_task(n), out, resume=True, progress=False)
-    straight = run_design(make_task(n), tmp_path / "straight", progress=False)
     assert len(resumed.evaluations) == n
-    a = np.load(tmp_path / "straight" / "checkpoint.npz")["x"]
+    a = np.load(straight_out / "checkpoint.npz")["x"]
     assert np.array_equal(np.load(out / "checkpoint.npz")["x"], a)
     assert [e["objective"] for e in straight.evaluations] == \
         [e["objective"] for e in resumed.evaluations]
@@ -319,7 +336,8 @@ def test_a_damaged_run_record_is_refused_in_one_line_and_kept(tmp_path, capsys):
 
 
 def test_a_failed_solve_is_recorded_and_the_run_goes_on(tmp_path, monkeypatch, make_task):
-    task = make_task(8)
+    # 6 evaluations: the 7th and 8th of this trajectory re-choose the step (one more program)
+    task = make_task(6)
     evaluator = TaskEvaluator(task)
     real = evaluator._solve
     count = {"n": 0}
@@ -335,7 +353,7 @@ def test_a_failed_solve_is_recorded_and_the_run_goes_on(tmp_path, monkeypatch, m
     monkeypatch.setattr(evaluator, "_solve", flaky)
     res = run_design(task, tmp_path, progress=False, evaluator=evaluator)
     ev = res.evaluations
-    assert len(ev) == 8
+    assert len(ev) == 6
     assert "injected" in ev[2]["event"] and ev[2]["objective"] is not None
     assert ev[2]["solver"]["pulse"]["config"]["solver"] == "Dopri8"
     assert ev[4]["failed"] and ev[4]["objective"] is None and "evaluation failed" in ev[4]["event"]
@@ -494,14 +512,14 @@ def test_design_window_and_random_start(tmp_path, small_file):
 
 
 @pytest.mark.parametrize("algorithm", ["nlopt-mma", "nlopt-ccsaq"])
-def test_nlopt_backends_run_and_record(tmp_path, make_task, algorithm):
-    ours = run_design(make_task(4), tmp_path / "ours", progress=False)
+def test_nlopt_backends_run_and_record(tmp_path, make_task, algorithm, focus_run):
+    _, ours, ours_out = focus_run  # the same task: its first evaluations are compared
     res = run_design(make_task(4, algorithm=algorithm), tmp_path / algorithm, progress=False)
     assert len(res.evaluations) == 4 and res.status == "complete"
     x = np.load(tmp_path / algorithm / "checkpoint.npz")["x"]  # read back after NLopt is gone
     assert x.shape == (4, make_task(4).free.size) and np.all(np.isfinite(x))
     if algorithm == "nlopt-mma":  # the same scheme: the same first steps
-        a = np.load(tmp_path / "ours" / "checkpoint.npz")["x"]
+        a = np.load(ours_out / "checkpoint.npz")["x"]
         assert np.max(np.abs(a[:2] - x[:2])) < 1e-3
         assert res.evaluations[1]["objective"] == pytest.approx(
             ours.evaluations[1]["objective"], rel=1e-3)

@@ -165,17 +165,21 @@ def test_wide_voids_are_not_taken_for_units_through_the_barrier():
     from design_engine.run import simulate_scene
     from design_engine.scenes import build_scene
 
-    lat = quads(6, 5)
+    from design_engine.simulate import SolverConfig
+
+    lat = quads(8, 6)
     x = periodic_design(lat, math.radians(25))
-    x[11] -= 5.0  # opens one void to 199 deg (the smallest stays at 27 deg)
-    scene = build_scene("focusing-24x16", nx=6, ny=5, design=x)
+    x[13] -= 5.0  # opens one void to 199 deg (the smallest stays at 27 deg)
+    scene = build_scene("focusing-24x16", nx=8, ny=6, design=x)
     from design_engine.angles import bond_angles
     from design_engine.geometry import block_geometry
 
     ang = bond_angles(lat, block_geometry(lat, jnp.asarray(scene.design)).arms)
     widest = max(np.max(np.mod(ang[k], 2 * np.pi)) for k in ("alpha1", "alpha2"))
     assert np.degrees(widest) > 180.0
-    run = simulate_scene(scene)
+    # the reference model (contact on: a void taken for a crossing would meet the barrier), on
+    # 8x6 as the small focusing run's reference check, so the two share one compiled program
+    run = simulate_scene(scene, SolverConfig())
     assert float(run.solution.min_void_margin) > 0.0
 
 

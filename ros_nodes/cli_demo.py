@@ -12,6 +12,7 @@
 import argparse
 import json
 import logging
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -27,10 +28,12 @@ class DemoError(RuntimeError):
     """A step of the demo failed (the message names it)."""
 
 
-def _step(name: str, timings: dict, fn, *args) -> None:
+def _step(name: str, timings: dict, argv: list[str]) -> None:
+    """Run `metarig ARGV` as its own process (the command a user would type; its progress and
+    messages go straight to this terminal) and time it."""
     print(f"[demo] {name} ...", flush=True)
     t0 = time.perf_counter()
-    code = fn(*args)
+    code = subprocess.run([sys.executable, "-m", "metarig", *argv]).returncode
     timings[name] = round(time.perf_counter() - t0, 1)
     if code != 0:
         raise DemoError(f"{name} failed (exit code {code}); see the messages above")
@@ -39,22 +42,18 @@ def _step(name: str, timings: dict, fn, *args) -> None:
 
 def run_demo(out: Path) -> dict:
     """Run the three steps into `out` and return the report (see the module docstring)."""
-    from design_engine.design_cli import design_main
-    from design_engine.export import export_main
-    from ros_nodes.cli_rig import rig_main
-
     out.mkdir(parents=True, exist_ok=True)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     again = ["--resume"] if (out / "design" / "run.json").exists() else []  # a re-run: resume
-    _step("design", timings, design_main,
-          [DEMO_TASK, "--out", str(out / "design"), "--quiet", *again])
+    _step("design", timings,
+          ["design", DEMO_TASK, "--out", str(out / "design"), "--quiet", *again])
     design = out / "design" / "design.json"  # the rig writes the sample's as DIR/design.json
     if not design.exists():
         raise DemoError("design: no feasible design was found")
-    _step("export", timings, export_main, [str(design), "--svg", str(out / "design.svg")])
-    _step("rig", timings, rig_main,
-          ["--design", str(design), *RIG_ARGS, "--out", str(out)])
+    _step("export", timings, ["export", str(design), "--svg", str(out / "design.svg")])
+    _step("rig", timings,
+          ["rig", "--design", str(design), *RIG_ARGS, "--out", str(out)])
     history = json.loads((out / "design" / "history.json").read_text())["evaluations"]
     best = json.loads(design.read_text())
     summary = json.loads((out / "summary.json").read_text())

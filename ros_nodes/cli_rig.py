@@ -173,7 +173,8 @@ def compare_run(out: Path, workers: int | None) -> int:
     folder gains the comparison files and `run.json` its summary and timings."""
     import time
 
-    from ros_nodes.cli_compare import CompareError, compare_recording
+    from ros_nodes.logic.comparison_run import CompareError
+    from ros_nodes.recorded_compare import compare_recording
     from ros_nodes.logic.sequence import SUMMARY_NAME
 
     t0 = time.perf_counter()

@@ -9,7 +9,7 @@ from types import SimpleNamespace
 import pytest
 
 from ros_nodes import topics as T
-from ros_nodes.cli_compare import compare_recording
+from ros_nodes.recorded_compare import compare_recording
 from ros_nodes.logic import comparison_run as run
 from ros_nodes.logic.compare_session import CompareSession
 from ros_nodes.logic.comparison_run import SUMMARY_KEYS, CompareError

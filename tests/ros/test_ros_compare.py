@@ -58,7 +58,7 @@ def test_the_node_compares_the_replayed_recording_like_the_offline_tool(
     from std_srvs.srv import Trigger
 
     from ros_nodes import convert
-    from ros_nodes.cli_compare import compare_recording
+    from ros_nodes.recorded_compare import compare_recording
     from ros_nodes.nodes._common import COMMAND, LATCHED, STREAM, qos_profile
 
     node, ex = ros_node

@@ -57,10 +57,22 @@ def input_motion(poses: Trajectory, input_units, shaker_t_s=None, shaker_u_m=Non
 def stage_history(stage_t_s, stage_closing_m, closing_speed_m_s: float,
                   hold_t_s: float | None = None) -> tuple[np.ndarray, np.ndarray, float]:
     """Stage closing from rest: the measured samples, preceded by the rig's ramp if they start
-    pre-compressed. Returns (t [m'] s, closing [m'] m, closing reached at the first sample m)."""
+    pre-compressed (holding), or if they start during the closing (a recording from rest: the
+    first sample comes one sample period after the stages set off) by the ramp at the closing
+    speed that reaches the first sample. Returns (t [m'] s, closing [m'] m, the closing
+    reached: at the first sample when it holds, else when the stages reported `holding`, else
+    at the last sample, m)."""
     t = np.asarray(stage_t_s, np.float64)
     c = np.asarray(stage_closing_m, np.float64)
-    reached = float(np.median(c[: max(1, min(10, c.size))]))
+    head = c[: max(1, min(10, c.size))]
+    reached = float(np.median(head))
+    if float(np.ptp(head)) > max(1e-7, 1e-3 * abs(reached)):  # moving: the record holds the ramp
+        reached = float(np.interp(hold_t_s, t, c)) if hold_t_s is not None else float(c[-1])
+        if t[0] <= 0 or abs(c[0]) < 1e-9:
+            return t, c, reached
+        start = max(0.0, t[0] - abs(c[0]) / closing_speed_m_s)
+        return np.r_[0.0, start, t] if start > 0 else np.r_[0.0, t], \
+            np.r_[0.0, 0.0, c] if start > 0 else np.r_[0.0, c], reached
     if abs(reached) < 1e-7 or t[0] <= 0:
         return t, c, reached
     end = min(t[0], hold_t_s) if hold_t_s is not None else t[0]

@@ -70,6 +70,9 @@ STAGE_STATE = Topic("/stage/state", "std_msgs/msg/String", LATCHED, "stage",
                     "idle/moving/holding/fault: why")
 IMAGE = Topic("/camera/image_raw", "sensor_msgs/msg/Image", STREAM, "camera",
               "frames mono8/mono16 (publisher depth: camera queue_depth)")
+REFERENCE_IMAGE = Topic("/camera/reference_image", "sensor_msgs/msg/Image", LATCHED, "camera",
+                        "the sample unloaded, taken before the stages close (`/camera/snapshot`): "
+                        "the tracker's reference, so that poses are from the unloaded design")
 CAMERA_INFO = Topic("/camera/camera_info", "sensor_msgs/msg/CameraInfo", STREAM, "camera",
                     "K[0] = 1/m_per_px, same stamps as the frames")
 GROUND_TRUTH = Topic("/camera/ground_truth", "metarig_msgs/msg/UnitPose2DArray", STREAM,
@@ -97,16 +100,17 @@ COMPARE_SIMULATED = Topic("/compare/simulated_poses", "metarig_msgs/msg/UnitPose
 
 TOPICS: tuple[Topic, ...] = (
     CLOCK, RIG_STOP, RIG_PHASE, RIG_DESIGN, RIG_CONFIG, SHAKER_COMMAND, SHAKER_JOINTS,
-    STAGE_JOINTS, STAGE_TARGET, STAGE_STATE, IMAGE, CAMERA_INFO, GROUND_TRUTH, CAMERA_STATUS,
-    RECORDER_STATUS, RECORDER_REPORT, DIAGNOSTICS, POSES, IMAGE_PREVIEW, COMPARE_RESULT,
-    COMPARE_SUMMARY, COMPARE_SIMULATED)
+    STAGE_JOINTS, STAGE_TARGET, STAGE_STATE, IMAGE, REFERENCE_IMAGE, CAMERA_INFO, GROUND_TRUTH,
+    CAMERA_STATUS, RECORDER_STATUS, RECORDER_REPORT, DIAGNOSTICS, POSES, IMAGE_PREVIEW,
+    COMPARE_RESULT, COMPARE_SUMMARY, COMPARE_SIMULATED)
 BY_NAME: dict[str, Topic] = {t.name: t for t in TOPICS}
 
 # what the recorder writes by default (status/report topics are bookkeeping, not data)
 RECORDED: tuple[str, ...] = (
     CLOCK.name, RIG_STOP.name, RIG_PHASE.name, RIG_DESIGN.name, RIG_CONFIG.name,
     SHAKER_COMMAND.name, SHAKER_JOINTS.name, STAGE_JOINTS.name, STAGE_TARGET.name,
-    STAGE_STATE.name, IMAGE.name, CAMERA_INFO.name, GROUND_TRUTH.name, DIAGNOSTICS.name,
+    STAGE_STATE.name, IMAGE.name, REFERENCE_IMAGE.name, CAMERA_INFO.name, GROUND_TRUTH.name,
+    DIAGNOSTICS.name,
     POSES.name, COMPARE_RESULT.name, COMPARE_SUMMARY.name, COMPARE_SIMULATED.name)
 
 # services
@@ -117,6 +121,7 @@ STAGE_STOP = Service("/stage/stop", "std_srvs/srv/Trigger", "stage")
 STAGE_RESET = Service("/stage/reset", "std_srvs/srv/Trigger", "stage")
 CAMERA_START = Service("/camera/start", "std_srvs/srv/Trigger", "camera")
 CAMERA_STOP = Service("/camera/stop", "std_srvs/srv/Trigger", "camera")
+CAMERA_SNAPSHOT = Service("/camera/snapshot", "std_srvs/srv/Trigger", "camera")
 RECORDER_START = Service("/recorder/start", "std_srvs/srv/Trigger", "recorder")
 RECORDER_STOP = Service("/recorder/stop", "std_srvs/srv/Trigger", "recorder")
 DIC_RESET = Service("/dic_tracker/reset_reference", "std_srvs/srv/Trigger", "dic_tracker")
@@ -124,7 +129,7 @@ COMPARE_RUN = Service("/compare/run", "std_srvs/srv/Trigger", "comparison")
 
 SERVICES: tuple[Service, ...] = (
     SHAKER_FIRE, SHAKER_STOP, STAGE_SET_STRAIN, STAGE_STOP, STAGE_RESET, CAMERA_START,
-    CAMERA_STOP, RECORDER_START, RECORDER_STOP, DIC_RESET, COMPARE_RUN)
+    CAMERA_STOP, CAMERA_SNAPSHOT, RECORDER_START, RECORDER_STOP, DIC_RESET, COMPARE_RUN)
 
 
 def markdown_table() -> str:

@@ -168,3 +168,22 @@ def test_a_design_that_does_not_match_the_recording_is_refused(nominal):
     poses = Trajectory.from_positions(times - times[0], traj.q[1:, :40])
     with pytest.raises(ValueError, match="does not match the recording"):
         compare_experiment(scene, poses, times[0], T_IN, U_IN)
+
+
+def test_the_stage_history_is_the_recorded_closing_when_the_recording_starts_at_rest():
+    from comparison.experiment import stage_history
+
+    speed, hold = 0.05, 0.09  # m/s; the stages reached 4.5 mm and held from 0.09 s
+    t = np.arange(0.002, 0.2, 0.002)  # the stage's own 500 Hz samples, the first one period in
+    c = np.minimum(speed * t, speed * hold)
+    ts, cs, reached = stage_history(t, c, speed, hold)
+    # the record is kept as it is, from rest at t = 0: no ramp is made up in front of it
+    np.testing.assert_array_equal(ts, np.r_[0.0, t])
+    np.testing.assert_array_equal(cs, np.r_[0.0, c])
+    assert reached == pytest.approx(speed * hold, rel=1e-12)
+    # a recording that starts while the stages hold: the ramp is rebuilt before it
+    late = t >= 0.1
+    ts, cs, reached = stage_history(t[late], c[late], speed, hold)
+    assert reached == pytest.approx(speed * hold, rel=1e-12)
+    np.testing.assert_allclose(np.interp([0.0, 0.045, 0.09, 0.15], ts, cs),
+                               [0.0, speed * 0.045, speed * hold, speed * hold], rtol=1e-9)

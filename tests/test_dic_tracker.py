@@ -168,3 +168,67 @@ def test_icgn_recovers_large_rotation_from_a_nearby_start():
     r = icgn(prep.coef, st.refs, np.arange(2), -truth[:, 2] * 0.9, np.zeros((2, 2)))
     assert r.converged.all() and r.inside.all()
     np.testing.assert_allclose(r.alpha, -truth[:, 2], atol=5e-4)
+
+
+def _precompressed(scene, closing_px: float, turn: float) -> np.ndarray:
+    """Poses [n, 3] of a sample closed by `closing_px` (top and bottom rows each move half of it
+    toward the centre, rows between in proportion), units turning +-`turn` in a checkerboard
+    (the rotating-square pattern) and the whole sample shifted 1.3 px to the right."""
+    c = scene.polygons_m.mean(axis=1)
+    y = (c[:, 1] - c[:, 1].mean()) / np.ptp(c[:, 1])  # -1/2 .. 1/2
+    ny = len(np.unique(np.round(c[:, 1], 9)))
+    col = np.round((c[:, 0] - c[:, 0].min()) / np.ptp(c[:, 0]) * (scene.n // ny - 1))
+    row = np.round((y + 0.5) * (ny - 1))
+    q = np.zeros((scene.n, 3))
+    q[:, 0] = 1.3 * scene.cfg.m_per_px
+    q[:, 1] = -y * closing_px * scene.cfg.m_per_px
+    q[:, 2] = turn * np.where((col + row) % 2 == 0, 1.0, -1.0)
+    return q
+
+
+@pytest.mark.parametrize("closing_px, turn", [(14.0, 0.15), (30.0, 0.3)])
+def test_a_precompressed_first_frame_is_found_against_the_unloaded_reference(closing_px, turn):
+    # the rig's procedure: the reference image shows the sample unloaded, the first frame
+    # pre-compressed (units moved up to closing/2 px and turned): poses must be measured from the
+    # unloaded outlines, not assumed zero in the first frame (the old behaviour, wrong by the
+    # whole pre-compression and, with templates cut at the wrong place, in the motion after it)
+    scene = make_scene(4, 3)
+    rng = np.random.default_rng(7)
+    q0 = _precompressed(scene, closing_px, turn)
+    reference = scene.render(np.zeros((scene.n, 3)), rng)
+    step = np.zeros((scene.n, 3))
+    step[:, 0] = 0.4 * scene.cfg.m_per_px
+    truth = np.array([q0, q0 + step, q0 + 2 * step])
+    q, lost, qual, _ = _run(scene, [scene.render(p, rng) for p in truth], reference=reference)
+    assert not lost.any() and np.all(qual > 0.99)
+    pos, rot = errors_px(scene, q, truth)
+    assert pos < 0.01 and rot < 0.5, (pos, rot)
+
+
+def test_units_too_slender_for_a_search_template_start_from_their_neighbours():
+    from hardware_sim.camera import make_speckle_textures
+    from tracking.dic import acquire_frame
+    from tracking.search import MIN_TEMPLATE_HALF
+
+    base = make_scene(4, 3)
+    # every other unit a sliver 8 px wide: no search template fits inside it
+    polys = base.polygons_m.copy()
+    slim = np.arange(base.n) % 2 == 1
+    c = polys[slim].mean(axis=1, keepdims=True)
+    polys[slim] = c + (polys[slim] - c) * np.array([8.0 / 37.0, 1.0])
+    scene = type(base)(base.cfg, polys, make_speckle_textures(polys, base.cfg,
+                                                              np.random.default_rng(1)),
+                       base.calib)
+    rng = np.random.default_rng(8)
+    q0 = _precompressed(scene, 10.0, 0.0)
+    q0[:, 2] = 0.05
+    reference = scene.render(np.zeros((scene.n, 3)), rng)
+    frame = scene.render(q0, rng)
+    tr = DICTracker(scene.polygons_m, scene.calib, DICConfig(margin_px=1.5, min_points=16))
+    st = init_state(tr, reference)
+    assert np.all(st.refs.tpl_half[slim] < MIN_TEMPLATE_HALF) and st.refs.count[slim].min() > 0
+    assert not acquire_frame(tr, st, prepare_frame(tr, frame)).lost.any()
+    q, lost, qual, _ = _run(scene, [frame], DICConfig(margin_px=1.5, min_points=16), reference)
+    assert not lost.any()
+    pos, rot = errors_px(scene, q[0], q0)
+    assert pos < 0.02 and rot < 2.0, (pos, rot)

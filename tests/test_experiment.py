@@ -89,6 +89,10 @@ class FakeRig:
         self._camera = {"state": "capturing", "frames": 0}
         return True
 
+    def camera_snapshot(self):
+        self.calls.append(("camera_snapshot", self.sim, self._stage))
+        return True, ""
+
     def camera_stop(self):
         self.calls.append(("camera_stop", self.sim))
         n = self.plan.expected_frames(self._t_cam)
@@ -117,7 +121,10 @@ def test_runs_the_steps_in_order_on_simulated_time():
     rig = FakeRig(PLAN)
     exp = Experiment(PLAN, rig)
     timings = exp.run()
-    assert rig.names() == ["set_strain", "recorder_start", "camera_start", "fire", "camera_stop"]
+    assert rig.names() == ["camera_snapshot", "recorder_start", "set_strain", "camera_start",
+                           "fire", "camera_stop"]
+    snap = next(c for c in rig.calls if c[0] == "camera_snapshot")
+    assert snap[1:] == (0.0, "idle")  # the reference image: before the stages move
     assert ("set_strain", PLAN.strain) in rig.calls
     fire = next(c for c in rig.calls if c[0] == "fire")
     assert fire[1:] == (PLAN.waveform, PLAN.amplitude_m, PLAN.frequency_hz, PLAN.cycles,
@@ -153,7 +160,8 @@ def test_a_refused_strain_stops_the_run_with_the_reason():
     with pytest.raises(RigError, match=r"stage: strain 0.02 outside"):
         exp.run()
     exp.finish(completed=False)
-    assert rig.names() == ["set_strain", "stop_devices", "recorder_stop"]
+    assert rig.names() == ["camera_snapshot", "recorder_start", "set_strain", "stop_devices",
+                           "recorder_stop"]
     assert [p for p, _ in exp.events] == ["starting", "precompress", "stop", "aborted"]
 
 

@@ -38,7 +38,14 @@ from tracking.dic import (
     prepare_frame,
     track_frame,
 )
-from tracking.frame_sources import BadFrame, SourceError, SourceSpec, count_frames, iter_frames
+from tracking.frame_sources import (
+    BadFrame,
+    SourceError,
+    SourceSpec,
+    count_frames,
+    iter_frames,
+    recorded_reference,
+)
 from tracking.reference import subset_pixels
 
 log = logging.getLogger("metarig.track")
@@ -84,6 +91,7 @@ class Block:
 
 def reference_image(spec: SourceSpec, reference: str | None = None) -> np.ndarray:
     """The frame showing the reference configuration: the image file `reference`, else the
+    recording's reference image (the unloaded sample, `recorded_reference`), else the
     source's first frame.
 
     Raises:
@@ -94,6 +102,10 @@ def reference_image(spec: SourceSpec, reference: str | None = None) -> np.ndarra
         if img is None:
             raise SourceError(f"{reference}: cannot read the reference image")
         return img
+    recorded = recorded_reference(spec)
+    if recorded is not None:
+        log.info("reference: %s of %s", spec.reference_topic, spec.path)
+        return recorded
     for _, item in iter_frames(spec):
         if isinstance(item, BadFrame):
             raise SourceError(f"{spec.path}: the first frame (the reference) is unreadable: "

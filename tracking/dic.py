@@ -7,6 +7,11 @@ poor or whose subset leaves the frame, and refresh the reference of the units th
 (rotated far from their reference, or correlation degraded). All units are solved in one
 compiled batch; the offline CLI and the live node call the same `track_frame`.
 
+The first frame tracked is found, not assumed: every unit is searched for over offsets and
+rotations around its reference position (`acquire_frame`), so the reference image may show the
+sample unloaded and the first frame pre-compressed (the rig's procedure); slender units too small
+for a search template start from their neighbours' motion.
+
 Poses: the reference configuration is the outline given (frame `reference` shows it). q =
 (u, v, theta): displacement of each unit's area centroid in the sample frame (m) and its
 counter-clockwise rotation about it (rad). Internally poses live in rectified pixel axes:
@@ -24,7 +29,7 @@ from tracking.calibration import Calibration
 from tracking.icgn import icgn
 from tracking.kernels import bspline_coefficients
 from tracking.reference import RefSet, build_refs, replace_refs
-from tracking.search import coarse_search
+from tracking.search import acquire, coarse_search
 from tracking.units import validate_polygons
 
 log = logging.getLogger(__name__)
@@ -52,6 +57,12 @@ class DICConfig:
         lost_search_radius_px: the same for units already lost (around their last pose), px.
         prefilter_sigma_px: Gaussian smoothing of every frame before tracking, px (0: none).
         predict: warm-start from a constant-velocity prediction (else the last pose).
+        acquire_radius_px: half-width of the first frame's search for every unit around its
+            reference position, px (0: a tenth of the sample's height in the image, which
+            covers any pre-compression the rig allows, 9 %, even from one stage alone).
+        acquire_max_rotation, acquire_rotation_step: trial rotations of that search, rad.
+        acquire_neighbours: units without a usable search template (slender ones) start from
+            the rigid motion of this many nearest units found by the search.
     """
 
     margin_px: float = 2.5
@@ -67,6 +78,10 @@ class DICConfig:
     lost_search_radius_px: int = 24
     prefilter_sigma_px: float = 0.0
     predict: bool = True
+    acquire_radius_px: int = 0
+    acquire_max_rotation: float = 0.4
+    acquire_rotation_step: float = 0.05
+    acquire_neighbours: int = 4
 
     def __post_init__(self):
         if not (0.0 <= self.zncc_lost <= self.zncc_reacquire <= 1.0):
@@ -116,6 +131,7 @@ class TrackerState:
         prev_alpha, prev_t: pose one frame before that (NaN: unknown), for the prediction.
         lost: [n] the unit is currently lost.
         shape: (rows, cols) of the rectified frames.
+        acquired: the first frame was registered against the reference (`acquire_frame`).
     """
 
     refs: RefSet
@@ -127,6 +143,7 @@ class TrackerState:
     prev_t: np.ndarray
     lost: np.ndarray
     shape: tuple[int, int]
+    acquired: bool = False
 
 
 @dataclass(frozen=True, slots=True)
@@ -252,6 +269,8 @@ def track_frame(
     except FrameError as exc:
         log.debug("frame skipped, all units flagged lost: %s", exc)
         return all_lost(state, str(exc))
+    if not state.acquired:
+        state = acquire_frame(tracker, state, prep)
     refs = state.refs
     n = tracker.n_units
     usable = refs.count > 0
@@ -307,6 +326,79 @@ def track_frame(
     return state, FramePoses(q=q, quality=zncc, lost=~ok)
 
 
+def acquire_radius(tracker: DICTracker) -> int:
+    """Half-width (px) of the first frame's search (`DICConfig.acquire_radius_px`, or auto)."""
+    r = tracker.cfg.acquire_radius_px
+    if r > 0:
+        return int(r)
+    height = float(np.ptp(tracker.polys_px[..., 1])) if tracker.n_units else 0.0
+    return int(np.ceil(ACQUIRE_STRAIN * height)) + 4
+
+
+def acquire_frame(tracker: DICTracker, state: TrackerState,
+                  prep: PreparedFrame) -> TrackerState:
+    """Start poses of every unit in the first frame, searched for, not assumed.
+
+    Units with a search template are matched over `acquire_radius` px and the trial rotations
+    around their reference pose; the others start from the rigid motion of their nearest found
+    units (IC-GN from each; the best correlation wins). A unit found nowhere starts lost. The
+    poses are starting points: `track_frame` then registers and checks them as for any frame.
+    """
+    cfg = tracker.cfg
+    n = tracker.n_units
+    refs = state.refs
+    usable = np.flatnonzero(refs.count > 0)
+    step = max(cfg.acquire_rotation_step, 1e-3)
+    k = int(np.floor(cfg.acquire_max_rotation / step + 1e-9))
+    rotations = np.r_[0.0, np.ravel(np.column_stack([np.arange(1, k + 1) * step,
+                                                      -np.arange(1, k + 1) * step]))]
+    alpha, t = np.full(n, np.nan), np.full((n, 2), np.nan)
+    # where the reference pose itself registers well (the first frame is the reference, or
+    # the sample barely moved), that is the start; the search is for the others
+    r = icgn(prep.coef, refs, usable, np.zeros(usable.size), np.zeros((usable.size, 2)),
+             cfg.max_iter, cfg.tol_px, cfg.max_move_px)
+    near = r.inside & r.converged & (np.nan_to_num(r.zncc, nan=-1.0) >= cfg.zncc_reacquire)
+    alpha[usable[near]], t[usable[near]] = r.alpha[near], r.w[near]
+    far = usable[~near]
+    a, w, score = acquire(prep.img, refs, far, np.zeros((far.size, 2)),
+                          acquire_radius(tracker), rotations)
+    found = np.isfinite(score) & (score >= cfg.zncc_lost)
+    alpha[far[found]], t[far[found]] = a[found], w[found]
+    # units without a found template: the rigid motion of their nearest found units
+    anchors = np.flatnonzero(np.isfinite(alpha))
+    rest = np.setdiff1d(usable, anchors)
+    if rest.size and anchors.size:
+        c = tracker.centroid_px
+        m = min(cfg.acquire_neighbours, anchors.size)
+        d = np.linalg.norm(c[rest, None, :] - c[None, anchors, :], axis=-1)
+        near = anchors[np.argsort(d, axis=1)[:, :m]]  # [r, m]
+        rr = np.repeat(rest, m)
+        nb = near.ravel()
+        arm = c[rr] - c[nb]
+        rot = _rot(alpha[nb])
+        a0 = alpha[nb]
+        w0 = t[nb] + np.einsum("kij,kj->ki", rot, arm) - arm
+        # also the neighbours' mean translation without their rotation (a unit between
+        # counter-rotating neighbours, as in rotating-square lattices, barely turns)
+        rr = np.r_[rr, rest]
+        a0 = np.r_[a0, np.zeros(rest.size)]
+        w0 = np.r_[w0, t[near].mean(axis=1)]
+        r = icgn(prep.coef, refs, rr, a0, w0, cfg.max_iter, cfg.tol_px, cfg.max_move_px)
+        good = r.inside & np.isfinite(r.zncc)
+        zn = np.where(good, r.zncc, -np.inf)
+        for u in rest:
+            j = np.flatnonzero(rr == u)
+            best = j[np.argmax(zn[j])]
+            if zn[best] >= cfg.zncc_reacquire:
+                alpha[u], t[u] = r.alpha[best], r.w[best]
+    ok = np.isfinite(alpha)
+    log.info("first frame: %d of %d units found (search radius %d px)", int(ok.sum()),
+             int(usable.size), acquire_radius(tracker))
+    return replace(state, alpha=np.where(ok, alpha, 0.0), t=np.where(ok[:, None], t, 0.0),
+                   prev_alpha=np.full(n, np.nan), prev_t=np.full((n, 2), np.nan),
+                   lost=state.lost | ~ok, acquired=True)
+
+
 def _update_references(
     tracker: DICTracker, state: TrackerState, prep: PreparedFrame, ok: np.ndarray,
     alpha_rel: np.ndarray, zncc: np.ndarray,
@@ -335,6 +427,8 @@ def _update_references(
 
 
 SMALL_UNIT_MARGIN_PX = 1.5
+# the first frame's search covers this strain of the sample's height (`acquire_radius`)
+ACQUIRE_STRAIN = 0.1
 SMALL_UNIT_MIN_POINTS = 16
 
 

@@ -55,12 +55,19 @@ class SourceSpec:
         kind: "folder", "video" or "mcap".
         topic: MCAP image topic (resolved when the source is opened).
         suffixes: image file suffixes a folder source reads (lower case, name order).
+        reference_topic: MCAP image topic holding the reference image (the sample unloaded,
+            taken before the stages closed: a topic ending in `REFERENCE_SUFFIX`), or None.
     """
 
     path: str
     kind: str
     topic: str | None = None
     suffixes: tuple[str, ...] = PNG
+    reference_topic: str | None = None
+
+
+# an MCAP image topic with this ending holds the reference image (one message)
+REFERENCE_SUFFIX = "reference_image"
 
 
 # decoding -------------------------------------------------------------------------------------
@@ -148,6 +155,10 @@ def _open_mcap(p: Path, topic: str | None) -> SourceSpec:
             raise SourceError(f"{p}: expected one .mcap file in the folder, found {len(files)}")
         p = files[0]
     topics = _image_topics(p)
+    refs = [t for t in topics if t.endswith(REFERENCE_SUFFIX)]
+    reference = refs[0] if len(refs) == 1 and topics[refs[0]] else None
+    if reference is not None and topic is None:
+        topics.pop(reference)
     if topic is None:
         raw = [t for t in topics if t.endswith("image_raw")]
         if len(topics) == 1:
@@ -160,7 +171,7 @@ def _open_mcap(p: Path, topic: str | None) -> SourceSpec:
     elif topic not in topics:
         raise SourceError(f"{p}: no {IMAGE_MSG} topic {topic!r} (found: "
                           f"{', '.join(sorted(topics)) or 'none'})")
-    return SourceSpec(str(p), "mcap", topic)
+    return SourceSpec(str(p), "mcap", topic, reference_topic=reference)
 
 
 def _kind_of(p: Path) -> str:
@@ -180,7 +191,7 @@ def open_source(path: str | Path, topic: str | None = None, kind: str | None = N
     Args:
         path: a folder of images, a video file or an `.mcap` recording.
         topic: MCAP image topic; by default the only image topic, or the one ending in
-            `image_raw`.
+            `image_raw` (a topic ending in `reference_image` is the reference, not a frame).
         kind: "folder", "video" or "mcap" (default: from the path).
         suffixes: image file suffixes of a folder source (default: `*.png` only).
 
@@ -241,10 +252,10 @@ def _video(spec: SourceSpec) -> Iterator[Item]:
         cap.release()
 
 
-def _mcap(spec: SourceSpec) -> Iterator[Item]:
+def _mcap(spec: SourceSpec, topic: str | None = None) -> Iterator[Item]:
     with open(spec.path, "rb") as f:
         reader = _mcap_reader(f)
-        messages = reader.iter_decoded_messages(topics=[spec.topic], log_time_order=True)
+        messages = reader.iter_decoded_messages(topics=[topic or spec.topic], log_time_order=True)
         for _schema, _channel, message, decoded in messages:
             st = decoded.header.stamp
             ns = int(st.sec) * 1_000_000_000 + int(st.nanosec)
@@ -256,6 +267,24 @@ def _mcap(spec: SourceSpec) -> Iterator[Item]:
 
 def _items(spec: SourceSpec) -> Iterator[Item]:
     return {"folder": _folder, "video": _video, "mcap": _mcap}[spec.kind](spec)
+
+
+def recorded_reference(spec: SourceSpec) -> np.ndarray | None:
+    """The source's own reference image (`SourceSpec.reference_topic`, its last message), or
+    None when it holds none.
+
+    Raises:
+        SourceError: it is there but cannot be decoded.
+    """
+    if spec.kind != "mcap" or spec.reference_topic is None:
+        return None
+    last = None
+    for _, item in _mcap(spec, spec.reference_topic):
+        last = item
+    if isinstance(last, BadFrame):
+        raise SourceError(f"{spec.path}: the reference image ({spec.reference_topic}) is "
+                          f"unreadable: {last.reason}")
+    return last
 
 
 def iter_frames(spec: SourceSpec) -> Iterator[tuple[int, np.ndarray | BadFrame]]:

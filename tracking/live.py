@@ -50,6 +50,7 @@ class LivePreview:
         self._slot: tuple[int, np.ndarray] | None = None
         self._state = None
         self._generation = 0  # bumped by reset_reference; stale results are not kept
+        self._reference: np.ndarray | None = None  # image of the reference configuration
         self._closed = False
         self._offered = self._tracked = self._skipped = 0
         self._thread = threading.Thread(target=self._run, name="dic-preview", daemon=True)
@@ -71,10 +72,12 @@ class LivePreview:
             self._offered += 1
             self._cond.notify()
 
-    def reset_reference(self) -> None:
-        """Make the next tracked frame the reference configuration."""
+    def reset_reference(self, image: np.ndarray | None = None) -> None:
+        """Restart from a reference: `image` (e.g. the unloaded sample, in which the next frame's
+        units are then searched for), or with None the next tracked frame itself."""
         with self._cond:
             self._state = None
+            self._reference = image
             self._generation += 1
 
     def stats(self) -> PreviewStats:
@@ -127,14 +130,16 @@ class LivePreview:
 
     def _track(self, frame: np.ndarray) -> FramePoses | None:
         with self._cond:
-            state, generation = self._state, self._generation
+            state, generation, reference = self._state, self._generation, self._reference
         if state is None:
             try:
-                state = init_state(self._tracker, frame)
+                state = init_state(self._tracker, frame if reference is None else reference)
             except FrameError as exc:
-                log.warning("frame unusable as the reference: %s", exc)
+                log.warning("%s unusable as the reference: %s",
+                            "frame" if reference is None else "reference image", exc)
                 return None
-            log.info("reference frame taken (%d units)", self._tracker.n_units)
+            log.info("reference %s taken (%d units)",
+                     "frame" if reference is None else "image", self._tracker.n_units)
         state, poses = _track_frame(self._tracker, state, frame)
         with self._cond:
             if generation == self._generation:

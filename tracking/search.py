@@ -12,6 +12,9 @@ import numpy as np
 
 from tracking.reference import RefSet
 
+# smallest template half-size (px) worth matching: below it a match is not distinctive
+MIN_TEMPLATE_HALF = 3
+
 
 def _rotation(alpha: float) -> np.ndarray:
     c, s = np.cos(alpha), np.sin(alpha)
@@ -24,6 +27,44 @@ def _parabola_peak(left: float, mid: float, right: float) -> float:
     if not np.isfinite(den) or den >= 0.0:
         return 0.0
     return float(np.clip(0.5 * (left - right) / den, -0.5, 0.5))
+
+
+def _match(img: np.ndarray, refs: RefSet, b: int, alpha: float, w_pred: np.ndarray,
+           radius_px: int) -> tuple[np.ndarray, float] | None:
+    """Template match of unit `b` rotated by `alpha` in a window of half-width `radius_px`
+    around the displacement `w_pred` (px): (displacement [2] px, correlation), or None where no
+    search is possible (template too small or blank, window outside the frame)."""
+    h, wd = img.shape
+    ph = refs.patch.shape[1] // 2
+    hs = int(refs.tpl_half[b])
+    if refs.count[b] == 0 or hs < MIN_TEMPLATE_HALF or not np.all(np.isfinite(w_pred)):
+        return None
+    rot = _rotation(float(alpha))
+    pc = np.array([ph, ph], dtype=np.float64)
+    m = np.hstack([rot, (pc - rot @ pc)[:, None]])
+    patch = cv2.warpAffine(refs.patch[b], m, (2 * ph + 1, 2 * ph + 1), flags=cv2.INTER_LINEAR)
+    tpl = patch[ph - hs : ph + hs + 1, ph - hs : ph + hs + 1]
+    if float(tpl.std()) < 1e-6:
+        return None
+    c_r = refs.centre_px[b]
+    rc = (refs.patch_corner[b] + ph).astype(np.float64)  # patch centre pixel, ref frame
+    offset = rot @ (rc - c_r) + c_r  # where rc lands, less the displacement
+    q = np.rint(offset + w_pred).astype(np.int64)
+    c0, r0 = q[0] - hs - radius_px, q[1] - hs - radius_px
+    c1, r1 = q[0] + hs + radius_px + 1, q[1] + hs + radius_px + 1
+    c0c, r0c, c1c, r1c = max(c0, 0), max(r0, 0), min(c1, wd), min(r1, h)
+    if c1c - c0c < 2 * hs + 1 or r1c - r0c < 2 * hs + 1:
+        return None
+    res = cv2.matchTemplate(img[r0c:r1c, c0c:c1c], tpl, cv2.TM_CCOEFF_NORMED)
+    ly, lx = np.unravel_index(int(np.nanargmax(res)), res.shape)
+    best = float(res[ly, lx])
+    sx = sy = 0.0
+    if 0 < lx < res.shape[1] - 1:
+        sx = _parabola_peak(res[ly, lx - 1], best, res[ly, lx + 1])
+    if 0 < ly < res.shape[0] - 1:
+        sy = _parabola_peak(res[ly - 1, lx], best, res[ly + 1, lx])
+    found = np.array([c0c + lx + hs + sx, r0c + ly + hs + sy])
+    return found - offset, best
 
 
 def coarse_search(
@@ -48,40 +89,38 @@ def coarse_search(
         w: [k, 2] displacements at the best match (NaN where no search was possible) and
         score: [k] its normalised correlation (NaN likewise).
     """
-    h, wd = img.shape
     k = len(idx)
     w_out = np.full((k, 2), np.nan)
     score = np.full(k, np.nan)
-    ph = refs.patch.shape[1] // 2
     for i, b in enumerate(np.asarray(idx)):
-        hs = int(refs.tpl_half[b])
-        if refs.count[b] == 0 or hs < 3 or not np.all(np.isfinite(w_pred[i])):
-            continue
-        rot = _rotation(float(alpha[i]))
-        pc = np.array([ph, ph], dtype=np.float64)
-        m = np.hstack([rot, (pc - rot @ pc)[:, None]])
-        patch = cv2.warpAffine(refs.patch[b], m, (2 * ph + 1, 2 * ph + 1), flags=cv2.INTER_LINEAR)
-        tpl = patch[ph - hs : ph + hs + 1, ph - hs : ph + hs + 1]
-        if float(tpl.std()) < 1e-6:
-            continue
-        c_r = refs.centre_px[b]
-        rc = (refs.patch_corner[b] + ph).astype(np.float64)  # patch centre pixel, ref frame
-        offset = rot @ (rc - c_r) + c_r  # where rc lands, less the displacement
-        q = np.rint(offset + w_pred[i]).astype(np.int64)
-        c0, r0 = q[0] - hs - radius_px, q[1] - hs - radius_px
-        c1, r1 = q[0] + hs + radius_px + 1, q[1] + hs + radius_px + 1
-        c0c, r0c, c1c, r1c = max(c0, 0), max(r0, 0), min(c1, wd), min(r1, h)
-        if c1c - c0c < 2 * hs + 1 or r1c - r0c < 2 * hs + 1:
-            continue
-        res = cv2.matchTemplate(img[r0c:r1c, c0c:c1c], tpl, cv2.TM_CCOEFF_NORMED)
-        ly, lx = np.unravel_index(int(np.nanargmax(res)), res.shape)
-        best = float(res[ly, lx])
-        sx = sy = 0.0
-        if 0 < lx < res.shape[1] - 1:
-            sx = _parabola_peak(res[ly, lx - 1], best, res[ly, lx + 1])
-        if 0 < ly < res.shape[0] - 1:
-            sy = _parabola_peak(res[ly - 1, lx], best, res[ly + 1, lx])
-        found = np.array([c0c + lx + hs + sx, r0c + ly + hs + sy])
-        w_out[i] = found - offset
-        score[i] = best
+        m = _match(img, refs, int(b), float(alpha[i]), w_pred[i], radius_px)
+        if m is not None:
+            w_out[i], score[i] = m
     return w_out, score
+
+
+def acquire(
+    img: np.ndarray,
+    refs: RefSet,
+    idx: np.ndarray,
+    w_seed: np.ndarray,
+    radius_px: int,
+    rotations: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Find units `idx` anywhere within `radius_px` of `w_seed` at any of the trial `rotations`
+    (rad from the reference): the first registration of a frame whose units may have moved and
+    turned far from the reference (a pre-compressed sample against its unloaded image).
+
+    Returns:
+        alpha: [k] the trial rotation of the best match, w: [k, 2] its displacement, px, and
+        score: [k] its normalised correlation (all NaN where no search was possible: a template
+        under `MIN_TEMPLATE_HALF`, which the neighbours' motion must seed instead).
+    """
+    k = len(idx)
+    a_out, w_out, score = np.full(k, np.nan), np.full((k, 2), np.nan), np.full(k, np.nan)
+    for i, b in enumerate(np.asarray(idx)):
+        for a in rotations:
+            m = _match(img, refs, int(b), float(a), w_seed[i], radius_px)
+            if m is not None and not m[1] <= score[i]:
+                a_out[i], (w_out[i], score[i]) = a, m
+    return a_out, w_out, score

@@ -1,7 +1,8 @@
 """The experiment procedure as pure logic behind a small port (no rclpy).
 
-`Experiment.run()` pre-compresses, settles, arms the recorder, starts the camera, fires the
-pulse, records for `record_s` and waits for the developed frames; `Experiment.finish()`
+`Experiment.run()` takes the reference image of the unloaded sample, starts the recorder (so that
+the recording holds the stage closing from rest), pre-compresses, settles, starts the camera,
+fires the pulse, records for `record_s` and waits for the developed frames; `Experiment.finish()`
 brings the rig to rest and closes the recording whatever happened. The rig is reached only
 through a `RigPort`: `ros_nodes.nodes.sequencer_node.SequencerNode` implements it over ROS
 services and topics, tests implement it with a fake rig. Every wait has a wall-time deadline.
@@ -71,6 +72,9 @@ class RigPort(Protocol):
 
     def camera_start(self) -> bool: ...
 
+    def camera_snapshot(self) -> tuple[bool, str]:
+        """Publish one frame now as the tracker's reference image (`/camera/reference_image`)."""
+
     def camera_stop(self) -> None: ...
 
     def recorder_start(self) -> None: ...
@@ -126,6 +130,19 @@ class Experiment:
             raise RigError(f"camera: {port.camera().get('message')}")
         for name in port.service_names():
             self.until(lambda n=name: port.service_ready(n), f"service {name}", 60.0)
+        # the unloaded sample: the tracker finds every unit of the pre-compressed first frame
+        # against it, so that poses are from the unloaded design (as the simulation's)
+        ok, why = port.camera_snapshot()
+        if not ok:
+            log.warning("no reference image of the unloaded sample (%s): poses will be tracked "
+                        "from the first recorded frame, which is already pre-compressed", why)
+        # the recording holds the whole test from rest: the stage closing as the stages made it
+        # (the comparison and the simulated camera then start from the same history)
+        port.recorder_start()
+        # recording, and subscribed to every rig topic: a sample sent before the match is lost
+        self.until(lambda: port.recorder().get("recording") and
+                   port.recorder().get("matched", True),
+                   "the recorder to start and match every topic", 30.0)
         timings = {"startup": port.now() - w0}
 
         w = port.now()
@@ -146,11 +163,6 @@ class Experiment:
         w = port.now()
         port.pause_clock()
         self.phase(Phase.RECORD)
-        port.recorder_start()
-        # recording, and subscribed to every rig topic: a sample sent before the match is lost
-        self.until(lambda: port.recorder().get("recording") and
-                   port.recorder().get("matched", True),
-                   "the recorder to start and match every topic", 30.0)
         t_rec = port.sim_time()
         if not port.camera_start():
             raise RigError("camera refused to start")

@@ -1,7 +1,8 @@
 """The experiment procedure: plan, phases, node parameters and the run-folder summary (pure).
 
-A run: pre-compress to `strain` at the stage rate, settle, start recording and the camera,
-fire the pulse after `pre_trigger_s`, record for `record_s`, stop the devices, finish the
+A run: take the reference image of the unloaded sample, start recording, pre-compress to `strain`
+at the stage rate, settle, start the camera, fire the pulse after `pre_trigger_s`, capture for
+`record_s`, stop the devices, finish the
 recording, write the run folder. `ExperimentPlan` holds the numbers; `node_parameters` turns a
 plan into the parameters of every node; `Phase` names the steps (published on `/rig/phase`).
 """

@@ -3,6 +3,9 @@
 Interfaces (node name `camera`):
 - services `~/start` / `~/stop` (std_srvs/Trigger): replay sources stream from start; the
   simulated camera captures between start and stop and then downloads the footage (see below).
+- service `~/snapshot` (std_srvs/Trigger): one frame now on `/camera/reference_image` (latched),
+  the tracker's reference; the sequencer takes it before the stages close (simulated: the
+  specimen at rest, refused once the stages have moved).
 - `/camera/image_raw` (sensor_msgs/Image mono8/mono16) + `/camera/camera_info`, same stamps;
   `/camera/ground_truth` (metarig_msgs/UnitPose2DArray, simulated only: true unit poses in the
   sample frame at each frame time); `/rig/design` (std_msgs/String JSON, latched, simulated);
@@ -56,6 +59,8 @@ class CameraNode(Node):
         self._clock_pub = self.create_publisher(Clock, T.CLOCK.name, CLOCK) if cfg.publish_clock else None
         self.create_service(Trigger, T.CAMERA_START.name, self._on_start)
         self.create_service(Trigger, T.CAMERA_STOP.name, self._on_stop)
+        self.create_service(Trigger, T.CAMERA_SNAPSHOT.name, self._on_snapshot)
+        self._reference = self.create_publisher(Image, T.REFERENCE_IMAGE.name, LATCHED)
         self._stop_evt = threading.Event()
         self._thread: threading.Thread | None = None
         self._published = 0
@@ -97,6 +102,15 @@ class CameraNode(Node):
     def _publish(self, ns: int, frame: np.ndarray) -> None:
         # hot path (1000 frames/s): publish serialized bytes built without message objects;
         # the encoder and the camera info are made once per frame shape
+        enc = self._enc_for(frame)
+        if self._clock_pub is not None:
+            self._clock_pub.publish(convert.clock(ns))
+        self._img.publish(enc.encode(ns, frame))
+        self._info.publish(restamp(self._info_cdr, ns))
+        self._published += 1
+
+    def _enc_for(self, frame: np.ndarray) -> ImageEncoder:
+        """The encoder (and camera info) for this frame shape, made once per shape."""
         key = (frame.shape, frame.dtype)
         if key != self._enc_key:
             cfg = self._params.config
@@ -106,11 +120,7 @@ class CameraNode(Node):
             self._info_cdr = serialize_message(convert.camera_info(
                 0, frame.shape[1], frame.shape[0], cfg.m_per_px, cfg.frame_id))
             self._enc_key = key
-        if self._clock_pub is not None:
-            self._clock_pub.publish(convert.clock(ns))
-        self._img.publish(self._enc.encode(ns, frame))
-        self._info.publish(restamp(self._info_cdr, ns))
-        self._published += 1
+        return self._enc
 
     def _pace(self, k: int, t_rel_ns: int, wall0: float) -> None:
         cfg = self._params.config
@@ -162,7 +172,11 @@ class CameraNode(Node):
         def short():
             out = []
             for name, rec in (("shaker", self._shaker), ("stage", self._stage)):
-                if rec and max(t for t, _ in list(rec)) < t1 - 1e-9:
+                t = np.sort([s[0] for s in list(rec)])
+                # a device samples at its own rate: its last sample may be up to one period
+                # before the end of the capture
+                period = float(np.median(np.diff(t[-20:]))) if t.size > 1 else 0.0
+                if t.size and t[-1] < t1 - period - 1e-9:
                     out.append(name)
             return out
 
@@ -174,15 +188,28 @@ class CameraNode(Node):
                 f"the {name} joint states end before the capture ({t1:.4f} s): held at their "
                 "last value for the last frames")
 
+    def _capture_end(self, settle_s: float = 0.05, timeout_s: float = 2.0) -> float:
+        """The time the capture ended, s: now on a wall clock; on simulated time, the time the
+        clock holds once it has stopped moving (the sequencer holds it before it stops the
+        camera). Read in the service callback, a /clock message already sent but not yet
+        handled by this node would end the capture a step early and drop the last frame."""
+        clock = self.get_clock()
+        now = clock.now().nanoseconds
+        if not clock.ros_time_is_active:
+            return now * 1e-9
+        still = time.monotonic()
+        deadline = still + timeout_s
+        while time.monotonic() < deadline:
+            time.sleep(0.005)
+            t = clock.now().nanoseconds
+            if t != now:
+                now, still = t, time.monotonic()
+            elif time.monotonic() - still >= settle_s:
+                break
+        return now * 1e-9
+
     def _develop(self) -> None:
-        from hardware_sim import camera as cam
-        from hardware_sim.rig import (
-            MotionRecord,
-            capture_times,
-            centred_origin,
-            film,
-            specimen_motion,
-        )
+        from hardware_sim.rig import MotionRecord, capture_times, film, specimen_motion
 
         cfg = self._params.config
         try:
@@ -190,6 +217,7 @@ class CameraNode(Node):
                 time.sleep(0.05)  # the specimen is still being built (first JAX import)
             if self._specimen is None:
                 return
+            self._window[1] = self._capture_end()
             t0, t1 = self._window
             times = capture_times(t0, t1, cfg.fps)
             if times.size < 1:
@@ -199,13 +227,7 @@ class CameraNode(Node):
             shaker = MotionRecord.from_samples(list(self._shaker), t1)
             stage = MotionRecord.from_samples(list(self._stage), t1)
             traj = specimen_motion(self._specimen, times, shaker, stage, cfg.fps)
-            ccfg = cam.CameraConfig(width_px=cfg.width, height_px=cfg.height, fps=cfg.fps,
-                                    m_per_px=cfg.m_per_px, supersample=cfg.supersample,
-                                    origin_px=centred_origin(self._specimen.polygons_m,
-                                                             cfg.width, cfg.height, cfg.m_per_px),
-                                    exposure_samples=cfg.exposure_samples,
-                                    noise_std=cfg.noise_std,
-                                    lighting_gradient=cfg.lighting_gradient, seed=cfg.seed)
+            ccfg = self._camera_config()
             c0 = self._specimen.centroids_m()
             self._status("publishing", f"{times.size} frames")
             wall0 = time.perf_counter()
@@ -223,7 +245,37 @@ class CameraNode(Node):
             self.get_logger().error(f"simulated camera failed: {e}")
             self._status("error", str(e))
 
+    def _camera_config(self):
+        from hardware_sim import camera as cam
+        from hardware_sim.rig import centred_origin
+
+        cfg = self._params.config
+        return cam.CameraConfig(width_px=cfg.width, height_px=cfg.height, fps=cfg.fps,
+                                m_per_px=cfg.m_per_px, supersample=cfg.supersample,
+                                origin_px=centred_origin(self._specimen.polygons_m, cfg.width,
+                                                         cfg.height, cfg.m_per_px),
+                                exposure_samples=cfg.exposure_samples, noise_std=cfg.noise_std,
+                                lighting_gradient=cfg.lighting_gradient, seed=cfg.seed)
+
     # services ---------------------------------------------------------------------------------
+    def _on_snapshot(self, req, res):
+        from hardware_sim.rig import reference_frame
+
+        cfg = self._params.config
+        if cfg.source != "sim":
+            res.success, res.message = False, f"refused: no snapshot from a {cfg.source} source"
+        elif self._specimen is None:
+            res.success, res.message = False, "refused: the specimen is not built yet"
+        elif self._state == "capturing" or any(abs(v) > 1e-9 for _, v in list(self._stage)):
+            res.success, res.message = False, ("refused: the simulated camera can only take the "
+                                               "unloaded specimen (before the stages move)")
+        else:
+            frame = reference_frame(self._specimen, self._camera_config(), cfg.seed)
+            self._reference.publish(self._enc_for(frame).encode(
+                self.get_clock().now().nanoseconds, frame))
+            res.success, res.message = True, "reference image published"
+        return res
+
     def _on_start(self, req, res):
         cfg = self._params.config
         if self._thread is not None and self._thread.is_alive() or self._state == "capturing":
@@ -244,7 +296,7 @@ class CameraNode(Node):
     def _on_stop(self, req, res):
         cfg = self._params.config
         if cfg.source == "sim" and self._state == "capturing":
-            self._window[1] = self.get_clock().now().nanoseconds * 1e-9
+            self._window[1] = None  # set by `_develop` once the clock has settled
             self._thread = threading.Thread(target=self._develop, daemon=True)
             self._thread.start()
             res.success, res.message = True, "capture ended; developing the footage"

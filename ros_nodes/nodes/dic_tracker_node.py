@@ -10,6 +10,9 @@ Interfaces (node name `dic_tracker`):
   `preview_rate_hz`: ids, x, y (reference centroid + displacement, m, sample frame), theta
   (rad, CCW), quality (ZNCC), lost (x, y, theta NaN); the stamp is the frame's;
 - service `~/reset_reference` (std_srvs/Trigger): the next frame becomes the reference.
+- `/camera/reference_image` (latched): when the camera has taken one (the unloaded sample), it
+  is the reference and the next frame's units are searched for in it, so that poses are from the
+  unloaded design even on a pre-compressed sample.
 The first frame tracked is the reference configuration. Parameters: `DICNodeConfig`
 (`ros_nodes.dic_params`); the tracking itself is `tracking.live.LivePreview`.
 """
@@ -52,6 +55,8 @@ class DICTrackerNode(Node):
         self._preview: LivePreview | None = None
         self._centroids = None
         self._warned_no_units = False
+        self._reference: np.ndarray | None = None
+        self.create_subscription(Image, topics.REFERENCE_IMAGE.name, self._on_reference, LATCHED)
         self._pub = self.create_publisher(UnitPose2DArray, cfg.poses_topic, STREAM)
         self.create_subscription(Image, cfg.image_topic, self._on_image, STREAM)
         self.create_service(Trigger, T.DIC_RESET.name, self._on_reset)
@@ -72,6 +77,8 @@ class DICTrackerNode(Node):
         self._centroids = area_centroids(tracker.polygons_m)
         self._preview = LivePreview(tracker, cfg.preview_rate_hz, self._publish,
                                     cfg.threads).start()
+        if self._reference is not None:
+            self._preview.reset_reference(self._reference)
         self.get_logger().info(f"tracking {tracker.n_units} units at <= "
                                f"{cfg.preview_rate_hz:g} Hz on {cfg.poses_topic}")
 
@@ -81,6 +88,16 @@ class DICTrackerNode(Node):
             self._start(_validate(polys, where=topics.RIG_DESIGN.name))
         except (ValueError, KeyError, TypeError) as e:
             self.get_logger().error(f"{topics.RIG_DESIGN.name} has no usable polygons_m: {e}")
+
+    def _on_reference(self, msg) -> None:
+        try:
+            self._reference = np.array(convert.image_array(msg))
+        except ValueError as e:
+            self.get_logger().warning(f"reference image unusable: {e}")
+            return
+        if self._preview is not None:
+            self._preview.reset_reference(self._reference)
+        self.get_logger().info("reference image received: the next frame is searched in it")
 
     def _on_image(self, msg) -> None:
         if self._preview is None:

@@ -33,6 +33,7 @@ __all__ = ["NAME", "RigError", "SequencerNode"]
 _SERVICES = {"set_strain": (T.STAGE_SET_STRAIN, SetStrain), "stage_stop": (T.STAGE_STOP, Trigger),
              "fire": (T.SHAKER_FIRE, FirePulse), "shaker_stop": (T.SHAKER_STOP, Trigger),
              "cam_start": (T.CAMERA_START, Trigger), "cam_stop": (T.CAMERA_STOP, Trigger),
+             "cam_snapshot": (T.CAMERA_SNAPSHOT, Trigger),
              "rec_start": (T.RECORDER_START, Trigger), "rec_stop": (T.RECORDER_STOP, Trigger)}
 # status topic -> key of `latest`
 _WATCHED = {T.STAGE_STATE: "stage", T.CAMERA_STATUS: "camera", T.RECORDER_STATUS: "recorder",
@@ -180,6 +181,10 @@ class SequencerNode(Node):
 
     def camera_start(self) -> bool:
         return self.call("cam_start", Trigger.Request()).success
+
+    def camera_snapshot(self) -> tuple[bool, str]:
+        r = self.call("cam_snapshot", Trigger.Request())
+        return r.success, r.message
 
     def camera_stop(self) -> None:
         self.call("cam_stop", Trigger.Request())

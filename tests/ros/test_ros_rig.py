@@ -108,6 +108,8 @@ def _check_experiment(out: Path, record_s: float = 0.04, fps: float = 1000.0) ->
 
 
 def test_full_simulated_experiment_in_process(tmp_path, ros_env):
+    from hardware_sim.camera import area_centroids
+
     out = tmp_path / "run"
     t0 = time.monotonic()
     r = subprocess.run([BIN + "metarig", "rig", "--out", str(out), "--live-dic", *SMALL],
@@ -127,6 +129,18 @@ def test_full_simulated_experiment_in_process(tmp_path, ros_env):
     assert len(msgs[T.POSES.name]) == n  # the live preview's poses replaced by every frame's
     assert len(msgs[T.COMPARE_RESULT.name]) == 1 and len(msgs[T.IMAGE_PREVIEW.name]) == n
     assert run["recording"]["topics"][T.POSES.name]["count"] > 0  # the live node ran
+    # the recording holds the closing from rest and the unloaded sample's image, against which
+    # the tracker found the pre-compressed first frame: poses from the unloaded design, as the
+    # truth's (the first frame is before the pulse, at rest: no motion blur)
+    closing = [sum(m.position) for _, m in msgs[T.STAGE_JOINTS.name]]
+    assert closing[0] < 0.05 * max(closing) and len(msgs[T.REFERENCE_IMAGE.name]) == 1
+    tracks = np.load(out / "tracks.npz")
+    design = json.loads(msgs["/rig/design"][0][1].data)
+    c0 = area_centroids(np.array(design["polygons_m"]))
+    gt0 = msgs["/camera/ground_truth"][0][1]
+    truth0 = np.stack([np.asarray(gt0.x), np.asarray(gt0.y)], axis=1) - c0
+    assert np.abs(truth0[design["stage_units_bottom"], 1]).min() > 1e-3  # it is pre-compressed
+    assert np.abs(tracks["q"][0, :, :2] - truth0).max() < 4e-5  # 0.05 px
     print(f"in-process experiment: {time.monotonic() - t0:.1f} s wall")
 
 

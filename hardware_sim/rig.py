@@ -3,7 +3,8 @@
 Order of the batch (see `hardware_sim.specimen`): the shaker and stages are simulated live from
 their commands (their nodes publish what their sensors read); once the capture window is over,
 the specimen is solved under that measured motion, and the frames of the window are rendered at
-the camera rate with the poses at each frame time kept as ground truth.
+the camera rate, each blurred over its exposure and stamped at the middle of it, with the poses
+at the stamp kept as ground truth (the pose a tracker measures in a blurred frame).
 """
 
 from collections.abc import Iterator
@@ -47,25 +48,47 @@ def capture_times(t_start_s: float, t_stop_s: float, fps: float) -> np.ndarray:
 
 def specimen_motion(specimen: Specimen, frame_t_s: np.ndarray, shaker: MotionRecord,
                     stage: MotionRecord | None, fps: float):
-    """Solve the specimen at the frame times and one period before the first (for blur)."""
+    """Solve the specimen at the frame times and one period before the first."""
     times = np.r_[frame_t_s[0] - 1.0 / fps, frame_t_s]
     return simulate(specimen, times, shaker.t, shaker.value,
                     None if stage is None else stage.t, None if stage is None else stage.value)
 
 
-def film(specimen: Specimen, cfg: cam.CameraConfig, traj, rng: np.random.Generator,
-         shutter: float = 0.5) -> Iterator[tuple[float, np.ndarray, np.ndarray]]:
-    """Render the trajectory's frames (all but its first sample, which starts the first blur).
+# exposure of a frame, in frame periods: it ends at the frame's capture time k / fps
+SHUTTER = 0.5
 
-    The exposure ends at the frame time and lasts `shutter` frame periods (poses interpolated
-    linearly from the previous sample). Yields (t s, uint8 [H, W] frame, [n_units, 3] true pose
-    (u, v, theta) at the frame time, i.e. at the end of the exposure).
+
+def exposure_times(frame_t_s: np.ndarray, fps: float, shutter: float = SHUTTER) -> np.ndarray:
+    """[n, 3] start, middle and end of each frame's exposure, s (the end at the frame time)."""
+    if not 0.0 < shutter < 1.0:
+        raise ValueError(f"shutter must be in (0, 1) frame periods, got {shutter}")
+    end = np.asarray(frame_t_s, np.float64)
+    return np.stack([end - shutter / fps, end - 0.5 * shutter / fps, end], axis=1)
+
+
+def exposure_motion(specimen: Specimen, frame_t_s: np.ndarray, shaker: MotionRecord,
+                    stage: MotionRecord | None, fps: float, shutter: float = SHUTTER):
+    """Solve the specimen at the start, middle and end of every frame's exposure (`film`)."""
+    times = exposure_times(frame_t_s, fps, shutter).ravel()
+    return simulate(specimen, times, shaker.t, shaker.value,
+                    None if stage is None else stage.t, None if stage is None else stage.value)
+
+
+def film(specimen: Specimen, cfg: cam.CameraConfig, traj, rng: np.random.Generator,
+         ) -> Iterator[tuple[float, np.ndarray, np.ndarray]]:
+    """Render the frames of an `exposure_motion` trajectory.
+
+    Each frame is blurred over its exposure (poses linear from its start to its end) and is
+    stamped at the middle of the exposure, where the motion it shows is centred. Yields (t s,
+    uint8 [H, W] frame, [n_units, 3] true pose (u, v, theta) at t, the middle of the exposure).
     """
     textures = cam.make_speckle_textures(specimen.polygons_m, cfg, rng)
-    for k in range(1, len(traj.t)):
-        frame = cam.render_frame(cfg, specimen.polygons_m, traj.q[k], textures, rng,
-                                 motion_from=traj.q[k] - shutter * (traj.q[k] - traj.q[k - 1]))
-        yield float(traj.t[k]), frame, traj.q[k]
+    if len(traj.t) % 3:
+        raise ValueError("film takes an exposure_motion trajectory (start, middle, end per frame)")
+    for k in range(0, len(traj.t), 3):
+        frame = cam.render_frame(cfg, specimen.polygons_m, traj.q[k + 2], textures, rng,
+                                 motion_from=traj.q[k])
+        yield float(traj.t[k + 1]), frame, traj.q[k + 1]
 
 
 def reference_frame(specimen: Specimen, cfg: cam.CameraConfig, seed: int) -> np.ndarray:

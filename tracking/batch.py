@@ -19,7 +19,7 @@ import signal
 import threading
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -31,6 +31,7 @@ from tracking.calibration import Calibration
 from tracking.dic import (
     DICConfig,
     DICTracker,
+    acquire_radius,
     FrameError,
     PreparedFrame,
     all_lost,
@@ -308,7 +309,10 @@ def track_source(
     from tqdm import tqdm
 
     n = polygons_m.shape[0]
-    check_outlines(DICTracker(polygons_m, calib, cfg), reference_image(spec, reference))
+    whole = DICTracker(polygons_m, calib, cfg)
+    check_outlines(whole, reference_image(spec, reference))
+    # the first frame's search covers the whole sample's strain, whichever units a worker has
+    cfg = replace(cfg, acquire_radius_px=acquire_radius(whole))
     log.info("tracking %d units in %s (%s) with %d worker process(es)", n, spec.path,
              spec.kind, workers)
     workers = max(1, min(int(workers), n))

@@ -79,7 +79,7 @@ class DICConfig:
     prefilter_sigma_px: float = 0.0
     predict: bool = True
     acquire_radius_px: int = 0
-    acquire_max_rotation: float = 0.4
+    acquire_max_rotation: float = 0.7
     acquire_rotation_step: float = 0.05
     acquire_neighbours: int = 4
 
@@ -360,10 +360,24 @@ def acquire_frame(tracker: DICTracker, state: TrackerState,
     near = r.inside & r.converged & (np.nan_to_num(r.zncc, nan=-1.0) >= cfg.zncc_reacquire)
     alpha[usable[near]], t[usable[near]] = r.alpha[near], r.w[near]
     far = usable[~near]
-    a, w, score = acquire(prep.img, refs, far, np.zeros((far.size, 2)),
-                          acquire_radius(tracker), rotations)
-    found = np.isfinite(score) & (score >= cfg.zncc_lost)
-    alpha[far[found]], t[far[found]] = a[found], w[found]
+    w, score = acquire(prep.img, refs, far, np.zeros((far.size, 2)), acquire_radius(tracker),
+                       rotations)
+    # verify the best few candidates of each unit with its whole subset; the best wins
+    m = min(ACQUIRE_CANDIDATES, rotations.size)
+    best = np.argsort(-np.nan_to_num(score, nan=-np.inf), axis=1)[:, :m]  # [k, m]
+    rows = np.repeat(np.arange(far.size), m)
+    cols = best.ravel()
+    cand = np.isfinite(score[rows, cols])
+    rows, cols = rows[cand], cols[cand]
+    if rows.size:
+        r = icgn(prep.coef, refs, far[rows], rotations[cols], w[rows, cols], cfg.max_iter,
+                 cfg.tol_px, cfg.max_move_px)
+        zn = np.where(r.inside & r.converged, np.nan_to_num(r.zncc, nan=-1.0), -1.0)
+        for i in np.unique(rows):
+            j = np.flatnonzero(rows == i)
+            jb = j[np.argmax(zn[j])]
+            if zn[jb] >= cfg.zncc_reacquire:
+                alpha[far[i]], t[far[i]] = r.alpha[jb], r.w[jb]
     # units without a found template: the rigid motion of their nearest found units
     anchors = np.flatnonzero(np.isfinite(alpha))
     rest = np.setdiff1d(usable, anchors)
@@ -429,6 +443,8 @@ def _update_references(
 SMALL_UNIT_MARGIN_PX = 1.5
 # the first frame's search covers this strain of the sample's height (`acquire_radius`)
 ACQUIRE_STRAIN = 0.1
+# candidates per unit (the best-correlated trial rotations) that the whole subset verifies
+ACQUIRE_CANDIDATES = 6
 SMALL_UNIT_MIN_POINTS = 16
 
 

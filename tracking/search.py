@@ -106,21 +106,25 @@ def acquire(
     w_seed: np.ndarray,
     radius_px: int,
     rotations: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Find units `idx` anywhere within `radius_px` of `w_seed` at any of the trial `rotations`
-    (rad from the reference): the first registration of a frame whose units may have moved and
-    turned far from the reference (a pre-compressed sample against its unloaded image).
+) -> tuple[np.ndarray, np.ndarray]:
+    """Find units `idx` anywhere within `radius_px` of `w_seed` at each of the trial `rotations`
+    (rad from the reference): candidates for the first registration of a frame whose units may
+    have moved and turned far from the reference (a pre-compressed sample against its unloaded
+    image). A small template over a wide window and many rotations can peak at a wrong place
+    higher than at the right one, so every rotation's best match is returned for the caller to
+    verify with the whole subset (IC-GN).
 
     Returns:
-        alpha: [k] the trial rotation of the best match, w: [k, 2] its displacement, px, and
-        score: [k] its normalised correlation (all NaN where no search was possible: a template
-        under `MIN_TEMPLATE_HALF`, which the neighbours' motion must seed instead).
+        w: [k, r, 2] displacement of the best match at each trial rotation, px, and score:
+        [k, r] its normalised correlation (NaN where no search was possible: a template under
+        `MIN_TEMPLATE_HALF`, which the neighbours' motion must seed instead).
     """
-    k = len(idx)
-    a_out, w_out, score = np.full(k, np.nan), np.full((k, 2), np.nan), np.full(k, np.nan)
+    k, nr = len(idx), len(rotations)
+    w_out, score = np.full((k, nr, 2), np.nan), np.full((k, nr), np.nan)
     for i, b in enumerate(np.asarray(idx)):
-        for a in rotations:
+        for j, a in enumerate(rotations):
             m = _match(img, refs, int(b), float(a), w_seed[i], radius_px)
-            if m is not None and not m[1] <= score[i]:
-                a_out[i], (w_out[i], score[i]) = a, m
-    return a_out, w_out, score
+            if m is None:
+                break
+            w_out[i, j], score[i, j] = m
+    return w_out, score

@@ -13,8 +13,9 @@ Interfaces (node name `camera`):
   `/clock` when `publish_clock` (replay: the frame stamps drive simulated time).
 Simulated source: like a high-speed camera with on-board memory. While capturing it keeps the
 measured shaker and stage motion (their joint states); at stop the specimen is solved under
-that motion, frames are rendered at `fps` for the capture window and published with their
-capture stamps (as fast as the readers acknowledge them, or `rate_factor` x real time).
+that motion, frames are rendered at `fps` for the capture window (frame k exposed for half a
+period up to k / fps) and published stamped at the middle of their exposure (as fast as the
+readers acknowledge them, or `rate_factor` x real time).
 """
 
 import json
@@ -209,7 +210,7 @@ class CameraNode(Node):
         return now * 1e-9
 
     def _develop(self) -> None:
-        from hardware_sim.rig import MotionRecord, capture_times, film, specimen_motion
+        from hardware_sim.rig import MotionRecord, capture_times, exposure_motion, film
 
         cfg = self._params.config
         try:
@@ -226,7 +227,7 @@ class CameraNode(Node):
             self._await_device_records(t1)
             shaker = MotionRecord.from_samples(list(self._shaker), t1)
             stage = MotionRecord.from_samples(list(self._stage), t1)
-            traj = specimen_motion(self._specimen, times, shaker, stage, cfg.fps)
+            traj = exposure_motion(self._specimen, times, shaker, stage, cfg.fps)
             ccfg = self._camera_config()
             c0 = self._specimen.centroids_m()
             self._status("publishing", f"{times.size} frames")
@@ -236,7 +237,7 @@ class CameraNode(Node):
                 if self._stop_evt.is_set():
                     break
                 ns = int(round(t * 1e9))
-                self._pace(k, int(round((t - times[0]) * 1e9)), wall0)
+                self._pace(k, int(round((t - float(traj.t[1])) * 1e9)), wall0)
                 self._truth.publish(convert.unit_poses(ns, q, c0))
                 self._publish(ns, frame)
             self._img.wait_for_all_acked(Duration(seconds=5.0))

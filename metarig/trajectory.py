@@ -1,7 +1,7 @@
 """The one trajectory type of the project (numpy only, SI): simulation, rig, tracking, comparison.
 
 A `Trajectory` holds per-unit planar motion sampled in time. Its file is a compressed `.npz`
-with the keys `t`, `q`, `qdot` and, where known, `quality`, `lost` and `complete`; `save_npz`
+with the keys `t`, `q`, `qdot` and, where known, `quality`, `lost`, `sigma` and `complete`; `save_npz`
 writes it atomically and `load_npz` reads it back (also older files without the optional keys).
 
 Poses travel over ROS as absolute positions in the sample frame (`UnitPose2DArray`: x, y,
@@ -36,6 +36,7 @@ class Trajectory:
         quality: [n_t, n_units] tracking score in [-1, 1] (1 best), or None (simulation).
         lost: [n_t, n_units] True where the unit was not tracked (its q is not valid), or None.
         complete: False when the source was cut short (an interrupted tracking run).
+        sigma: [n_t, n_units, 3] standard error of q (m, m, rad; tracking), or None.
     Unit ids are row-major with x fastest (kagome: 2 triangles per cell, cells row-major).
     """
 
@@ -45,6 +46,7 @@ class Trajectory:
     quality: np.ndarray | None = None
     lost: np.ndarray | None = None
     complete: bool = True
+    sigma: np.ndarray | None = None
 
     def __post_init__(self):
         nt = np.shape(self.t)[0] if np.ndim(self.t) == 1 else -1
@@ -59,6 +61,9 @@ class Trajectory:
             if a is not None and np.shape(a) != np.shape(self.q)[:2]:
                 raise ValueError(f"{name} must be [n_t, n_units] = {np.shape(self.q)[:2]}, "
                                  f"got {np.shape(a)}")
+        if self.sigma is not None and np.shape(self.sigma) != np.shape(self.q):
+            raise ValueError(f"sigma shape {np.shape(self.sigma)} differs from q "
+                             f"{np.shape(self.q)}")
 
     @property
     def n_units(self) -> int:
@@ -75,19 +80,21 @@ class Trajectory:
         return ok if self.lost is None else ok & ~np.asarray(self.lost, bool)
 
     @classmethod
-    def from_positions(cls, t, q, quality=None, lost=None, complete: bool = True) -> "Trajectory":
+    def from_positions(cls, t, q, quality=None, lost=None, complete: bool = True,
+                       sigma=None) -> "Trajectory":
         """A trajectory whose rates are backward differences of q (NaN at the first sample and
         next to lost samples): what a camera measures."""
         t, q = np.asarray(t, np.float64), np.asarray(q, np.float64)
         return cls(t=t, q=q, qdot=backward_rates(t, q), quality=quality, lost=lost,
-                   complete=complete)
+                   complete=complete, sigma=sigma)
 
     def window(self, start: int, stop: int | None = None) -> "Trajectory":
         """The samples [start, stop) (all arrays sliced alike)."""
         sl = slice(start, stop)
         return replace(self, t=self.t[sl], q=self.q[sl], qdot=self.qdot[sl],
                        quality=None if self.quality is None else self.quality[sl],
-                       lost=None if self.lost is None else self.lost[sl])
+                       lost=None if self.lost is None else self.lost[sl],
+                       sigma=None if self.sigma is None else self.sigma[sl])
 
     def save_npz(self, path: str | Path, **extra) -> Path:
         """Write the trajectory (plus any extra arrays) to a compressed .npz, atomically."""
@@ -95,7 +102,8 @@ class Trajectory:
         path.parent.mkdir(parents=True, exist_ok=True)
         arrays = {"t": self.t, "q": self.q, "qdot": self.qdot,
                   "complete": np.array(bool(self.complete))}
-        arrays.update({k: getattr(self, k) for k in OPTIONAL_KEYS if getattr(self, k) is not None})
+        arrays.update({k: getattr(self, k) for k in (*OPTIONAL_KEYS, "sigma")
+                       if getattr(self, k) is not None})
         tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
         with open(tmp, "wb") as f:
             np.savez_compressed(f, **arrays, **extra)
@@ -116,7 +124,7 @@ class Trajectory:
                     raise TrajectoryFileError(
                         f"{path}: not a trajectory file (missing {', '.join(sorted(missing))})")
                 q = np.asarray(f["q"], np.float64)
-                opt = {k: f[k] for k in OPTIONAL_KEYS if k in f.files}
+                opt = {k: f[k] for k in (*OPTIONAL_KEYS, "sigma") if k in f.files}
                 return cls(t=np.asarray(f["t"], np.float64), q=q,
                            qdot=f["qdot"] if "qdot" in f.files else np.full_like(q, np.nan),
                            complete=bool(f["complete"]) if "complete" in f.files else True,

@@ -108,7 +108,8 @@ def measured_poses(rec, source: str, polygons_m: np.ndarray, calibration: Path |
         traj = replace(traj, t=rec.frame_t_s - rec.frame_t_s[0])
         from metarig.trajectory import Trajectory
 
-        traj = Trajectory.from_positions(traj.t, traj.q, traj.quality, traj.lost, traj.complete)
+        traj = Trajectory.from_positions(traj.t, traj.q, traj.quality, traj.lost, traj.complete,
+                                         traj.sigma)
     return Tracked(traj, float(rec.frame_t_s[0]), "tracked (offline DIC)", True)
 
 

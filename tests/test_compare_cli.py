@@ -36,11 +36,14 @@ def test_run_folder_holds_summary_plots_trajectories(compared):
     for key in ("velocity_nrmse", "energy_map_correlation", "target_peak_ke_rel_err",
                 "max_displacement_error_m", "lost_units", "onset_s", "mcap", "rrd"):
         assert key in s
-    assert s["lost_units"] == 0 and s["input_source"] == "tracked"
+    # units 24 and 56 are flagged lost from frame 19 on: registered against refreshed
+    # references they came out 50-98 mrad off the truth at ZNCC 0.97 (reported as good before
+    # the check against the reference image's own subsets)
+    assert s["lost_units"] == 2 and s["input_source"] == "tracked"
     assert s["precompression_m"] == pytest.approx(0.02 * 0.105, rel=0.02)  # 2 % of (8-1) s
-    # 12 px units at 1.2 mm/px: the tracking noise dominates (measured: velocity NRMSE 0.128
-    # tracked, 0.020 on the recording's ground-truth poses; energy-map correlation 0.99944;
-    # target peak KE -0.037; max displacement error 1.0 mm = 0.84 px). Bounds at ~2x: the
+    # 12 px units at 1.2 mm/px: the tracking noise dominates (measured: velocity NRMSE 0.120
+    # tracked, 0.020 on the recording's ground-truth poses; energy-map correlation 0.99954;
+    # target peak KE -0.018; max displacement error 0.37 mm = 0.3 px). Bounds at ~2x: the
     # recording is fixed and tracking and simulation are deterministic, so another CPU moves
     # these by rounding in the DIC solves and the engine only, orders below the margins.
     assert s["velocity_nrmse"] < 0.25 and s["energy_map_correlation"] > 0.998

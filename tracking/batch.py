@@ -80,7 +80,7 @@ class Block:
 
     Attributes:
         k0: first frame index. q: [m, n, 3]. quality: [m, n]. lost: [m, n]. bad: [m] bool
-        frame unusable (all units lost).
+        frame unusable (all units lost). sigma: [m, n, 3] standard errors of q.
     """
 
     k0: int
@@ -88,6 +88,7 @@ class Block:
     quality: np.ndarray
     lost: np.ndarray
     bad: np.ndarray
+    sigma: np.ndarray
 
 
 def reference_image(spec: SourceSpec, reference: str | None = None) -> np.ndarray:
@@ -222,7 +223,7 @@ def track_blocks(job: TrackJob, stop: Callable[[], bool] = lambda: False) -> Ite
             state, poses = track_frame(tracker, state, item)
         if poses.error:
             log.warning("frame %d unusable, all units flagged lost: %s", k, poses.error)
-        buf.append((poses.q, poses.quality, poses.lost, bool(poses.error)))
+        buf.append((poses.q, poses.quality, poses.lost, bool(poses.error), poses.sigma))
         if len(buf) >= job.block:
             yield _pack(k0, buf)
             k0 += len(buf)
@@ -234,8 +235,8 @@ def track_blocks(job: TrackJob, stop: Callable[[], bool] = lambda: False) -> Ite
 
 
 def _pack(k0: int, buf: list[tuple]) -> Block:
-    q, qual, lost, bad = zip(*buf, strict=True)
-    return Block(k0, np.array(q), np.array(qual), np.array(lost), np.array(bad))
+    q, qual, lost, bad, sigma = zip(*buf, strict=True)
+    return Block(k0, np.array(q), np.array(qual), np.array(lost), np.array(bad), np.array(sigma))
 
 
 def _worker(wid: int, job: TrackJob, out: "mp.Queue", stop: "mp.Event") -> None:
@@ -255,6 +256,7 @@ def _assemble(parts: list[list[Block]], splits: list[np.ndarray], n_units: int, 
     keeping only the frames every worker did."""
     n_t = min((sum(b.q.shape[0] for b in p) for p in parts), default=0)
     q = np.full((n_t, n_units, 3), np.nan)
+    sigma = np.full((n_t, n_units, 3), np.nan)
     qual = np.full((n_t, n_units), np.nan)
     lost = np.ones((n_t, n_units), bool)
     bad = np.zeros(n_t, bool)
@@ -265,9 +267,10 @@ def _assemble(parts: list[list[Block]], splits: list[np.ndarray], n_units: int, 
                 continue
             sl = slice(b.k0, b.k0 + m)
             q[sl, ids], qual[sl, ids], lost[sl, ids] = b.q[:m], b.quality[:m], b.lost[:m]
+            sigma[sl, ids] = b.sigma[:m]
             bad[sl] |= b.bad[:m]
     traj = Trajectory.from_positions(np.arange(n_t) / fps, q, quality=qual, lost=lost,
-                                     complete=complete)
+                                     complete=complete, sigma=sigma)
     return traj, bad
 
 

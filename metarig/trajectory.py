@@ -177,13 +177,20 @@ def from_pose_messages(msgs, reference_m: np.ndarray, t0_ns: int | None = None) 
     y, theta = x.copy(), x.copy()
     quality = np.full((nt, n), np.nan, np.float32)
     lost = np.ones((nt, n), bool)
+    sigma = np.full((nt, n, 3), np.nan)
+    has_sigma = False
     for k, m in enumerate(msgs):
         ids = np.asarray(m.ids, np.int64)
         if ids.size and (ids.min() < 0 or ids.max() >= n):
             raise ValueError(f"pose message {k}: unit id {int(ids.max())} outside 0..{n - 1}")
         x[k, ids], y[k, ids], theta[k, ids] = m.x, m.y, m.theta
         quality[k, ids], lost[k, ids] = m.quality, np.asarray(m.lost, bool)
+        sx = getattr(m, "sigma_x", None)  # older recordings: no such field
+        if sx is not None and len(sx) == ids.size and ids.size:
+            sigma[k, ids] = np.stack([sx, m.sigma_y, m.sigma_theta], axis=-1)
+            has_sigma = True
     q = from_absolute(x, y, theta, ref)
     q[lost] = np.nan
     t0 = t_ns[0] if t0_ns is None else int(t0_ns)
-    return Trajectory.from_positions((t_ns - t0) * 1e-9, q, quality=quality, lost=lost)
+    return Trajectory.from_positions((t_ns - t0) * 1e-9, q, quality=quality, lost=lost,
+                                     sigma=sigma if has_sigma else None)

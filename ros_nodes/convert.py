@@ -124,9 +124,10 @@ def camera_info(ns: int, width: int, height: int, m_per_px: float,
 
 
 def unit_poses(ns: int, q: np.ndarray, reference_m: np.ndarray, quality=None, lost=None,
-               frame_id: str = "sample") -> UnitPose2DArray:
+               frame_id: str = "sample", sigma=None) -> UnitPose2DArray:
     """One frame of a `Trajectory` -> message: displacements q [n, 3] (m, rad) from the
-    reference centroids [n, 2] (sample frame, m) become absolute poses; quality, lost [n].
+    reference centroids [n, 2] (sample frame, m) become absolute poses; quality, lost [n];
+    sigma [n, 3] standard errors of q (None: the sigma fields stay empty).
     The way back, for any number of frames: `metarig.trajectory.from_pose_messages`."""
     q = np.asarray(q, np.float64)
     n = q.shape[0]
@@ -138,6 +139,9 @@ def unit_poses(ns: int, q: np.ndarray, reference_m: np.ndarray, quality=None, lo
     m.x, m.y, m.theta = x, y, np.asarray(theta, np.float64)
     m.quality = np.ones(n, np.float32) if quality is None else np.asarray(quality, np.float32)
     m.lost = [False] * n if lost is None else [bool(v) for v in lost]
+    if sigma is not None:
+        sig = np.asarray(sigma, np.float32).reshape(n, 3)
+        m.sigma_x, m.sigma_y, m.sigma_theta = sig[:, 0].copy(), sig[:, 1].copy(), sig[:, 2].copy()
     return m
 
 

@@ -126,7 +126,8 @@ def write_mcap(src: Path, dst: Path, tracked: Tracked, ec, summary: dict,
         p = tracked.poses
         for k, ns in enumerate(t_ns):
             msgs.append(NewMessage(topics.POSES.name, int(ns), convert.serialize(
-                convert.unit_poses(int(ns), p.q[k], ref, p.quality[k], p.lost[k]))))
+                convert.unit_poses(int(ns), p.q[k], ref, p.quality[k], p.lost[k],
+                                   sigma=None if p.sigma is None else p.sigma[k]))))
     from ros_nodes.logic.rerun_frames import PREVIEW_TYPE, preview_messages
 
     previews = preview_messages(src, topics.IMAGE.name, level=0)  # Rerun shows mono8 as depth

@@ -26,6 +26,14 @@ class NewMessage:
     cdr: bytes
 
 
+def _current(name: str, data: bytes) -> bool:
+    """Whether a schema's text is the definition this build serialises with."""
+    try:
+        return msgdefs.schema_text(name).encode() == bytes(data)
+    except msgdefs.UnknownMessageType:
+        return False
+
+
 def append_messages(src: str | Path, dst: str | Path, types: dict[str, str],
                     messages: list[NewMessage], replace: tuple[str, ...] = (),
                     metadata: dict[str, dict[str, str]] | None = None) -> Path:
@@ -69,7 +77,11 @@ def append_messages(src: str | Path, dst: str | Path, types: dict[str, str],
                     w.add_message(channel_ids[channel.id], msg.log_time, msg.data,
                                   msg.publish_time, msg.sequence)
                     seq = max(seq, msg.sequence + 1)
-            by_name = {s.name: sid for sid, s in zip(schema_ids.values(), summary.schemas.values())}
+            # a schema of the source is reused only where it is today's definition (an older
+            # recording's definition of a message that has gained fields is kept for its own
+            # messages; the new ones get today's)
+            by_name = {s.name: sid for sid, s in zip(schema_ids.values(), summary.schemas.values())
+                       if _current(s.name, s.data)}
             new_channels = dict(existing)
             for topic, type_name in types.items():
                 if topic in new_channels:

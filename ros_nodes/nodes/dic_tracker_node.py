@@ -114,7 +114,7 @@ class DICTrackerNode(Node):
 
     def _publish(self, stamp_ns: int, poses) -> None:
         self._pub.publish(convert.unit_poses(stamp_ns, poses.q, self._centroids, poses.quality,
-                                             poses.lost))
+                                             poses.lost, sigma=poses.sigma))
 
     def _on_reset(self, _req, res):
         if self._preview is None:

@@ -141,6 +141,10 @@ def test_full_simulated_experiment_in_process(tmp_path, ros_env):
     truth0 = np.stack([np.asarray(gt0.x), np.asarray(gt0.y)], axis=1) - c0
     assert np.abs(truth0[design["stage_units_bottom"], 1]).min() > 1e-3  # it is pre-compressed
     assert np.abs(tracks["q"][0, :, :2] - truth0).max() < 4e-5  # 0.05 px
+    # every tracked pose carries its standard error, in the trajectory file and the MCAP
+    sig = np.asarray(msgs[T.POSES.name][-1][1].sigma_x)
+    assert sig.size == design["n_units"] and np.all((sig > 0) & (sig < 8e-5))  # < 0.1 px
+    np.testing.assert_allclose(sig, tracks["sigma"][-1, :, 0], rtol=1e-6)
     print(f"in-process experiment: {time.monotonic() - t0:.1f} s wall")
 
 

@@ -19,20 +19,35 @@ REPLAY = {T.RIG_DESIGN.name: T.RIG_DESIGN, T.RIG_CONFIG.name: T.RIG_CONFIG,
           T.STAGE_JOINTS.name: T.STAGE_JOINTS, T.GROUND_TRUTH.name: T.POSES}
 
 
+def _as(cls, decoded):
+    """An rclpy message of today's `cls` with the fields of a message decoded by its recorded
+    schema (fields added since the recording keep their defaults: the sample recordings predate
+    the pose standard errors, so their CDR is not today's)."""
+    out = cls()
+    for name, kind in cls.get_fields_and_field_types().items():
+        if not hasattr(decoded, name):
+            continue
+        value = getattr(decoded, name)
+        if "/" in kind and not kind.startswith("sequence"):
+            value = _as(type(getattr(out, name)), value)
+        setattr(out, name, value)
+    return out
+
+
 def recorded(path: Path = SAMPLE / "recording.mcap") -> list[tuple[str, int, object]]:
-    """(topic to publish on, log time ns, rclpy message) rebuilt from the recording's CDR."""
+    """(topic to publish on, log time ns, rclpy message) rebuilt from the recording."""
     from mcap.reader import make_reader
-    from rclpy.serialization import deserialize_message
+    from mcap_ros2.decoder import DecoderFactory
 
     from ros_nodes.convert import message_class
 
     out = []
     with open(path, "rb") as f:
-        for _s, ch, msg in make_reader(f).iter_messages(topics=list(REPLAY),
-                                                         log_time_order=True):
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        for _s, ch, msg, decoded in reader.iter_decoded_messages(topics=list(REPLAY),
+                                                                  log_time_order=True):
             topic = REPLAY[ch.topic]
-            out.append((topic.name, msg.log_time,
-                        deserialize_message(msg.data, message_class(topic.type))))
+            out.append((topic.name, msg.log_time, _as(message_class(topic.type), decoded)))
     return out
 
 

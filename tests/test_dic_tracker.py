@@ -205,20 +205,24 @@ def test_a_precompressed_first_frame_is_found_against_the_unloaded_reference(clo
     assert pos < 0.01 and rot < 0.5, (pos, rot)
 
 
-def test_units_too_slender_for_a_search_template_start_from_their_neighbours():
+def _sliver_scene():
+    """4 x 3 units, every other one a sliver 8 px wide: no search template fits inside it."""
     from hardware_sim.camera import make_speckle_textures
-    from tracking.dic import acquire_frame
-    from tracking.search import MIN_TEMPLATE_HALF
 
     base = make_scene(4, 3)
-    # every other unit a sliver 8 px wide: no search template fits inside it
     polys = base.polygons_m.copy()
     slim = np.arange(base.n) % 2 == 1
     c = polys[slim].mean(axis=1, keepdims=True)
     polys[slim] = c + (polys[slim] - c) * np.array([8.0 / 37.0, 1.0])
-    scene = type(base)(base.cfg, polys, make_speckle_textures(polys, base.cfg,
-                                                              np.random.default_rng(1)),
-                       base.calib)
+    tex = make_speckle_textures(polys, base.cfg, np.random.default_rng(1))
+    return type(base)(base.cfg, polys, tex, base.calib), slim
+
+
+def test_units_too_slender_for_a_search_template_start_from_their_neighbours():
+    from tracking.dic import acquire_frame
+    from tracking.search import MIN_TEMPLATE_HALF
+
+    scene, slim = _sliver_scene()
     rng = np.random.default_rng(8)
     q0 = _precompressed(scene, 10.0, 0.0)
     q0[:, 2] = 0.05
@@ -304,3 +308,23 @@ def test_a_reference_refreshed_at_a_wrong_pose_does_not_carry_its_error_on():
             assert not fp.lost.any() and err.max() < 1e-3, err
         else:  # the failure the check prevents: 30 mrad off at a correlation above 0.99
             assert err[1] > 0.02 and fp.quality[1] > 0.99
+
+
+def test_a_lost_sliver_is_found_again_from_its_neighbours():
+    # a template search cannot find a sliver (no template fits in it): once lost (here
+    # occluded for three frames) it used to stay lost for good
+    scene, _ = _sliver_scene()
+    rng = np.random.default_rng(9)
+    n_t = 10
+    truth = np.zeros((n_t, scene.n, 3))
+    truth[:, :, 0] = (0.6 * np.arange(n_t))[:, None] * scene.cfg.m_per_px
+    truth[:, :, 2] = (0.004 * np.arange(n_t))[:, None]
+    c = scene.calib.sample_to_px(scene.polygons_m[5].mean(axis=0))
+    occ = np.zeros((scene.cfg.height_px, scene.cfg.width_px), bool)
+    occ[int(c[1]) - 25 : int(c[1]) + 25, int(c[0]) - 8 : int(c[0]) + 8] = True
+    frames = [scene.render(p, rng, occlusion=occ if 3 <= k < 6 else None)
+              for k, p in enumerate(truth)]
+    q, lost, _, _ = _run(scene, frames, DICConfig(margin_px=1.5, min_points=16))
+    assert lost[3:6, 5].all() and not lost[6:, 5].any()
+    pos, rot = errors_px(scene, q[6:, 5], truth[6:, 5])
+    assert pos < 0.02 and rot < 2.0, (pos, rot)

@@ -29,7 +29,7 @@ from tracking.calibration import Calibration
 from tracking.icgn import icgn
 from tracking.kernels import bspline_coefficients
 from tracking.reference import RefSet, build_refs, replace_refs
-from tracking.search import acquire, coarse_search
+from tracking.search import MIN_TEMPLATE_HALF, acquire, coarse_search
 from tracking.units import validate_polygons
 
 log = logging.getLogger(__name__)
@@ -321,6 +321,19 @@ def track_frame(
             inside[sel] = True
         ok[retry] = inside[retry] & (zncc[retry] >= accept)
     ok &= np.isfinite(alpha) & np.all(np.isfinite(w), axis=1)
+    # units too slender for a search template: from their tracked neighbours' motion
+    slim = np.union1d(retry_tracked, retry_lost)
+    slim = slim[(refs.tpl_half[slim] < MIN_TEMPLATE_HALF) & ~ok[slim]]
+    anchors = np.flatnonzero(ok)
+    if slim.size and anchors.size:
+        a_abs = state.ref_alpha + np.nan_to_num(alpha)
+        t_abs = state.ref_t + np.nan_to_num(w)
+        a, tt, zn = _from_neighbours(tracker, refs, prep, slim, anchors, a_abs, t_abs,
+                                     state.ref_alpha, state.ref_t)
+        got = zn >= cfg.zncc_reacquire
+        sel = slim[got]
+        alpha[sel], w[sel] = a[got] - state.ref_alpha[sel], tt[got] - state.ref_t[sel]
+        zncc[sel], ok[sel] = zn[got], True
 
     # new poses: good units move on, the others keep their last good pose and are lost
     new_alpha = np.where(ok, state.ref_alpha + np.nan_to_num(alpha), state.alpha)
@@ -459,35 +472,49 @@ def acquire_frame(tracker: DICTracker, state: TrackerState,
     anchors = np.flatnonzero(np.isfinite(alpha))
     rest = np.setdiff1d(usable, anchors)
     if rest.size and anchors.size:
-        c = tracker.centroid_px
-        m = min(cfg.acquire_neighbours, anchors.size)
-        d = np.linalg.norm(c[rest, None, :] - c[None, anchors, :], axis=-1)
-        near = anchors[np.argsort(d, axis=1)[:, :m]]  # [r, m]
-        rr = np.repeat(rest, m)
-        nb = near.ravel()
-        arm = c[rr] - c[nb]
-        rot = _rot(alpha[nb])
-        a0 = alpha[nb]
-        w0 = t[nb] + np.einsum("kij,kj->ki", rot, arm) - arm
-        # also the neighbours' mean translation without their rotation (a unit between
-        # counter-rotating neighbours, as in rotating-square lattices, barely turns)
-        rr = np.r_[rr, rest]
-        a0 = np.r_[a0, np.zeros(rest.size)]
-        w0 = np.r_[w0, t[near].mean(axis=1)]
-        r = icgn(prep.coef, refs, rr, a0, w0, cfg.max_iter, cfg.tol_px, cfg.max_move_px)
-        good = r.inside & np.isfinite(r.zncc)
-        zn = np.where(good, r.zncc, -np.inf)
-        for u in rest:
-            j = np.flatnonzero(rr == u)
-            best = j[np.argmax(zn[j])]
-            if zn[best] >= cfg.zncc_reacquire:
-                alpha[u], t[u] = r.alpha[best], r.w[best]
+        a, w, zn = _from_neighbours(tracker, refs, prep, rest, anchors, alpha, t,
+                                    np.zeros(n), np.zeros((n, 2)))
+        got = zn >= cfg.zncc_reacquire
+        alpha[rest[got]], t[rest[got]] = a[got], w[got]
     ok = np.isfinite(alpha)
     log.info("first frame: %d of %d units found (search radius %d px)", int(ok.sum()),
              int(usable.size), acquire_radius(tracker))
     return replace(state, alpha=np.where(ok, alpha, 0.0), t=np.where(ok[:, None], t, 0.0),
                    prev_alpha=np.full(n, np.nan), prev_t=np.full((n, 2), np.nan),
                    lost=state.lost | ~ok, acquired=True)
+
+
+def _from_neighbours(tracker: DICTracker, refs: RefSet, prep: PreparedFrame, units: np.ndarray,
+                     anchors: np.ndarray, alpha: np.ndarray, t: np.ndarray,
+                     ref_alpha: np.ndarray, ref_t: np.ndarray):
+    """Register `units` from the motion of their nearest `anchors` (units whose pose in this
+    frame is known: `alpha`, `t` [n], from the reference image): from each neighbour's rigid
+    motion carried to the unit, and from the neighbours' mean translation without rotation
+    (between counter-rotating neighbours, as in rotating-square lattices, a unit barely turns);
+    IC-GN from each start, the best correlation wins. For units a template search cannot find
+    (slender ones). Returns (alpha [k], t [k, 2] from the reference image, zncc [k]; -inf where
+    nothing converged inside the frame); `ref_alpha`, `ref_t` [n]: each unit's reference pose."""
+    cfg = tracker.cfg
+    c = tracker.centroid_px
+    m = min(cfg.acquire_neighbours, anchors.size)
+    d = np.linalg.norm(c[units, None, :] - c[None, anchors, :], axis=-1)
+    near = anchors[np.argsort(d, axis=1)[:, :m]]  # [k, m]
+    rr = np.repeat(units, m)
+    nb = near.ravel()
+    arm = c[rr] - c[nb]
+    a0 = np.r_[alpha[nb], np.zeros(units.size)]
+    w0 = np.r_[t[nb] + np.einsum("kij,kj->ki", _rot(alpha[nb]), arm) - arm, t[near].mean(axis=1)]
+    rr = np.r_[rr, units]
+    r = icgn(prep.coef, refs, rr, a0 - ref_alpha[rr], w0 - ref_t[rr], cfg.max_iter, cfg.tol_px,
+             cfg.max_move_px)
+    zn = np.where(r.inside & r.converged & np.isfinite(r.zncc), r.zncc, -np.inf)
+    out_a, out_t, out_z = np.zeros(units.size), np.zeros((units.size, 2)), np.full(units.size,
+                                                                                    -np.inf)
+    for i, u in enumerate(units):
+        j = np.flatnonzero(rr == u)
+        b = j[np.argmax(zn[j])]
+        out_a[i], out_t[i], out_z[i] = ref_alpha[u] + r.alpha[b], ref_t[u] + r.w[b], zn[b]
+    return out_a, out_t, out_z
 
 
 def _update_references(

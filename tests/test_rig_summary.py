@@ -53,3 +53,11 @@ def test_the_rig_refuses_empty_or_contradicting_flags_before_it_starts(tmp_path,
         rig_main(["--workers", "0", "--out", str(out)])
     assert e.value.code == 2 and "argument --workers: must be at least 1, got 0" in \
         capsys.readouterr().err
+
+
+def test_the_frames_the_plan_expects_are_recorded_beside_those_published():
+    # the capture window from the record phase: 0.1 s at 1 kHz from t = 0.222 s holds 101 frames;
+    # a camera whose clock lagged at its start publishes more, which the summary keeps visible
+    events = [("starting", 0.0), ("record", 0.222), ("develop", 0.322)]
+    s = summary(ExperimentPlan(), {}, _report(103), {"frames": 103}, events, "completed")
+    assert s["frames"] == {"published": 103, "recorded": 103, "lost": 0, "expected": 101}

@@ -59,7 +59,8 @@ def _check_experiment(out: Path, record_s: float = 0.04, fps: float = 1000.0) ->
     t_rec = phases["record"]
     expected = int(np.floor((t_rec + record_s) * fps + 1e-9)) - int(np.ceil(t_rec * fps - 1e-9)) + 1
     assert len(frames) == expected == run["timings_s"]["frames"]
-    assert run["frames"] == {"published": expected, "recorded": expected, "lost": 0}
+    assert run["frames"] == {"published": expected, "recorded": expected, "lost": 0,
+                             "expected": expected}
     assert len(msgs["/camera/camera_info"]) == len(msgs["/camera/ground_truth"]) == expected
     assert run["recording"]["dropped"] == 0
     cam = run["recording"]["topics"][T.IMAGE.name]

@@ -86,6 +86,10 @@ class CameraNodeConfig:
     noise_std: float = param(0.01, "sim: read noise, fraction of full scale", 0.0, 0.5)
     lighting_gradient: float = param(0.15, "sim: left-right lighting gradient", 0.0, 0.9)
     exposure_samples: int = param(3, "sim: sub-exposures for motion blur", 1, 16)
+    capture_start_s: float = param(-1.0, "sim: simulated time the next capture starts at, s "
+                                   "(-1: when `start` is called; used once). The sequencer sets "
+                                   "it to the time it holds, so that a camera whose clock lags "
+                                   "under load cannot start the capture early", -1.0, 1e9)
     supersample: int = param(2, "sim: sub-pixel samples per pixel side", 1, 8)
     seed: int = param(0, "seed of noise and speckle", 0, 2**31 - 1)
 

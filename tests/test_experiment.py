@@ -83,7 +83,8 @@ class FakeRig:
         self.calls.append(("fire", waveform, amplitude_m, frequency_hz, cycles, delay_s))
         return True, ""
 
-    def camera_start(self):
+    def camera_start(self, t_start_s):
+        assert t_start_s == self.sim  # the capture starts at the time the clock holds
         self.calls.append(("camera_start", self.sim))
         self._t_cam = self.sim
         self._camera = {"state": "capturing", "frames": 0}

@@ -70,7 +70,8 @@ class RigPort(Protocol):
     def fire(self, waveform: str, amplitude_m: float, frequency_hz: float, cycles: float,
              delay_s: float) -> tuple[bool, str]: ...
 
-    def camera_start(self) -> bool: ...
+    def camera_start(self, t_start_s: float) -> bool:
+        """Start the camera's capture window at simulated time `t_start_s` (the time held)."""
 
     def camera_snapshot(self) -> tuple[bool, str]:
         """Publish one frame now as the tracker's reference image (`/camera/reference_image`)."""
@@ -164,7 +165,7 @@ class Experiment:
         port.pause_clock()
         self.phase(Phase.RECORD)
         t_rec = port.sim_time()
-        if not port.camera_start():
+        if not port.camera_start(t_rec):
             raise RigError("camera refused to start")
         ok, why = port.fire(p.waveform, p.amplitude_m, p.frequency_hz, p.cycles, p.pre_trigger_s)
         if not ok:

@@ -26,6 +26,7 @@ import numpy as np
 from metarig_msgs.msg import UnitPose2DArray
 from rclpy.duration import Duration
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile
 from rclpy.serialization import serialize_message
 from rosgraph_msgs.msg import Clock
@@ -285,7 +286,11 @@ class CameraNode(Node):
         self._stop_evt.clear()
         self._published = 0
         if cfg.source == "sim":
-            self._window = [self.get_clock().now().nanoseconds * 1e-9, None]
+            t0 = self.get_clock().now().nanoseconds * 1e-9
+            if cfg.capture_start_s >= 0.0:  # set by the sequencer: the time it holds
+                t0 = cfg.capture_start_s
+                self.set_parameters([Parameter("capture_start_s", value=-1.0)])
+            self._window = [t0, None]
             self._status("capturing", f"from t={self._window[0]:.4f} s")
         else:
             self._thread = threading.Thread(target=self._replay, daemon=True)

@@ -13,8 +13,10 @@ import threading
 import time
 
 from metarig_msgs.srv import FirePulse, SetStrain
+from rcl_interfaces.srv import SetParameters
 from rclpy.duration import Duration
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Empty, String
 from std_srvs.srv import Trigger
@@ -64,6 +66,8 @@ class SequencerNode(Node):
             self.create_subscription(String, topic.name, self._keep(key), qos_profile(topic.qos))
         self.clients_ = {name: self.create_client(srv_type, srv.name)
                          for name, (srv, srv_type) in _SERVICES.items()}
+        # the camera's own parameter service: the capture starts at the time held here
+        self._cam_params = self.create_client(SetParameters, "/camera/set_parameters")
         self._publish_clock()
         self._clock_thread.start()
 
@@ -179,7 +183,16 @@ class SequencerNode(Node):
                                                 delay_s=delay_s))
         return r.accepted, r.message
 
-    def camera_start(self) -> bool:
+    def camera_start(self, t_start_s: float) -> bool:
+        """Start the capture at simulated time `t_start_s` (the camera's own clock may lag the
+        one held here under load and would start early: one to two extra frames were seen)."""
+        if self._cam_params.service_is_ready():
+            req = SetParameters.Request(parameters=[
+                Parameter("capture_start_s", value=float(t_start_s)).to_parameter_msg()])
+            fut = self._cam_params.call_async(req)
+            self._until(fut.done, "the camera's parameters", 30.0)
+            if not all(r.successful for r in fut.result().results):
+                log.warning("the camera took no capture start time: it starts at its own clock")
         return self.call("cam_start", Trigger.Request()).success
 
     def camera_snapshot(self) -> tuple[bool, str]:

@@ -68,6 +68,9 @@ class FakeRig:
     def stage_state(self):
         return self._stage
 
+    def stage_hold_time(self):
+        return None if self._stage != "holding" else round(self._t_set + self.eta_s, 9)
+
     def recorder(self):
         return self._recorder
 

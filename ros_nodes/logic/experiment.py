@@ -62,6 +62,10 @@ class RigPort(Protocol):
     def stage_state(self) -> str:
         """The stage's last state string (`idle`, `moving`, `holding`, `fault: why`; '')."""
 
+    def stage_hold_time(self) -> float | None:
+        """Simulated time of the stage sample at which the stages began to hold their target
+        (None: not known)."""
+
     def recorder(self) -> dict:
         """The recorder's last status (`recording`, `matched`, `counts`; {} before the first)."""
 
@@ -158,7 +162,13 @@ class Experiment:
         if port.stage_state().startswith("fault"):
             raise RigError(f"stage {port.stage_state()}")
         self.phase(Phase.SETTLE)
-        self.run_clock_until(port.sim_time() + p.settle_s)
+        # the settle is timed from the stage's own hold sample, not from when the hold was seen
+        # here (later under load, which shifted everything after it by a clock step or two)
+        if port.stage_state().startswith("holding"):
+            self.until(lambda: port.stage_hold_time() is not None, "the stage's hold time", 10.0)
+        t_hold = port.stage_hold_time()
+        start = port.sim_time() if t_hold is None else t_hold
+        self.run_clock_until(max(port.sim_time(), start + p.settle_s))
         timings["precompress_settle"] = port.now() - w
 
         w = port.now()

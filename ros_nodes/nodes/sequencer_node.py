@@ -12,6 +12,7 @@ import logging
 import threading
 import time
 
+from diagnostic_msgs.msg import DiagnosticArray
 from metarig_msgs.srv import FirePulse, SetStrain
 from rcl_interfaces.srv import SetParameters
 from rclpy.duration import Duration
@@ -66,6 +67,9 @@ class SequencerNode(Node):
             self.create_subscription(String, topic.name, self._keep(key), qos_profile(topic.qos))
         self.clients_ = {name: self.create_client(srv_type, srv.name)
                          for name, (srv, srv_type) in _SERVICES.items()}
+        self._hold_ns: int | None = None  # stamp of the stage's `holding` diagnostics
+        self.create_subscription(DiagnosticArray, T.DIAGNOSTICS.name, self._on_diagnostics,
+                                 qos_profile(T.DIAGNOSTICS.qos))
         # the camera's own parameter service: the capture starts at the time held here
         self._cam_params = self.create_client(SetParameters, "/camera/set_parameters")
         self._publish_clock()
@@ -172,7 +176,16 @@ class SequencerNode(Node):
     def recorder(self) -> dict:
         return self.latest.get("recorder") or {}
 
+    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        for st in msg.status:
+            if st.name == "stage" and st.message.startswith("holding") and self._hold_ns is None:
+                self._hold_ns = convert.to_ns(msg.header.stamp)
+
+    def stage_hold_time(self) -> float | None:
+        return None if self._hold_ns is None else self._hold_ns * 1e-9
+
     def set_strain(self, strain: float) -> tuple[bool, str]:
+        self._hold_ns = None
         r = self.call("set_strain", SetStrain.Request(strain=strain))
         return r.accepted, r.message
 

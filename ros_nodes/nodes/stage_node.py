@@ -122,8 +122,9 @@ class StageNode(LifecycleNode):
         cfg = self._params.config.device
         self._pubs["target"].publish(convert.scalar(s.target_m / cfg.sample_height_m))
         level = "error" if s.mode == sg.StageMode.FAULT else "ok"
+        # stamped with the sample at which the state changed (the node's clock may be later)
         self._pubs["diag"].publish(convert.diagnostics(
-            self.get_clock().now().nanoseconds, NAME, level, label,
+            int(round(s.t * 1e9)), NAME, level, label,
             {"closing_m": f"{s.closing_m:.6g}", "target_m": f"{s.target_m:.6g}"}))
         if s.mode == sg.StageMode.FAULT:
             self.get_logger().error(f"FAULT: {s.fault}")

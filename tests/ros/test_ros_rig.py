@@ -120,7 +120,9 @@ def test_full_simulated_experiment_in_process(tmp_path, ros_env):
     # tracked after the capture and compared: the run folder and its MCAP hold the results
     run = json.loads((out / "run.json").read_text())
     summary = json.loads((out / "summary.json").read_text())
-    assert run["comparison"]["velocity_nrmse"] == summary["velocity_nrmse"] < 0.25
+    # measured 0.027 through DIC (same seed, same recording on any machine: the rig's timing no
+    # longer depends on load)
+    assert run["comparison"]["velocity_nrmse"] == summary["velocity_nrmse"] < 0.06
     assert summary["lost_units"] == 0 and summary["energy_map_correlation"] > 0.99
     for f in ("comparison.rrd", "velocity_maps.png", "target_ke.png", "row_peak_ke.png",
               "tracking_quality.png", "tracks.npz", "simulated.npz", "calibration.json"):
@@ -141,7 +143,8 @@ def test_full_simulated_experiment_in_process(tmp_path, ros_env):
     gt0 = msgs["/camera/ground_truth"][0][1]
     truth0 = np.stack([np.asarray(gt0.x), np.asarray(gt0.y)], axis=1) - c0
     assert np.abs(truth0[design["stage_units_bottom"], 1]).min() > 1e-3  # it is pre-compressed
-    assert np.abs(tracks["q"][0, :, :2] - truth0).max() < 4e-5  # 0.05 px
+    # measured 3.6e-5 m (0.045 px); the first frame taken as unloaded was 1 mm (1.3 px) off
+    assert np.abs(tracks["q"][0, :, :2] - truth0).max() < 1.6e-4  # 0.2 px
     # every tracked pose carries its standard error, in the trajectory file and the MCAP
     sig = np.asarray(msgs[T.POSES.name][-1][1].sigma_x)
     assert sig.size == design["n_units"] and np.all((sig > 0) & (sig < 8e-5))  # < 0.1 px

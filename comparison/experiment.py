@@ -216,7 +216,8 @@ def compare_experiment(scene, poses: Trajectory, frame_t0_s: float, shaker_t_s=N
     target = np.unique(np.concatenate([np.asarray(v) for v in scene.targets.values()]))
     row = row_units(scene.lattice, scene.line_row)
     measured = Trajectory.from_positions(poses.t, poses.q - np.nan_to_num(poses.q[0]),
-                                         quality=poses.quality, lost=poses.lost)
+                                         quality=poses.quality, lost=poses.lost,
+                                         sigma=poses.sigma)
     result = compare(measured, simulated, scene.unit_masses_kg(), scene.unit_inertias_kgm2(),
                      target, row, onset)
     return ExperimentComparison(measured, simulated, sim_abs, measured_input, result, frame_t0_s)

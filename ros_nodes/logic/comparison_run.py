@@ -95,6 +95,13 @@ def summary_of(ec, scene, poses_source: str, recording: str) -> dict:
         "precompression_m": ec.input.precompression_m, "frames": int(ec.measured.n_t),
         "scene": scene.name, "n_units": int(scene.n_units), "recording": str(recording),
     })
+    sig = ec.measured.sigma
+    if sig is not None and np.isfinite(sig).any():
+        # how sure the tracking was (median stated standard error of the compared poses); the
+        # metrics above are not weighted by it
+        summary["pose_sigma_median_m"] = float(np.nanmedian(np.hypot(sig[..., 0], sig[..., 1])))
+        summary["pose_sigma_median_rad"] = float(np.nanmedian(sig[..., 2]))
+        summary["weighted_by_pose_sigma"] = False
     return summary
 
 

@@ -124,6 +124,9 @@ def test_full_simulated_experiment_in_process(tmp_path, ros_env):
     # longer depends on load)
     assert run["comparison"]["velocity_nrmse"] == summary["velocity_nrmse"] < 0.06
     assert summary["lost_units"] == 0 and summary["energy_map_correlation"] > 0.99
+    # the summary says how sure the tracking was, and that the metrics are not weighted by it
+    assert 0 < summary["pose_sigma_median_m"] < 8e-5 and 0 < summary["pose_sigma_median_rad"] < 0.01
+    assert summary["weighted_by_pose_sigma"] is False
     for f in ("comparison.rrd", "velocity_maps.png", "target_ke.png", "row_peak_ke.png",
               "tracking_quality.png", "tracks.npz", "simulated.npz", "calibration.json"):
         assert (out / f).stat().st_size > 0, f

@@ -28,20 +28,17 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from machine import describe
+
 ROOT = Path(__file__).resolve().parents[1]
 DESIGN = ROOT / "design_engine" / "studies" / "fixtures" / "focusing-contact-24x16.json"
 
 
-def _machine() -> str:
-    model = "unknown CPU"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{os.cpu_count()} cores ({model})"
+
+def _shown(design: str) -> str:
+    """The design as the results file names it: `periodic`, or its path from the repository."""
+    p = Path(design).resolve()
+    return str(p.relative_to(ROOT)) if p.is_relative_to(ROOT) else design
 
 
 def film_design(folder: Path, fps: float, m_per_px: float, duration_s: float, seed: int,
@@ -136,10 +133,8 @@ def main(argv=None) -> int:
     wrong = ok & ((pos_px > 0.5) | (rot > 0.01))
     z = np.abs(e) / traj.sigma
     res = {
-        "machine": _machine(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-        "design": args.design if args.design == "periodic" else
-        str(Path(args.design).resolve().relative_to(ROOT)) if Path(args.design).resolve()
-        .is_relative_to(ROOT) else args.design, "frames": int(traj.n_t),
+        "machine": describe(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        "design": _shown(args.design), "frames": int(traj.n_t),
         "units": int(traj.n_units), "slender_units": int(slender.sum()),
         "settings": {"margin_px": cfg.margin_px, "min_points": cfg.min_points},
         "wrong_without_flag": int(wrong.sum()),

@@ -23,19 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
+from machine import describe
+
 BIN = Path(sys.prefix) / "bin"
 
-
-def _machine() -> str:
-    model = "unknown CPU"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{os.cpu_count()} cores ({model})"
 
 
 def _run(cmd: list[str], env: dict) -> None:
@@ -116,7 +107,7 @@ def main(argv=None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ, ROS_DOMAIN_ID=str(150 + os.getpid() % 40),
                ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-    res = {"machine": _machine(), "command": "metarig rig --strain S --out DIR; metarig "
+    res = {"machine": describe(), "command": "metarig rig --strain S --out DIR; metarig "
            "compare DIR --poses truth", "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
            "runs": []}
     for load in loads:

@@ -22,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from machine import describe
+
 BIN = Path(sys.prefix) / "bin"
 
 
@@ -126,18 +128,6 @@ def experiment(out: Path, domain: int) -> dict:
             "mcap_bytes": (run / "recording.mcap").stat().st_size}
 
 
-def _machine() -> str:
-    model = "unknown CPU"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{os.cpu_count()} cores ({model})"
-
-
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0],
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
@@ -166,7 +156,7 @@ def main(argv=None) -> int:
         for b in burners:
             b.kill()
     median = sorted(runs, key=lambda r: r["delivered_rate_hz"])[len(runs) // 2]
-    res = {"machine": _machine(),
+    res = {"machine": describe(),
            "load_average_1_5_15_min": {"before": load0, "after_throughput": os.getloadavg()},
            "background_load_processes": args.background_load,
            "throughput": {**median, "note": f"median of {len(runs)} runs by delivered rate"},

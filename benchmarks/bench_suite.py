@@ -21,21 +21,13 @@ import sys
 import time
 from pathlib import Path
 
+from machine import cpu_model
+
 ROOT = Path(__file__).resolve().parent.parent
 # the Makefile's `test` target: keep the two in step
 MAKE_TEST_ARGS = ["-n", "auto", "--maxprocesses", "4", "--dist", "loadfile"]
 SUMMARY = re.compile(r"^=*\s*(\d+ (?:passed|failed|error).*?) in ([\d.]+)s")
 DURATION = re.compile(r"^([\d.]+)s (setup|call|teardown)\s+(\S+)")
-
-
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def _counts(text: str) -> dict[str, int]:
@@ -78,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
         "pytest_s": float(summary[2]) if summary else None,
         "counts": _counts(summary[1]) if summary else {},
         "slowest": slowest[:10],
-        "machine": {"cpu": _cpu_model(), "cores": os.cpu_count(),
+        "machine": {"cpu": cpu_model(), "cores": os.cpu_count(),
                     "python": platform.python_version()},
         "load_average_1min": {"before": round(load_before[0], 2),
                               "after": round(load_after[0], 2)},

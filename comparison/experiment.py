@@ -71,8 +71,8 @@ def stage_history(stage_t_s, stage_closing_m, closing_speed_m_s: float,
         if t[0] <= 0 or abs(c[0]) < 1e-9:
             return t, c, reached
         start = max(0.0, t[0] - abs(c[0]) / closing_speed_m_s)
-        return np.r_[0.0, start, t] if start > 0 else np.r_[0.0, t], \
-            np.r_[0.0, 0.0, c] if start > 0 else np.r_[0.0, c], reached
+        head_t, head_c = ([0.0, start], [0.0, 0.0]) if start > 0 else ([0.0], [0.0])
+        return np.r_[head_t, t], np.r_[head_c, c], reached
     if abs(reached) < 1e-7 or t[0] <= 0:
         return t, c, reached
     end = min(t[0], hold_t_s) if hold_t_s is not None else t[0]

@@ -17,7 +17,8 @@ import numpy as np
 
 from metarig.readback import READ_ERRORS
 
-OPTIONAL_KEYS = ("quality", "lost")
+OPTIONAL_KEYS = ("quality", "lost")  # [n_t, n_units], where known
+FILE_KEYS = (*OPTIONAL_KEYS, "sigma")  # the optional arrays of a trajectory file
 
 
 class TrajectoryFileError(ValueError):
@@ -102,8 +103,7 @@ class Trajectory:
         path.parent.mkdir(parents=True, exist_ok=True)
         arrays = {"t": self.t, "q": self.q, "qdot": self.qdot,
                   "complete": np.array(bool(self.complete))}
-        arrays.update({k: getattr(self, k) for k in (*OPTIONAL_KEYS, "sigma")
-                       if getattr(self, k) is not None})
+        arrays.update({k: getattr(self, k) for k in FILE_KEYS if getattr(self, k) is not None})
         tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
         with open(tmp, "wb") as f:
             np.savez_compressed(f, **arrays, **extra)
@@ -124,7 +124,7 @@ class Trajectory:
                     raise TrajectoryFileError(
                         f"{path}: not a trajectory file (missing {', '.join(sorted(missing))})")
                 q = np.asarray(f["q"], np.float64)
-                opt = {k: f[k] for k in (*OPTIONAL_KEYS, "sigma") if k in f.files}
+                opt = {k: f[k] for k in FILE_KEYS if k in f.files}
                 return cls(t=np.asarray(f["t"], np.float64), q=q,
                            qdot=f["qdot"] if "qdot" in f.files else np.full_like(q, np.nan),
                            complete=bool(f["complete"]) if "complete" in f.files else True,

@@ -450,24 +450,15 @@ def acquire_frame(tracker: DICTracker, state: TrackerState,
     near = r.inside & r.converged & (np.nan_to_num(r.zncc, nan=-1.0) >= cfg.zncc_reacquire)
     alpha[usable[near]], t[usable[near]] = r.alpha[near], r.w[near]
     far = usable[~near]
-    w, score = acquire(prep.img, refs, far, np.zeros((far.size, 2)), acquire_radius(tracker),
-                       rotations)
+    radius = acquire_radius(tracker)
+    w, score = acquire(prep.img, refs, far, np.zeros((far.size, 2)), radius, rotations)
     # verify the best few candidates of each unit with its whole subset; the best wins
-    m = min(ACQUIRE_CANDIDATES, rotations.size)
-    best = np.argsort(-np.nan_to_num(score, nan=-np.inf), axis=1)[:, :m]  # [k, m]
-    rows = np.repeat(np.arange(far.size), m)
-    cols = best.ravel()
-    cand = np.isfinite(score[rows, cols])
-    rows, cols = rows[cand], cols[cand]
-    if rows.size:
-        r = icgn(prep.coef, refs, far[rows], rotations[cols], w[rows, cols], cfg.max_iter,
-                 cfg.tol_px, cfg.max_move_px)
-        zn = np.where(r.inside & r.converged, np.nan_to_num(r.zncc, nan=-1.0), -1.0)
-        for i in np.unique(rows):
-            j = np.flatnonzero(rows == i)
-            jb = j[np.argmax(zn[j])]
-            if zn[jb] >= cfg.zncc_reacquire:
-                alpha[far[i]], t[far[i]] = r.alpha[jb], r.w[jb]
+    best = np.argsort(-np.nan_to_num(score, nan=-np.inf), axis=1)[:, :ACQUIRE_CANDIDATES]
+    rows = np.arange(far.size)[:, None]
+    a0 = np.where(np.isfinite(score[rows, best]), rotations[best], np.nan)
+    a, ww, zn = _best_of_starts(tracker, refs, prep, far, a0, w[rows, best])
+    got = zn >= cfg.zncc_reacquire
+    alpha[far[got]], t[far[got]] = a[got], ww[got]
     # units without a found template: the rigid motion of their nearest found units
     anchors = np.flatnonzero(np.isfinite(alpha))
     rest = np.setdiff1d(usable, anchors)
@@ -478,7 +469,7 @@ def acquire_frame(tracker: DICTracker, state: TrackerState,
         alpha[rest[got]], t[rest[got]] = a[got], w[got]
     ok = np.isfinite(alpha)
     log.info("first frame: %d of %d units found (search radius %d px)", int(ok.sum()),
-             int(usable.size), acquire_radius(tracker))
+             int(usable.size), radius)
     return replace(state, alpha=np.where(ok, alpha, 0.0), t=np.where(ok[:, None], t, 0.0),
                    prev_alpha=np.full(n, np.nan), prev_t=np.full((n, 2), np.nan),
                    lost=state.lost | ~ok, acquired=True)
@@ -494,27 +485,37 @@ def _from_neighbours(tracker: DICTracker, refs: RefSet, prep: PreparedFrame, uni
     IC-GN from each start, the best correlation wins. For units a template search cannot find
     (slender ones). Returns (alpha [k], t [k, 2] from the reference image, zncc [k]; -inf where
     nothing converged inside the frame); `ref_alpha`, `ref_t` [n]: each unit's reference pose."""
-    cfg = tracker.cfg
     c = tracker.centroid_px
-    m = min(cfg.acquire_neighbours, anchors.size)
+    m = min(tracker.cfg.acquire_neighbours, anchors.size)
     d = np.linalg.norm(c[units, None, :] - c[None, anchors, :], axis=-1)
     near = anchors[np.argsort(d, axis=1)[:, :m]]  # [k, m]
-    rr = np.repeat(units, m)
-    nb = near.ravel()
-    arm = c[rr] - c[nb]
-    a0 = np.r_[alpha[nb], np.zeros(units.size)]
-    w0 = np.r_[t[nb] + np.einsum("kij,kj->ki", _rot(alpha[nb]), arm) - arm, t[near].mean(axis=1)]
-    rr = np.r_[rr, units]
-    r = icgn(prep.coef, refs, rr, a0 - ref_alpha[rr], w0 - ref_t[rr], cfg.max_iter, cfg.tol_px,
-             cfg.max_move_px)
-    zn = np.where(r.inside & r.converged & np.isfinite(r.zncc), r.zncc, -np.inf)
-    out_a, out_t, out_z = np.zeros(units.size), np.zeros((units.size, 2)), np.full(units.size,
-                                                                                    -np.inf)
-    for i, u in enumerate(units):
-        j = np.flatnonzero(rr == u)
-        b = j[np.argmax(zn[j])]
-        out_a[i], out_t[i], out_z[i] = ref_alpha[u] + r.alpha[b], ref_t[u] + r.w[b], zn[b]
-    return out_a, out_t, out_z
+    arm = c[units, None, :] - c[near]  # [k, m, 2]
+    carried = t[near] + np.einsum("kmij,kmj->kmi", _rot(alpha[near]), arm) - arm
+    a0 = np.concatenate([alpha[near], np.zeros((units.size, 1))], axis=1)
+    w0 = np.concatenate([carried, t[near].mean(axis=1, keepdims=True)], axis=1)
+    a, w, zn = _best_of_starts(tracker, refs, prep, units, a0 - ref_alpha[units, None],
+                               w0 - ref_t[units, None, :])
+    return ref_alpha[units] + a, ref_t[units] + w, zn
+
+
+def _best_of_starts(tracker: DICTracker, refs: RefSet, prep: PreparedFrame, units: np.ndarray,
+                    a0: np.ndarray, w0: np.ndarray):
+    """IC-GN of each of `units` [k] from each of its starts (a0 [k, m] rad, w0 [k, m, 2] px
+    relative to its reference; NaN: no start) in one batch; per unit the converged result
+    inside the frame with the best correlation: (alpha [k], w [k, 2], zncc [k], -inf where
+    none converged)."""
+    cfg = tracker.cfg
+    k, m = a0.shape
+    zn = np.full((k, m), -np.inf)
+    al, ww = np.zeros((k, m)), np.zeros((k, m, 2))
+    rr, cc = np.nonzero(np.isfinite(a0) & np.all(np.isfinite(w0), axis=-1))
+    if rr.size:
+        r = icgn(prep.coef, refs, units[rr], a0[rr, cc], w0[rr, cc], cfg.max_iter, cfg.tol_px,
+                 cfg.max_move_px)
+        zn[rr, cc] = np.where(r.inside & r.converged & np.isfinite(r.zncc), r.zncc, -np.inf)
+        al[rr, cc], ww[rr, cc] = r.alpha, r.w
+    b, i = np.argmax(zn, axis=1), np.arange(k)
+    return al[i, b], ww[i, b], zn[i, b]
 
 
 def _update_references(

@@ -122,9 +122,10 @@ def acquire(
     k, nr = len(idx), len(rotations)
     w_out, score = np.full((k, nr, 2), np.nan), np.full((k, nr), np.nan)
     for i, b in enumerate(np.asarray(idx)):
+        if refs.count[b] == 0 or refs.tpl_half[b] < MIN_TEMPLATE_HALF:
+            continue  # no template at any rotation
         for j, a in enumerate(rotations):
             m = _match(img, refs, int(b), float(a), w_seed[i], radius_px)
-            if m is None:
-                break
-            w_out[i, j], score[i, j] = m
+            if m is not None:
+                w_out[i, j], score[i, j] = m
     return w_out, score

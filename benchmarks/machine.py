@@ -1,0 +1,21 @@
+"""The machine a benchmark ran on, in words, for its results file (imported by the scripts here)."""
+
+import os
+import platform
+from pathlib import Path
+
+
+def cpu_model() -> str:
+    """The CPU's model name (from /proc/cpuinfo; elsewhere what `platform` knows)."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def describe() -> str:
+    """'<cores> cores (<CPU model>)'."""
+    return f"{os.cpu_count()} cores ({cpu_model()})"

@@ -25,7 +25,10 @@ LATCHED = Qos("latched", 1, latched=True)
 # measured streams (joint states, frames, poses): reliable publishers with a deep queue; live
 # viewers may subscribe best-effort (`rclpy.qos.qos_profile_sensor_data`)
 STREAM = Qos("stream", 100)
-CLOCK_QOS = Qos("clock", 10)
+# a stream (a tick per simulated step, as fast as the devices follow): keep-last 10 let the
+# reliable writer overwrite ticks not yet acknowledged on a busy machine (one tick lost in a
+# recording under load); 1000 is a second of simulated time at the default 1 ms step
+CLOCK_QOS = Qos("clock", 1000)
 
 
 @dataclass(frozen=True, slots=True)

@@ -456,11 +456,15 @@ def test_a_design_without_a_positive_frequency_gets_the_fallback(make_task, monk
     assert st.start_state is not None and np.all(np.isfinite(st.start_state))  # measured there
 
 
-def test_design_files_carry_task_objectives_and_provenance(tmp_path):
+def test_design_files_carry_task_objectives_and_provenance(tmp_path, small_file):
+    """On the 1.5 mm pulse of `small_file`: under the paper's 7.5 mm pulse an 8x6 design is
+    hypersensitive (the same design's J moved 2.3x between a Verlet step and its half, 17 %
+    between float32 and float64), so two programs that round differently (the design loop's
+    value-and-gradient and `simulate`'s) disagree by 1-3 %, by CPU and XLA code generator."""
     from design_engine.design_cli import design_main
 
     out = tmp_path / "run"
-    assert design_main(["focusing", "--size", "8x6", "--max-evals", "4", "--out", str(out),
+    assert design_main([str(small_file), "--size", "8x6", "--max-evals", "4", "--out", str(out),
                         "--quiet"]) == 0
     doc = json.loads((out / "design.json").read_text())
     lattice, x = load_design(out / "design.json")
@@ -474,10 +478,12 @@ def test_design_files_carry_task_objectives_and_provenance(tmp_path):
     # the result is a normal design file for `metarig simulate --design`
     from design_engine.cli import simulate_main
 
-    assert simulate_main(["--design", str(out / "design.json"), "--out", str(tmp_path / "sim"),
-                          "--no-plots", "--quiet"]) == 0
+    assert simulate_main(["--design", str(out / "design.json"), "--amplitude", "0.0015",
+                          "--out", str(tmp_path / "sim"), "--no-plots", "--quiet"]) == 0
     summary = json.loads((tmp_path / "sim" / "summary.json").read_text())
-    assert summary["target_ke_mean_J"] == pytest.approx(doc["objective"], rel=0.02)
+    # the same float32 fixed step in two programs: measured 5.4e-6 apart (the policy's own
+    # float32 figure is 1e-5 of J); a wrong scene, pulse or design is off by far more
+    assert summary["target_ke_mean_J"] == pytest.approx(doc["objective"], rel=1e-3)
 
 
 @pytest.mark.slow

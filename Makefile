@@ -21,9 +21,10 @@ demo: install
 	$(BIN)/metarig demo --out runs/demo
 
 # The fast suite on every core (at most 4 workers; one DDS domain and one process per worker),
-# a file's tests on one worker so module fixtures are built once; benchmarks/bench_suite.py
-# times exactly this command.
-PYTEST_ARGS ?= -n auto --maxprocesses 4 --dist loadfile
+# a file's tests on one worker so module fixtures are built once, the longest files first
+# (tests/file_seconds.json, see tests/conftest.py); benchmarks/bench_suite.py times exactly
+# this command.
+PYTEST_ARGS ?= -n auto --maxprocesses 4 --dist loadfile --no-loadscope-reorder
 
 lint: install
 	$(BIN)/ruff check .

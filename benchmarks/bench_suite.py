@@ -5,7 +5,9 @@ machine and its load. Writes benchmarks/results/bench_suite.json (the README's "
                                                [-- extra pytest arguments]
 
 `--cold` empties the suite's compilation cache (`.pytest_cache/jax`) first, as on a fresh clone
-(CI); without it the cache of an earlier run is reused. The load average is read before and
+(CI); without it the cache of an earlier run is reused. A cold run that passes also writes each
+test file's seconds (set-up, call and tear-down of its tests) to tests/file_seconds.json, from
+which tests/conftest.py hands out the longest files first. The load average is read before and
 after the run: a figure taken beside other work says so. The pytest arguments are those of the
 Makefile's `test` target (`PYTEST_ARGS` there), so the figure is what a user gets.
 """
@@ -25,7 +27,9 @@ from machine import cpu_model
 
 ROOT = Path(__file__).resolve().parent.parent
 # the Makefile's `test` target: keep the two in step
-MAKE_TEST_ARGS = ["-n", "auto", "--maxprocesses", "4", "--dist", "loadfile"]
+MAKE_TEST_ARGS = ["-n", "auto", "--maxprocesses", "4", "--dist", "loadfile",
+                  "--no-loadscope-reorder"]
+FILE_SECONDS = ROOT / "tests" / "file_seconds.json"  # read by tests/conftest.py
 SUMMARY = re.compile(r"^=*\s*(\d+ (?:passed|failed|error).*?) in ([\d.]+)s")
 DURATION = re.compile(r"^([\d.]+)s (setup|call|teardown)\s+(\S+)")
 
@@ -44,8 +48,8 @@ def main(argv: list[str] | None = None) -> int:
 
     if args.cold:
         shutil.rmtree(ROOT / ".pytest_cache" / "jax", ignore_errors=True)
-    cmd = [sys.executable, "-m", "pytest", *MAKE_TEST_ARGS, "-q", "--durations=10",
-           *args.pytest_args]
+    cmd = [sys.executable, "-m", "pytest", *MAKE_TEST_ARGS, "-q", "--durations=0",
+           "--durations-min=0", *args.pytest_args]
     load_before = os.getloadavg()
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
@@ -78,6 +82,15 @@ def main(argv: list[str] | None = None) -> int:
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
+    if args.cold and rc == 0 and slowest:
+        per_file: dict[str, float] = {}
+        for row in slowest:
+            name = row["test"].split("::")[0]
+            per_file[name] = per_file.get(name, 0.0) + row["seconds"]
+        FILE_SECONDS.write_text(json.dumps(
+            {k: round(v, 1) for k, v in sorted(per_file.items(), key=lambda kv: -kv[1])},
+            indent=1) + "\n")
+        print(f"-> {FILE_SECONDS}: {len(per_file)} files")
     print(f"-> {args.out}: {result['wall_s']} s wall, {result['counts']}, exit code {rc}")
     return rc
 

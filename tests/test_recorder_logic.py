@@ -8,8 +8,8 @@ import pytest
 from mcap.reader import make_reader
 
 from ros_nodes import topics
-from ros_nodes.logic.cdr import ImageEncoder
-from ros_nodes.logic.recorder import McapRecorder, QueuedRecorder, header_stamp_ns
+from ros_nodes.logic.cdr import ImageEncoder, header_stamp_ns
+from ros_nodes.logic.recorder import McapRecorder, QueuedRecorder
 
 T0 = 1_000_000_000  # first frame stamp, ns
 PERIOD = 1_000_000  # 1000 fps, ns

@@ -11,7 +11,7 @@ import pytest
 
 from ros_nodes import topics
 from ros_nodes.logic import rerun_frames as rf
-from ros_nodes.logic.cdr import ImageEncoder
+from ros_nodes.logic.cdr import ImageEncoder, parse_image
 from ros_nodes.logic.recorder import McapRecorder
 
 rc = pytest.importorskip("rerun.chunk")
@@ -155,7 +155,7 @@ def test_previews_are_decimated_by_stamp():
                                                  "builtin_interfaces/msg/Time"))
     rgb = ts.serialize_cdr(Image(Header(Time(1, 0), "camera"), 2, 2, "rgb8", 0, 6,
                                  np.zeros(12, np.uint8)), "sensor_msgs/msg/Image")
-    assert rf.parse_image(rgb).encoding == "rgb8"
+    assert parse_image(rgb).encoding == "rgb8"
     assert rf.FramePreview().offer(rgb) is None
 
 

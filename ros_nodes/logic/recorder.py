@@ -34,20 +34,12 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from ros_nodes.logic import msgdefs
+from ros_nodes.logic.cdr import header_stamp_ns
 
 log = logging.getLogger(__name__)
 LIBRARY = "metarig recorder"
 _COMPRESSION = {"none": CompressionType.NONE, "lz4": CompressionType.LZ4,
                 "zstd": CompressionType.ZSTD}
-_STAMP = struct.Struct("<iI")  # builtin_interfaces/Time right after the 4-byte CDR header
-
-
-def header_stamp_ns(cdr: bytes) -> int | None:
-    """The `header.stamp` of a little-endian CDR message whose first field is a Header."""
-    if len(cdr) < 12 or cdr[1] != 0x01:  # 0x0001: CDR little-endian
-        return None
-    sec, nsec = _STAMP.unpack_from(cdr, 4)
-    return sec * 1_000_000_000 + nsec
 
 
 @dataclass
@@ -393,11 +385,3 @@ def recover(src: str | Path, dst: str | Path, *, chunk_size: int = 1 << 20) -> R
     return RecoveryReport(str(src), str(dst), n_msg, len(channels), n_meta, complete, error)
 
 
-def cdr_string(cdr: bytes) -> str | None:
-    """The text of a serialized `std_msgs/String` (CDR little-endian), or None if malformed."""
-    if len(cdr) < 8 or cdr[1] != 0x01:
-        return None
-    (n,) = struct.unpack_from("<I", cdr, 4)
-    if n == 0 or 8 + n > len(cdr):
-        return None
-    return cdr[8: 8 + n - 1].decode("utf-8", errors="replace")

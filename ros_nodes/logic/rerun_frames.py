@@ -16,22 +16,17 @@ filters; see the module's report), so it needs neither OpenCV nor Pillow.
 
 import struct
 import zlib
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ros_nodes import topics as T
+from ros_nodes.logic.cdr import GREY_ENCODINGS, compressed_image_cdr, parse_image
 
 PREVIEW_SUFFIX = "/compressed"  # image_transport's topic for the "compressed" transport
 PREVIEW_TYPE = "sensor_msgs/msg/CompressedImage"
 IMAGE_TYPE = "sensor_msgs/msg/Image"
-# encodings PNG stores losslessly as greyscale (8 or 16 bit); Rerun shows the raw ones as depth
-GREY_ENCODINGS = {"mono8": 8, "8UC1": 8, "mono16": 16, "16UC1": 16}
 
-_ENC_HEADER = b"\x00\x01\x00\x00"  # CDR little-endian, no options
-_STAMP = struct.Struct("<iI")
-_U32 = struct.Struct("<I")
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
@@ -44,87 +39,6 @@ def png_format(encoding: str) -> str:
     """The `CompressedImage.format` that `compressed_image_transport` writes for a PNG of a
     non-colour image: `"<encoding>; png compressed "` (the target encoding is left empty)."""
     return f"{encoding}; png compressed "
-
-
-# ---------------------------------------------------------------------------------------- CDR
-
-
-@dataclass(frozen=True)
-class RawImage:
-    """A decoded `sensor_msgs/Image` (pixel bytes are a view into the CDR buffer)."""
-
-    stamp_ns: int
-    frame_id: str
-    height: int
-    width: int
-    encoding: str
-    is_bigendian: bool
-    step: int
-    data: memoryview
-
-    def pixels(self) -> np.ndarray:
-        """The frame as a (height, width) array of a grey encoding (row padding dropped)."""
-        bits = GREY_ENCODINGS.get(self.encoding)
-        if bits is None:
-            raise ValueError(f"not a single-channel 8/16-bit encoding: {self.encoding!r}")
-        dtype = np.dtype(np.uint8 if bits == 8 else (">u2" if self.is_bigendian else "<u2"))
-        row = self.width * dtype.itemsize
-        if self.step < row or len(self.data) < self.step * (self.height - 1) + row:
-            raise ValueError(f"image data too short: step {self.step}, {len(self.data)} bytes "
-                             f"for {self.width}x{self.height} {self.encoding}")
-        buf = np.frombuffer(self.data, np.uint8)
-        rows = np.lib.stride_tricks.as_strided(buf, (self.height, row), (self.step, 1))
-        return np.ascontiguousarray(rows).view(dtype).reshape(self.height, self.width)
-
-
-def _read_string(buf: memoryview, pos: int) -> tuple[str, int]:
-    """A CDR string at body offset `pos` (4-aligned): its text and the offset after it."""
-    (n,) = _U32.unpack_from(buf, 4 + pos)
-    if n == 0 or 4 + pos + 4 + n > len(buf):
-        raise ValueError("malformed CDR string")
-    text = bytes(buf[4 + pos + 4: 4 + pos + 4 + n - 1]).decode()
-    return text, pos + 4 + n
-
-
-def _align(pos: int, n: int = 4) -> int:
-    return pos + (-pos) % n
-
-
-def parse_image(cdr: bytes | memoryview) -> RawImage:
-    """Decode a little-endian CDR `sensor_msgs/Image` without copying the pixels."""
-    buf = memoryview(cdr).cast("B") if not isinstance(cdr, memoryview) else cdr.cast("B")
-    if len(buf) < 12 or buf[1] != 0x01:
-        raise ValueError("not a little-endian CDR message")
-    sec, nsec = _STAMP.unpack_from(buf, 4)
-    frame_id, pos = _read_string(buf, 8)
-    pos = _align(pos)
-    height, width = struct.unpack_from("<II", buf, 4 + pos)
-    encoding, pos = _read_string(buf, pos + 8)
-    bigendian = bool(buf[4 + pos])
-    pos = _align(pos + 1)
-    step, n = struct.unpack_from("<II", buf, 4 + pos)
-    start = 4 + pos + 8
-    if start + n > len(buf):
-        raise ValueError(f"image data truncated: {n} bytes announced, {len(buf) - start} present")
-    return RawImage(sec * 1_000_000_000 + nsec, frame_id, height, width, encoding, bigendian,
-                    step, buf[start:start + n])
-
-
-def _cdr_string(s: str) -> bytes:
-    b = s.encode() + b"\x00"
-    return _U32.pack(len(b)) + b
-
-
-def compressed_image_cdr(stamp_ns: int, frame_id: str, fmt: str, data: bytes) -> bytes:
-    """A little-endian CDR `sensor_msgs/CompressedImage` (header, format, data)."""
-    stamp_ns = int(stamp_ns)
-    body = bytearray(_STAMP.pack(stamp_ns // 1_000_000_000, stamp_ns % 1_000_000_000))
-    body += _cdr_string(frame_id)
-    body += b"\x00" * ((-len(body)) % 4)
-    body += _cdr_string(fmt)
-    body += b"\x00" * ((-len(body)) % 4)
-    body += _U32.pack(len(data))
-    return b"".join((_ENC_HEADER, bytes(body), data))
 
 
 # ---------------------------------------------------------------------------------------- PNG

@@ -22,7 +22,8 @@ from std_srvs.srv import Trigger
 
 from ros_nodes import convert
 from ros_nodes import topics as T
-from ros_nodes.logic.recorder import McapRecorder, QueuedRecorder, cdr_string
+from ros_nodes.logic.cdr import string_text
+from ros_nodes.logic.recorder import McapRecorder, QueuedRecorder
 from ros_nodes.nodes._common import COMMAND, LATCHED, run_node
 from ros_nodes.nodes._params import TypedParams
 from ros_nodes.params import RecorderNodeConfig
@@ -161,7 +162,7 @@ class RecorderNode(Node):
             rec.call("add_topic", topic, entry[0], _qos_yaml(entry[1]))
         rec.put(topic, data, receive_ns, seq)
         if topic in METADATA_TOPICS:
-            text = cdr_string(data)
+            text = string_text(data)
             if text is not None:
                 rec.call("add_metadata", METADATA_TOPICS[topic], {"json": text})
 

@@ -16,6 +16,8 @@ from std_msgs.msg import Float64, String
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from metarig.trajectory import to_absolute
+from ros_nodes import topics as T
+from ros_nodes.logic import comparison_run as run
 
 SHAKER_JOINT = "shaker"
 STAGE_JOINTS = ("stage_bottom", "stage_top")
@@ -197,3 +199,33 @@ def diagnostics(ns: int, name: str, level: str, message: str,
     m = DiagnosticArray(status=[st])
     m.header.stamp = stamp(ns)
     return m
+
+
+def comparison_messages(ec, summary: dict, reference_m: np.ndarray) -> list[tuple[str, int, object]]:
+    """The comparison as (topic, stamp ns, rclpy message): the simulated poses of every frame
+    (`/compare/simulated_poses`), then at the last frame the result (`/compare/result`,
+    stamped at the pulse onset), the summary (`/compare/summary`) and the `/diagnostics` status.
+    `reference_m` [n, 2]: the design's centroids (absolute poses are measured from them)."""
+    t_ns = run.frame_stamps_ns(ec)
+    out = [(T.COMPARE_SIMULATED.name, int(ns),
+            unit_poses(int(ns), ec.simulated_abs.q[k], reference_m))
+           for k, ns in enumerate(t_ns)]
+    end_ns = int(t_ns[-1])
+    onset_ns = round((ec.frame_t0_s + summary["onset_s"]) * 1e9)
+    out.append((T.COMPARE_RESULT.name, end_ns,
+                comparison_result(onset_ns, ec.comparison, summary)))
+    out.append((T.COMPARE_SUMMARY.name, end_ns, json_text(summary)))
+    out.append((T.DIAGNOSTICS.name, end_ns, ok_diagnostics(end_ns, summary)))
+    return out
+
+
+def ok_diagnostics(ns: int, summary: dict):
+    """The `/diagnostics` status of a finished comparison: ok, with the summary metrics."""
+    return diagnostics(ns, run.DIAGNOSTIC_NAME, "ok", "experiment against simulation",
+                       {k: summary[k] for k in run.SUMMARY_KEYS})
+
+
+def error_diagnostics(ns: int, reason: str):
+    """The `/diagnostics` status of a refused comparison: error, with its one-line reason."""
+    return diagnostics(ns, run.DIAGNOSTIC_NAME, "error", reason.splitlines()[0] if reason
+                       else "comparison failed")

@@ -111,7 +111,7 @@ def write_mcap(src: Path, dst: Path, tracked: Tracked, ec, summary: dict,
     """The recording plus the comparison topics (and the offline-tracked poses)."""
     from metarig.polygon import area_centroids
     from ros_nodes import convert
-    from ros_nodes.logic.comparison_run import comparison_messages, frame_stamps_ns
+    from ros_nodes.logic.comparison_run import frame_stamps_ns
     from ros_nodes.logic.mcap_append import NewMessage, append_messages
 
     ref = area_centroids(polygons)
@@ -119,7 +119,7 @@ def write_mcap(src: Path, dst: Path, tracked: Tracked, ec, summary: dict,
              topics.COMPARE_SUMMARY.name: topics.COMPARE_SUMMARY.type,
              topics.COMPARE_SIMULATED.name: topics.COMPARE_SIMULATED.type}
     msgs = [NewMessage(topic, ns, convert.serialize(msg))
-            for topic, ns, msg in comparison_messages(ec, summary, ref)]
+            for topic, ns, msg in convert.comparison_messages(ec, summary, ref)]
     t_ns = frame_stamps_ns(ec)
     if tracked.tracked_here:
         types[topics.POSES.name] = topics.POSES.type

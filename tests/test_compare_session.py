@@ -84,7 +84,9 @@ def test_the_session_gives_the_offline_metrics(live, offline):
 
 
 def test_the_messages_carry_the_result(live):
-    msgs = run.comparison_messages(live.ec, live.summary, live.reference_m)
+    from ros_nodes import convert
+
+    msgs = convert.comparison_messages(live.ec, live.summary, live.reference_m)
     by_topic = {}
     for topic, _ns, msg in msgs:
         by_topic.setdefault(topic, []).append(msg)

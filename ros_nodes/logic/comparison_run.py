@@ -1,6 +1,7 @@
 """The steps of one comparison, shared by `metarig compare` (offline) and the comparison node
 (live): the scene of a design, the refusals, the simulation, the summary, the run-folder files
-and the comparison's messages. No rclpy at import (`comparison_messages` builds messages).
+and the messages' stamps. Pure: no ROS (`ros_nodes.convert.comparison_messages` turns a
+comparison into messages).
 
 Times on the rig clock, s; lengths m. Every refusal is a `CompareError` with one line.
 """
@@ -9,8 +10,6 @@ import json
 from pathlib import Path
 
 import numpy as np
-
-from ros_nodes import topics
 
 SUMMARY_KEYS = ("velocity_nrmse", "energy_map_correlation", "target_peak_ke_rel_err",
                 "max_displacement_error_m", "lost_units", "onset_s")
@@ -147,39 +146,3 @@ def write_run_files(out: Path, scene, polygons: np.ndarray, poses, ec, frames=No
 def frame_stamps_ns(ec) -> np.ndarray:
     """[n_t] rig-clock stamps of the compared frames, ns."""
     return np.round((ec.frame_t0_s + ec.measured.t) * 1e9).astype(np.int64)
-
-
-def comparison_messages(ec, summary: dict, reference_m: np.ndarray) -> list[tuple[str, int, object]]:
-    """The comparison as (topic, stamp ns, rclpy message): the simulated poses of every frame
-    (`/compare/simulated_poses`), then at the last frame the result (`/compare/result`,
-    stamped at the pulse onset), the summary (`/compare/summary`) and the `/diagnostics` status.
-    `reference_m` [n, 2]: the design's centroids (absolute poses are measured from them)."""
-    from ros_nodes import convert
-
-    t_ns = frame_stamps_ns(ec)
-    out = [(topics.COMPARE_SIMULATED.name, int(ns),
-            convert.unit_poses(int(ns), ec.simulated_abs.q[k], reference_m))
-           for k, ns in enumerate(t_ns)]
-    end_ns = int(t_ns[-1])
-    onset_ns = round((ec.frame_t0_s + summary["onset_s"]) * 1e9)
-    out.append((topics.COMPARE_RESULT.name, end_ns,
-                convert.comparison_result(onset_ns, ec.comparison, summary)))
-    out.append((topics.COMPARE_SUMMARY.name, end_ns, convert.json_text(summary)))
-    out.append((topics.DIAGNOSTICS.name, end_ns, ok_diagnostics(end_ns, summary)))
-    return out
-
-
-def ok_diagnostics(ns: int, summary: dict):
-    """The `/diagnostics` status of a finished comparison: ok, with the summary metrics."""
-    from ros_nodes import convert
-
-    return convert.diagnostics(ns, DIAGNOSTIC_NAME, "ok", "experiment against simulation",
-                               {k: summary[k] for k in SUMMARY_KEYS})
-
-
-def error_diagnostics(ns: int, reason: str):
-    """The `/diagnostics` status of a refused comparison: error, with its one-line reason."""
-    from ros_nodes import convert
-
-    return convert.diagnostics(ns, DIAGNOSTIC_NAME, "error", reason.splitlines()[0] if reason
-                               else "comparison failed")

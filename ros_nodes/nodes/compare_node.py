@@ -29,6 +29,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
+from ros_nodes import convert
 from ros_nodes import topics as T
 from ros_nodes.logic import comparison_run as run
 from ros_nodes.logic.compare_session import CompareSession
@@ -138,7 +139,7 @@ class CompareNode(Node):
             summary["timings_s"] = {"total": time.perf_counter() - t_start}
             if self._closing:
                 return
-            for topic, _ns, msg in run.comparison_messages(res.ec, summary, res.reference_m):
+            for topic, _ns, msg in convert.comparison_messages(res.ec, summary, res.reference_m):
                 self._pubs[topic].publish(msg)
             self.get_logger().info(
                 f"velocity NRMSE {summary['velocity_nrmse']:.2%}, energy-map correlation "
@@ -164,7 +165,7 @@ class CompareNode(Node):
         if self._closing:
             return
         self._pubs[T.DIAGNOSTICS.name].publish(
-            run.error_diagnostics(self.get_clock().now().nanoseconds, line))
+            convert.error_diagnostics(self.get_clock().now().nanoseconds, line))
 
     def close(self) -> None:
         self._closing = True

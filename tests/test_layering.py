@@ -5,6 +5,7 @@ Layers (a package may import only those before it):
     <- design_engine (JAX)            <- hardware_sim <- ros_nodes
     <- tracking (DIC, no JAX, no simulator, no ROS)    <- ros_nodes
     design_engine, tracking <- comparison (experiment against simulation, no ROS) <- ros_nodes
+    metarig base <- devices (lab device ports, vendor drivers: no ROS, simulator, JAX) <- ros_nodes
 `metarig.cli` / `metarig.__main__` dispatch to every package and are imported by none.
 """
 
@@ -15,7 +16,8 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("metarig", "design_engine", "tracking", "comparison", "hardware_sim", "ros_nodes")
+PACKAGES = ("metarig", "design_engine", "tracking", "comparison", "hardware_sim", "devices",
+            "ros_nodes")
 ROS_ALLOWED = ("ros_nodes/nodes/", "ros_nodes/convert.py")
 DISPATCH = ("metarig.cli", "metarig.__main__")
 MAY_IMPORT = {  # package -> project packages it may import (besides itself)
@@ -24,7 +26,9 @@ MAY_IMPORT = {  # package -> project packages it may import (besides itself)
     "tracking": {"metarig"},
     "comparison": {"metarig", "design_engine", "tracking"},
     "hardware_sim": {"metarig", "design_engine"},
-    "ros_nodes": {"metarig", "design_engine", "tracking", "comparison", "hardware_sim"},
+    "devices": {"metarig"},
+    "ros_nodes": {"metarig", "design_engine", "tracking", "comparison", "hardware_sim",
+                  "devices"},
 }
 
 

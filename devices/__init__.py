@@ -1,0 +1,11 @@
+"""Lab devices behind small ports: what the rig needs of a real device, and drivers that
+implement it through the vendors' packages.
+
+This package knows no ROS, no simulator and no JAX (numpy and the vendor packages only; it
+may import the `metarig` base). Every command is checked against the device's limits in the
+port before a driver touches the device.
+
+    devices.camera   the camera port (`Camera`, `CameraSettings`, `Frame`, limits, frame-loss
+                     counting, device-clock mapping) and its drivers: Basler pylon (pypylon)
+                     and GenICam GenTL producers (harvesters)
+"""

@@ -5,6 +5,9 @@ This package knows no ROS, no simulator and no JAX (numpy and the vendor package
 may import the `metarig` base). Every command is checked against the device's limits in the
 port before a driver touches the device.
 
+    devices.limits   `LimitError`, the refusal every port raises before a device moves
+    devices.shaker   the shaker port (`ShakerDrive`, `prepare`) and its waveforms and limits;
+                     the simulated shaker (`hardware_sim.shaker.SimulatedShaker`) implements it
     devices.camera   the camera port (`Camera`, `CameraSettings`, `Frame`, limits, frame-loss
                      counting, device-clock mapping) and its drivers: Basler pylon (pypylon)
                      and GenICam GenTL producers (harvesters)

@@ -15,7 +15,7 @@ from enum import Enum
 
 import numpy as np
 
-from hardware_sim.shaker import LimitError
+from devices.limits import LimitError
 from metarig.fields import param
 
 

@@ -5,11 +5,13 @@ import math
 import numpy as np
 import pytest
 
+from devices.limits import LimitError
+from devices.shaker.waveform import Program, WaveformRequest, make_waveform
 from hardware_sim import shaker as sh
 
 
 def test_pulse_waveform_closed_form():
-    wf = sh.make_waveform(sh.ShakerConfig(), sh.WaveformRequest("pulse", 0.0075, 30.0))
+    wf = make_waveform(sh.ShakerConfig(), WaveformRequest("pulse", 0.0075, 30.0))
     assert wf.duration_s == pytest.approx(1 / 30)
     t = np.array([-0.01, 0.0, 1 / 60, 1 / 30, 0.05])
     np.testing.assert_allclose(wf.displacement(t), [0, 0, 0.0075, 0, 0], atol=1e-15)
@@ -18,17 +20,17 @@ def test_pulse_waveform_closed_form():
 
 
 @pytest.mark.parametrize("req, words", [
-    (sh.WaveformRequest("pulse", 0.02, 30.0), "amplitude"),
-    (sh.WaveformRequest("pulse", -0.001, 30.0), "amplitude"),
-    (sh.WaveformRequest("pulse", 0.005, 500.0), "frequency"),
-    (sh.WaveformRequest("burst", 0.01, 60.0, cycles=2), "velocity"),
-    (sh.WaveformRequest("square", 0.005, 30.0), "unknown waveform"),
-    (sh.WaveformRequest("pulse", float("nan"), 30.0), "finite"),
-    (sh.WaveformRequest("samples", samples_m=(0.0, 0.05), sample_rate_hz=1000.0), "amplitude"),
+    (WaveformRequest("pulse", 0.02, 30.0), "amplitude"),
+    (WaveformRequest("pulse", -0.001, 30.0), "amplitude"),
+    (WaveformRequest("pulse", 0.005, 500.0), "frequency"),
+    (WaveformRequest("burst", 0.01, 60.0, cycles=2), "velocity"),
+    (WaveformRequest("square", 0.005, 30.0), "unknown waveform"),
+    (WaveformRequest("pulse", float("nan"), 30.0), "finite"),
+    (WaveformRequest("samples", samples_m=(0.0, 0.05), sample_rate_hz=1000.0), "amplitude"),
 ])
 def test_limits_refuse_with_reason(req, words):
-    with pytest.raises(sh.LimitError, match=words):
-        sh.make_waveform(sh.ShakerConfig(), req)
+    with pytest.raises(LimitError, match=words):
+        make_waveform(sh.ShakerConfig(), req)
 
 
 def test_second_order_step_response_settles_with_expected_overshoot():
@@ -49,7 +51,7 @@ def test_second_order_step_response_settles_with_expected_overshoot():
 
 def test_run_tracks_pulse_and_is_deterministic():
     cfg = sh.ShakerConfig()
-    wf = sh.make_waveform(cfg, sh.WaveformRequest("pulse", 0.0075, 30.0))
+    wf = make_waveform(cfg, WaveformRequest("pulse", 0.0075, 30.0))
     t = np.arange(1, 101) * 1e-3
     _, a = sh.run(cfg, wf, t, 0.01, np.random.default_rng(3))
     _, b = sh.run(cfg, wf, t, 0.01, np.random.default_rng(3))
@@ -62,7 +64,7 @@ def test_run_tracks_pulse_and_is_deterministic():
 
 def test_advance_is_independent_of_call_rate():
     cfg = sh.ShakerConfig(noise_std_m=0.0, noise_std_m_s=0.0)
-    prog = sh.Program(sh.make_waveform(cfg, sh.WaveformRequest("pulse", 0.005, 40.0)), 0.002)
+    prog = Program(make_waveform(cfg, WaveformRequest("pulse", 0.005, 40.0)), 0.002)
     rng = np.random.default_rng(0)
     fine, coarse = sh.init(cfg, rng), sh.init(cfg, rng)
     for k in range(1, 17):
@@ -72,3 +74,28 @@ def test_advance_is_independent_of_call_rate():
     assert coarse.x == pytest.approx(fine.x, abs=1e-7)  # far below the 2 um sensor noise
     assert fine.x > 0.004  # 16 ms: near the pulse peak at 2 ms + 12.5 ms (+ lag)
     assert prog.end_s == pytest.approx(0.027)
+
+
+def test_the_simulated_shaker_is_a_shaker_drive_behind_the_port():
+    """The port's contract on the simulator: requests checked by `prepare` before the drive is
+    called; an accepted pulse played from its start time; `stop` drops it (back to rest)."""
+    from devices.shaker.port import ShakerDrive, prepare
+
+    cfg = sh.ShakerConfig(noise_std_m=0.0, noise_std_m_s=0.0)
+    drive = sh.SimulatedShaker(cfg, np.random.default_rng(0))
+    assert isinstance(drive, ShakerDrive)
+    with pytest.raises(LimitError, match="delay"):
+        prepare(drive.limits, WaveformRequest("pulse", 0.005, 30.0), delay_s=-1.0)
+    with pytest.raises(LimitError, match="amplitude"):
+        prepare(drive.limits, WaveformRequest("pulse", 0.05, 30.0))
+    drive.start(1.0)
+    wf = prepare(drive.limits, WaveformRequest("pulse", 0.005, 30.0))
+    drive.play(wf, 1.01)
+    x = np.array([drive.read(1.0 + k * 1e-3).x_m for k in range(1, 80)])
+    assert np.all(np.abs(x[:9]) < 1e-12)  # nothing before the start
+    assert 0.9 * 0.005 < x.max() < 1.1 * 0.005  # the 250 Hz actuator follows a 30 Hz pulse
+    burst = prepare(drive.limits, WaveformRequest("burst", 0.005, 30.0, cycles=30))  # 1 s
+    drive.play(burst, drive.time_s)
+    assert abs(drive.read(drive.time_s + 0.1083).x_m) > 0.002  # playing (near a crest)
+    drive.stop()
+    assert abs(drive.read(drive.time_s + 0.2).x_m) < 1e-6  # at rest long before the burst ends

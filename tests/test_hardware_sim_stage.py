@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from hardware_sim import stage as sg
-from hardware_sim.shaker import LimitError
+from devices.limits import LimitError
 
 
 def _run(cfg, st, cmd, seconds, dt=1e-3, rng=None):

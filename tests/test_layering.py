@@ -5,7 +5,8 @@ Layers (a package may import only those before it):
     <- design_engine (JAX)            <- hardware_sim <- ros_nodes
     <- tracking (DIC, no JAX, no simulator, no ROS)    <- ros_nodes
     design_engine, tracking <- comparison (experiment against simulation, no ROS) <- ros_nodes
-    metarig base <- devices (lab device ports, vendor drivers: no ROS, simulator, JAX) <- ros_nodes
+    metarig base <- devices (lab device ports, vendor drivers: no ROS, simulator, JAX)
+        <- hardware_sim (the simulated devices implement the ports) <- ros_nodes
 `metarig.cli` / `metarig.__main__` dispatch to every package and are imported by none.
 """
 
@@ -25,7 +26,7 @@ MAY_IMPORT = {  # package -> project packages it may import (besides itself)
     "design_engine": {"metarig"},
     "tracking": {"metarig"},
     "comparison": {"metarig", "design_engine", "tracking"},
-    "hardware_sim": {"metarig", "design_engine"},
+    "hardware_sim": {"metarig", "design_engine", "devices"},
     "devices": {"metarig"},
     "ros_nodes": {"metarig", "design_engine", "tracking", "comparison", "hardware_sim",
                   "devices"},

@@ -18,7 +18,9 @@ from rclpy.lifecycle import LifecycleNode, State, TransitionCallbackReturn
 from std_msgs.msg import Empty
 from std_srvs.srv import Trigger
 
-from hardware_sim import shaker as sh
+from devices.limits import LimitError
+from devices.shaker.port import ShakerDrive, prepare
+from devices.shaker.waveform import WaveformRequest
 from ros_nodes import convert
 from ros_nodes import topics as T
 from ros_nodes.logic.sampling import due_samples
@@ -29,15 +31,24 @@ from ros_nodes.params import ShakerNodeConfig
 NAME = "shaker"
 
 
+def _drive(cfg: ShakerNodeConfig, rng: np.random.Generator) -> ShakerDrive:
+    """The shaker behind the port that `cfg.hardware` names (only the simulator exists yet)."""
+    if cfg.hardware != "sim":
+        raise ValueError(f"no shaker drive {cfg.hardware!r} (only 'sim')")
+    from hardware_sim.shaker import SimulatedShaker
+
+    return SimulatedShaker(cfg.device, rng)
+
+
 class ShakerNode(LifecycleNode):
-    """Thin adapter over `hardware_sim.shaker` (see module docstring)."""
+    """Thin adapter over the shaker port (`devices.shaker.port`; see module docstring)."""
 
     def __init__(self, **kwargs):
         super().__init__(NAME, **kwargs)
         self._params = TypedParams(self, ShakerNodeConfig)
         self._active = False
-        self._program: sh.Program | None = None
-        self._state: sh.ShakerState | None = None
+        self._drive: ShakerDrive | None = None
+        self._playing_until: float | None = None  # rig time the accepted waveform ends, s
         self._timer = None
         self._pubs: dict = {}
         self.create_service(FirePulse, T.SHAKER_FIRE.name, self._on_fire)
@@ -56,12 +67,12 @@ class ShakerNode(LifecycleNode):
             "cmd": self.create_publisher(convert.JointTrajectory, T.SHAKER_COMMAND.name, LATCHED),
             "diag": self.create_publisher(convert.DiagnosticArray, T.DIAGNOSTICS.name, COMMAND),
         }
-        self._state = sh.init(cfg.device, self._rng)
+        self._drive = _drive(cfg, self._rng)
         self._report("ok", "configured")
         return TransitionCallbackReturn.SUCCESS
 
     def on_activate(self, state: State) -> TransitionCallbackReturn:
-        self._state = sh.ShakerState(t=self._now_s(), x=self._state.x, v=self._state.v)
+        self._drive.start(self._now_s())
         self._timer = self.create_timer(1.0 / self._params.config.rate_hz, self._tick)
         self._active = True
         self._report("ok", "active")
@@ -69,7 +80,7 @@ class ShakerNode(LifecycleNode):
 
     def on_deactivate(self, state: State) -> TransitionCallbackReturn:
         self._active = False
-        self._program = None
+        self._drop_program()
         if self._timer is not None:
             self.destroy_timer(self._timer)
             self._timer = None
@@ -80,11 +91,14 @@ class ShakerNode(LifecycleNode):
         for p in self._pubs.values():
             self.destroy_publisher(p)
         self._pubs = {}
+        if self._drive is not None:
+            self._drive.close()
+            self._drive = None
         return TransitionCallbackReturn.SUCCESS
 
     def on_shutdown(self, state: State) -> TransitionCallbackReturn:
         self._active = False
-        self._program = None
+        self._drop_program()
         return TransitionCallbackReturn.SUCCESS
 
     # callbacks ------------------------------------------------------------------------------
@@ -93,11 +107,11 @@ class ShakerNode(LifecycleNode):
 
     def _tick(self) -> None:
         cfg = self._params.config
-        for t in due_samples(self._state.t, self._now_s(), 1.0 / cfg.rate_hz):
-            self._state, r = sh.advance(cfg.device, self._state, self._program, t, self._rng)
+        for t in due_samples(self._drive.time_s, self._now_s(), 1.0 / cfg.rate_hz):
+            r = self._drive.read(t)
             self._pubs["js"].publish(convert.shaker_state(int(round(r.t * 1e9)), r.x_m, r.v_m_s))
-        if self._program is not None and self._state.t > self._program.end_s:
-            self._program = None
+        if self._playing_until is not None and self._drive.time_s > self._playing_until:
+            self._playing_until = None
             self._report("ok", "waveform finished")
 
     def _on_fire(self, req, res):
@@ -105,25 +119,24 @@ class ShakerNode(LifecycleNode):
             res.accepted, res.message = False, "refused: the shaker node is not active"
             self.get_logger().warning(res.message)
             return res
-        if self._program is not None:
+        if self._playing_until is not None:
             res.accepted, res.message = False, "refused: a waveform is already playing"
             return res
-        request = sh.WaveformRequest(kind=req.waveform or "pulse", amplitude_m=req.amplitude_m,
-                                     frequency_hz=req.frequency_hz, cycles=req.cycles or 1.0,
-                                     samples_m=tuple(req.samples_m),
-                                     sample_rate_hz=req.sample_rate_hz)
+        request = WaveformRequest(kind=req.waveform or "pulse", amplitude_m=req.amplitude_m,
+                                  frequency_hz=req.frequency_hz, cycles=req.cycles or 1.0,
+                                  samples_m=tuple(req.samples_m),
+                                  sample_rate_hz=req.sample_rate_hz)
         cfg = self._params.config
-        try:
-            wf = sh.make_waveform(cfg.device, request)
-            if not 0.0 <= req.delay_s <= 60.0:
-                raise sh.LimitError(f"delay {req.delay_s} s outside [0, 60] s")
-        except sh.LimitError as e:
+        try:  # the limits, before the drive hears of it
+            wf = prepare(self._drive.limits, request, req.delay_s)
+        except LimitError as e:
             res.accepted, res.message = False, f"refused: {e}"
             self.get_logger().warning(res.message)
             self._report("warn", res.message)
             return res
         start_ns = self.get_clock().now().nanoseconds + int(round(req.delay_s * 1e9))
-        self._program = sh.Program(wf, start_ns * 1e-9)
+        self._drive.play(wf, start_ns * 1e-9)
+        self._playing_until = start_ns * 1e-9 + wf.duration_s
         ts = np.arange(0.0, wf.duration_s + 0.5 / cfg.command_rate_hz, 1.0 / cfg.command_rate_hz)
         self._pubs["cmd"].publish(convert.command_trajectory(start_ns, ts, wf.displacement(ts),
                                                              wf.velocity(ts)))
@@ -141,8 +154,13 @@ class ShakerNode(LifecycleNode):
         res.success, res.message = True, "stopped: program dropped, actuator returning to rest"
         return res
 
+    def _drop_program(self) -> None:
+        self._playing_until = None
+        if self._drive is not None:
+            self._drive.stop()
+
     def _stop(self, why: str) -> None:
-        self._program = None
+        self._drop_program()
         self.get_logger().info(f"stop ({why})")
         self._report("ok", f"stopped ({why})")
 
@@ -150,7 +168,7 @@ class ShakerNode(LifecycleNode):
         if "diag" in self._pubs:
             self._pubs["diag"].publish(convert.diagnostics(
                 self.get_clock().now().nanoseconds, NAME, level, message,
-                {"active": self._active, "playing": self._program is not None}))
+                {"active": self._active, "playing": self._playing_until is not None}))
 
 
 def main(args=None) -> int:

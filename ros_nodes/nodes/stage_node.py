@@ -17,7 +17,7 @@ from std_msgs.msg import Empty, Float64, String
 from std_srvs.srv import Trigger
 
 from hardware_sim import stage as sg
-from hardware_sim.shaker import LimitError
+from devices.limits import LimitError
 from ros_nodes import convert
 from ros_nodes import topics as T
 from ros_nodes.logic.sampling import due_samples

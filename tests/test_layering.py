@@ -107,6 +107,39 @@ def test_layering(pkg):
     assert not bad, "\n".join(bad)
 
 
+# command modules: parse arguments, call the libraries, print; imported by the dispatcher only
+COMMANDS = ("design_engine.cli", "design_engine.design_cli", "design_engine.robustness_cli",
+            "ros_nodes.cli_rig", "ros_nodes.cli_compare", "ros_nodes.cli_calibrate",
+            "ros_nodes.cli_demo")
+# modules that build or read ROS messages through `ros_nodes.convert` (which imports the message
+# packages): the nodes, and the offline writer of a comparison's messages into a recording
+CONVERT_USERS = ROS_ALLOWED + ("ros_nodes/recorded_compare.py",)
+
+
+def _scanned() -> list[Path]:
+    """Every module of the packages, and the benchmark scripts."""
+    return [f for pkg in PACKAGES for f in _files(pkg)] + sorted((ROOT / "benchmarks").glob("*.py"))
+
+
+def test_commands_are_leaves_and_logic_is_pure():
+    """No module (benchmarks included) imports a command module but the dispatcher; a module
+    that imports `ros_nodes.convert` imports ROS: only the nodes (and the offline comparison
+    writer) may, so `ros_nodes/logic/` stays free of ROS even at one remove."""
+    assert all((ROOT / (c.replace(".", "/") + ".py")).exists() for c in COMMANDS)
+    bad = []
+    for f in _scanned():
+        rel, mod = f.relative_to(ROOT).as_posix(), _module_name(f)
+        imports = _imports(f, names=True)
+        if mod not in DISPATCH:
+            bad += [f"{rel}: imports the command module {c}" for c in COMMANDS
+                    if c in imports and c != mod]
+        if "ros_nodes.convert" in imports and not rel.startswith(CONVERT_USERS):
+            bad.append(f"{rel}: imports ros_nodes.convert (ROS messages)")
+        if rel.startswith("benchmarks/"):
+            bad += [f"{rel}: imports {i}" for i in imports if _is_ros(i)]
+    assert not bad, "\n".join(bad)
+
+
 def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
     """Strongly connected components with more than one module (Tarjan, iterative)."""
     index, low, on, stack, out, counter = {}, {}, set(), [], [], [0]

@@ -8,6 +8,8 @@ port before a driver touches the device.
     devices.limits   `LimitError`, the refusal every port raises before a device moves
     devices.shaker   the shaker port (`ShakerDrive`, `prepare`) and its waveforms and limits;
                      the simulated shaker (`hardware_sim.shaker.SimulatedShaker`) implements it
+    devices.stage    the stage-pair port (`StagePair`, `StageLimits`, `check_strain`); the
+                     simulated stages (`hardware_sim.stage.SimulatedStages`) implement it
     devices.camera   the camera port (`Camera`, `CameraSettings`, `Frame`, limits, frame-loss
                      counting, device-clock mapping) and its drivers: Basler pylon (pypylon)
                      and GenICam GenTL producers (harvesters)

@@ -134,5 +134,8 @@ class SimulatedShaker:
             self._program = None
         return reading
 
+    def reconfigure(self, cfg: ShakerConfig) -> None:
+        self.cfg = self.limits = cfg
+
     def close(self) -> None:
         self._program = None

@@ -1,4 +1,5 @@
-"""Simulated pair of linear stages that pre-compress the sample (top and bottom rows).
+"""Simulated pair of linear stages that pre-compress the sample (top and bottom rows), and
+`SimulatedStages`, the stage port (`devices.stage.port.StagePair`) on top of it.
 
 The two stages move toward each other symmetrically. Their state is the total closing
 displacement c (m; strain = c / sample height). A target strain is checked against the limits,
@@ -11,32 +12,21 @@ puts it in FAULT until a reset. Device contract: `init(cfg, rng) -> StageState`,
 
 import math
 from dataclasses import dataclass, replace
-from enum import Enum
 
 import numpy as np
 
 from devices.limits import LimitError
+from devices.stage.port import (StageCommand, StageLimits, StageMode, StageReading, StageStatus,
+                                check_strain)
 from metarig.fields import param
 
 
-class StageMode(str, Enum):
-    IDLE = "idle"
-    MOVING = "moving"
-    HOLDING = "holding"
-    FAULT = "fault"
-
-
 @dataclass(frozen=True, slots=True)
-class StageConfig:
-    """Constants and limits of the stage pair (SI)."""
+class StageConfig(StageLimits):
+    """The simulated stage pair: its limits (`StageLimits`, the fields before these) and its
+    mechanics (SI)."""
 
-    sample_height_m: float = param(0.225, "undeformed sample height that strain refers to, m",
-                                1e-3, 10.0)
     closing_speed_m_s: float = param(0.05625, "total closing speed while moving, m/s", 1e-6, 1.0)
-    max_strain_rate_per_s: float = param(0.25, "largest allowed closing speed / height, 1/s",
-                                      1e-6, 10.0)
-    max_strain: float = param(0.09, "largest accepted compressive strain", 0.0, 0.5)
-    min_strain: float = param(0.0, "smallest accepted strain (negative: tension)", -0.5, 0.5)
     position_tolerance_m: float = param(2e-6, "distance at which a move counts as arrived, m",
                                      0.0, 1e-2)
     following_error_m: float = param(5e-4, "command-position mismatch that trips a fault, m",
@@ -51,17 +41,7 @@ class StageConfig:
                 f"closing speed {self.closing_speed_m_s} m/s is a strain rate of "
                 f"{self.closing_speed_m_s / self.sample_height_m:.3g}/s, above the limit "
                 f"{self.max_strain_rate_per_s}/s")
-        if self.min_strain > self.max_strain:
-            raise ValueError("min_strain must not exceed max_strain")
-
-
-@dataclass(frozen=True, slots=True)
-class StageCommand:
-    """One step's command: a new target strain (None: keep), stop (hold where you are), reset."""
-
-    target_strain: float | None = None
-    stop: bool = False
-    reset: bool = False
+        StageLimits.__post_init__(self)
 
 
 @dataclass(frozen=True, slots=True)
@@ -74,31 +54,6 @@ class StageState:
     target_m: float = 0.0
     mode: StageMode = StageMode.IDLE
     fault: str = ""
-
-
-@dataclass(frozen=True, slots=True)
-class StageReading:
-    """Encoder output: t (s), bottom and top stage positions (m, toward each other positive)."""
-
-    t: float
-    bottom_m: float
-    top_m: float
-    mode: StageMode
-    target_strain: float
-
-    @property
-    def closing_m(self) -> float:
-        return self.bottom_m + self.top_m
-
-
-def check_strain(cfg: StageConfig, strain: float) -> float:
-    """The target closing (m) for a strain, or `LimitError` outside the limits."""
-    if not math.isfinite(strain):
-        raise LimitError(f"strain must be a finite number, got {strain}")
-    if not cfg.min_strain <= strain <= cfg.max_strain:
-        raise LimitError(f"strain {strain:g} outside the limits "
-                         f"[{cfg.min_strain:g}, {cfg.max_strain:g}]")
-    return strain * cfg.sample_height_m
 
 
 def eta_s(cfg: StageConfig, state: StageState, strain: float) -> float:
@@ -145,3 +100,42 @@ def step(cfg: StageConfig, state: StageState, cmd: StageCommand, dt: float,
                            top_m=half + cfg.noise_std_m * rng.standard_normal(), mode=s.mode,
                            target_strain=s.target_m / cfg.sample_height_m)
     return s, reading
+
+
+class SimulatedStages:
+    """The simulated stages behind the stage port (`devices.stage.port.StagePair`), advanced on
+    the rig clock as readings are asked for; a command acts at the next reading."""
+
+    def __init__(self, cfg: StageConfig, rng: np.random.Generator):
+        self.cfg, self.limits, self._rng = cfg, cfg, rng
+        self._state = init(cfg, rng)
+        self._pending = StageCommand()
+
+    @property
+    def time_s(self) -> float:
+        return self._state.t
+
+    @property
+    def status(self) -> StageStatus:
+        s = self._state
+        return StageStatus(s.t, s.closing_m, s.target_m, s.mode, s.fault)
+
+    def start(self, t_s: float) -> None:
+        self._state = replace(self._state, t=float(t_s))
+
+    def command(self, cmd: StageCommand) -> None:
+        self._pending = cmd
+
+    def read(self, t_s: float) -> StageReading:
+        cmd, self._pending = self._pending, StageCommand()
+        self._state, reading = step(self.cfg, self._state, cmd, t_s - self._state.t, self._rng)
+        return reading
+
+    def eta_s(self, strain: float) -> float:
+        return eta_s(self.cfg, self._state, strain)
+
+    def reconfigure(self, cfg: StageConfig) -> None:
+        self.cfg = self.limits = cfg
+
+    def close(self) -> None:
+        self._pending = StageCommand()

@@ -18,7 +18,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 PKG = ROOT / "ament" / "metarig_ros"
 SHIM = PKG / "setup.py"
-SOURCE_DIRS = ("ros_nodes", "hardware_sim", "metarig", "design_engine", "tracking", "comparison")
+SOURCE_DIRS = ("ros_nodes", "hardware_sim", "devices", "metarig", "design_engine", "tracking",
+               "comparison")
 # ROS interface packages by naming convention: foo_msgs, foo_srvs, foo_interfaces
 ROS_IMPORT = re.compile(r"^\s*(?:from|import)\s+([a-z][a-z0-9_]*_(?:msgs|srvs|interfaces))\b",
                         re.MULTILINE)

@@ -43,6 +43,10 @@ class ShakerDrive(Protocol):
     def read(self, t_s: float) -> ShakerReading:
         """The measured motion at rig time `t_s` (not before the last reading)."""
 
+    def reconfigure(self, limits: ShakerLimits) -> None:
+        """New limits from the node's parameters (for the simulator, its whole configuration,
+        which extends the limits); they hold from the next request and reading."""
+
     def close(self) -> None:
         """Release the device (no waveform plays after this)."""
 

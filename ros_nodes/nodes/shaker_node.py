@@ -45,7 +45,7 @@ class ShakerNode(LifecycleNode):
 
     def __init__(self, **kwargs):
         super().__init__(NAME, **kwargs)
-        self._params = TypedParams(self, ShakerNodeConfig)
+        self._params = TypedParams(self, ShakerNodeConfig, on_change=self._reconfigured)
         self._active = False
         self._drive: ShakerDrive | None = None
         self._playing_until: float | None = None  # rig time the accepted waveform ends, s
@@ -102,6 +102,10 @@ class ShakerNode(LifecycleNode):
         return TransitionCallbackReturn.SUCCESS
 
     # callbacks ------------------------------------------------------------------------------
+    def _reconfigured(self, cfg: ShakerNodeConfig) -> None:
+        if self._drive is not None:  # new limits hold from the next request
+            self._drive.reconfigure(cfg.device)
+
     def _now_s(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
 

@@ -16,8 +16,8 @@ from rclpy.lifecycle import LifecycleNode, State, TransitionCallbackReturn
 from std_msgs.msg import Empty, Float64, String
 from std_srvs.srv import Trigger
 
-from hardware_sim import stage as sg
 from devices.limits import LimitError
+from devices.stage.port import StageCommand, StageMode, StagePair, check_strain
 from ros_nodes import convert
 from ros_nodes import topics as T
 from ros_nodes.logic.sampling import due_samples
@@ -28,15 +28,23 @@ from ros_nodes.params import StageNodeConfig
 NAME = "stage"
 
 
+def _stages(cfg: StageNodeConfig, rng: np.random.Generator) -> StagePair:
+    """The stages behind the port that `cfg.hardware` names (only the simulator exists yet)."""
+    if cfg.hardware != "sim":
+        raise ValueError(f"no stage controller {cfg.hardware!r} (only 'sim')")
+    from hardware_sim.stage import SimulatedStages
+
+    return SimulatedStages(cfg.device, rng)
+
+
 class StageNode(LifecycleNode):
-    """Thin adapter over `hardware_sim.stage` (see module docstring)."""
+    """Thin adapter over the stage port (`devices.stage.port`; see module docstring)."""
 
     def __init__(self, **kwargs):
         super().__init__(NAME, **kwargs)
-        self._params = TypedParams(self, StageNodeConfig)
+        self._params = TypedParams(self, StageNodeConfig, on_change=self._reconfigured)
         self._active = False
-        self._state: sg.StageState | None = None
-        self._pending = sg.StageCommand()
+        self._stages: StagePair | None = None
         self._timer = None
         self._pubs: dict = {}
         self._last_mode = None
@@ -57,21 +65,19 @@ class StageNode(LifecycleNode):
             "state": self.create_publisher(String, T.STAGE_STATE.name, LATCHED),
             "diag": self.create_publisher(convert.DiagnosticArray, T.DIAGNOSTICS.name, COMMAND),
         }
-        self._state = sg.init(cfg.device, self._rng)
+        self._stages = _stages(cfg, self._rng)
         self._publish_mode(force=True)
         return TransitionCallbackReturn.SUCCESS
 
     def on_activate(self, state: State) -> TransitionCallbackReturn:
-        s = self._state
-        self._state = sg.StageState(t=self._now_s(), closing_m=s.closing_m, setpoint_m=s.setpoint_m,
-                                    target_m=s.target_m, mode=s.mode, fault=s.fault)
+        self._stages.start(self._now_s())
         self._timer = self.create_timer(1.0 / self._params.config.rate_hz, self._tick)
         self._active = True
         return super().on_activate(state)
 
     def on_deactivate(self, state: State) -> TransitionCallbackReturn:
         self._active = False
-        self._pending = sg.StageCommand(stop=True)
+        self._stages.command(StageCommand(stop=True))
         self._tick()
         if self._timer is not None:
             self.destroy_timer(self._timer)
@@ -82,64 +88,65 @@ class StageNode(LifecycleNode):
         for p in self._pubs.values():
             self.destroy_publisher(p)
         self._pubs = {}
+        if self._stages is not None:
+            self._stages.close()
+            self._stages = None
         return TransitionCallbackReturn.SUCCESS
 
     def on_shutdown(self, state: State) -> TransitionCallbackReturn:
         self._active = False
         return TransitionCallbackReturn.SUCCESS
 
+    def _reconfigured(self, cfg: StageNodeConfig) -> None:
+        if self._stages is not None:  # new limits hold from the next command
+            self._stages.reconfigure(cfg.device)
+
     def _now_s(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
 
     def _tick(self) -> None:
-        if self._state is None:
+        if self._stages is None:
             return
         cfg = self._params.config
-        due = due_samples(self._state.t, self._now_s(), 1.0 / cfg.rate_hz)
-        if not due:
-            return
-        cmd, self._pending = self._pending, sg.StageCommand()
-        for t in due:
-            try:
-                self._state, r = sg.step(cfg.device, self._state, cmd, t - self._state.t,
-                                         self._rng)
+        for t in due_samples(self._stages.time_s, self._now_s(), 1.0 / cfg.rate_hz):
+            try:  # a command acts once, at the first sample after it came
+                r = self._stages.read(t)
             except LimitError as e:  # cannot happen for checked commands; never kill the node
                 self.get_logger().error(str(e))
                 return
-            cmd = sg.StageCommand()  # a command acts once, at the first sample after it came
             if "js" in self._pubs:
                 self._pubs["js"].publish(convert.stage_state(int(round(r.t * 1e9)), r.bottom_m,
                                                              r.top_m))
             self._publish_mode()
 
     def _publish_mode(self, force: bool = False) -> None:
-        s = self._state
+        s = self._stages.status
         label = s.mode.value + (f": {s.fault}" if s.fault else "")
         if not force and label == self._last_mode or "state" not in self._pubs:
             return
         self._last_mode = label
         self._pubs["state"].publish(String(data=label))
-        cfg = self._params.config.device
-        self._pubs["target"].publish(convert.scalar(s.target_m / cfg.sample_height_m))
-        level = "error" if s.mode == sg.StageMode.FAULT else "ok"
+        self._pubs["target"].publish(convert.scalar(s.target_m
+                                                    / self._stages.limits.sample_height_m))
+        level = "error" if s.mode == StageMode.FAULT else "ok"
         # stamped with the sample at which the state changed (the node's clock may be later)
         self._pubs["diag"].publish(convert.diagnostics(
             int(round(s.t * 1e9)), NAME, level, label,
             {"closing_m": f"{s.closing_m:.6g}", "target_m": f"{s.target_m:.6g}"}))
-        if s.mode == sg.StageMode.FAULT:
+        if s.mode == StageMode.FAULT:
             self.get_logger().error(f"FAULT: {s.fault}")
 
     def _on_set_strain(self, req, res):
-        cfg = self._params.config.device
         if not self._active:
             res.accepted, res.message = False, "refused: the stage node is not active"
-        elif self._state.mode == sg.StageMode.FAULT:
-            res.accepted, res.message = False, f"refused: stages in FAULT ({self._state.fault})"
+        elif self._stages.status.mode == StageMode.FAULT:
+            res.accepted = False
+            res.message = f"refused: stages in FAULT ({self._stages.status.fault})"
         else:
-            try:
-                sg.check_strain(cfg, req.strain)
-                self._pending = sg.StageCommand(target_strain=req.strain)
-                res.accepted, res.eta_s = True, sg.eta_s(cfg, self._state, req.strain)
+            try:  # the limits, before the stages hear of it
+                check_strain(self._stages.limits, req.strain)
+                self._stages.command(StageCommand(target_strain=req.strain))
+                res.accepted, res.eta_s = True, self._stages.eta_s(req.strain)
                 res.message = f"accepted: moving to strain {req.strain:g} (~{res.eta_s:.3g} s)"
             except LimitError as e:
                 res.accepted, res.message = False, f"refused: {e}"
@@ -150,7 +157,8 @@ class StageNode(LifecycleNode):
         return res
 
     def _stop(self) -> None:
-        self._pending = sg.StageCommand(stop=True)
+        if self._stages is not None:
+            self._stages.command(StageCommand(stop=True))
         self.get_logger().info("stop: holding position")
 
     def _on_stop(self, req, res):
@@ -159,8 +167,9 @@ class StageNode(LifecycleNode):
         return res
 
     def _on_reset(self, req, res):
-        self._pending = sg.StageCommand(reset=True)
-        res.success = self._state is not None and self._state.mode == sg.StageMode.FAULT
+        res.success = self._stages is not None and self._stages.status.mode == StageMode.FAULT
+        if self._stages is not None:
+            self._stages.command(StageCommand(reset=True))
         res.message = "fault cleared" if res.success else "nothing to reset (no fault)"
         return res
 

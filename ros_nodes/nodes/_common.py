@@ -1,5 +1,6 @@
-"""Shared QoS profiles and the uniform `main()` of every node."""
+"""Shared QoS profiles, the discovery range, and the uniform `main()` of every node."""
 
+import os
 from collections.abc import Callable
 
 import rclpy
@@ -20,6 +21,20 @@ def qos_profile(q: topics.Qos, depth: int | None = None) -> QoSProfile:
                     else DurabilityPolicy.VOLATILE))
 
 
+DISCOVERY_RANGE = "ROS_AUTOMATIC_DISCOVERY_RANGE"
+
+
+def local_discovery_by_default() -> str:
+    """Keep DDS discovery on this machine unless the environment opens it: sets
+    `ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST` where it is unset or empty. Called before every
+    rclpy context starts (rcl reads the variable then), so that no participant elsewhere on the
+    network can call the rig's services (`/shaker/fire`, `/stage/set_strain`). A lab that wants
+    other machines in sets the variable itself (e.g. `SUBNET`). Returns the range in force."""
+    if not os.environ.get(DISCOVERY_RANGE):
+        os.environ[DISCOVERY_RANGE] = "LOCALHOST"
+    return os.environ[DISCOVERY_RANGE]
+
+
 # the shared profiles (meaning: `ros_nodes.topics`)
 COMMAND = qos_profile(topics.COMMAND)
 LATCHED = qos_profile(topics.LATCHED)
@@ -34,6 +49,7 @@ def run_node(make: Callable[..., object], args=None, threads: int = 2, **node_kw
     stop_on_signals()
     # This rclpy (Jazzy 7.1) has no context-manager form of init(); try_shutdown is the `with`.
     try:
+        local_discovery_by_default()
         rclpy.init(args=args)
         try:
             node = make(**node_kwargs)

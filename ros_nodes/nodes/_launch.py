@@ -9,6 +9,7 @@ from rclpy.context import Context
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.parameter import Parameter
 
+from ros_nodes.nodes._common import local_discovery_by_default
 from ros_nodes.registry import NODES
 
 log = logging.getLogger("metarig.rig")
@@ -29,6 +30,7 @@ class InProcessRig:
     def __init__(self, node_params: dict[str, dict], args=None):
         sys.setswitchinterval(min(sys.getswitchinterval(), GIL_SWITCH_INTERVAL_S))
         self.context = Context()
+        local_discovery_by_default()
         rclpy.init(args=args, context=self.context)
         self.executor = MultiThreadedExecutor(num_threads=4, context=self.context)
         self.nodes = {}

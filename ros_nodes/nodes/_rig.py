@@ -18,6 +18,7 @@ from metarig.signals import deferred_stop, stop_on_signals
 from ros_nodes.launcher import ProcessGroup, command_line
 from ros_nodes.logic.experiment import Experiment, RigError
 from ros_nodes.logic.sequence import DESIGN_NAME, summary, write_summary
+from ros_nodes.nodes._common import local_discovery_by_default
 from ros_nodes.nodes._launch import InProcessRig
 from ros_nodes.nodes.sequencer_node import SequencerNode
 
@@ -35,6 +36,7 @@ def run_rig(plan, node_params: dict[str, dict], out: Path, processes: bool = Fal
     group, rig, ctx, ex, seq, exp = None, None, None, None, None, None
     status, report, timings, code = "failed", None, {}, 1
     try:
+        local_discovery_by_default()  # the node processes inherit it too
         if processes:
             group = ProcessGroup(out / "logs")
             for name, params in node_params.items():

@@ -81,7 +81,7 @@ def test_limits_before_the_device_and_unknown_serial():
     cam = GenICamCamera(CTI, serial="0", limits=CameraLimits(max_frame_rate_hz=60))
     with pytest.raises(ValueError, match="above the limit 60 Hz"):
         cam.configure(CameraSettings(frame_rate_hz=100))
-    assert cam._ia is None                        # never opened
+    assert cam._device is None                        # never opened
     with pytest.raises(ValueError, match=r"no GenTL camera with serial 7 .*visible: 0 \(Viky\)"):
         GenICamCamera(CTI, serial="7").open()
     with pytest.raises(ValueError, match="does not exist"):

@@ -37,7 +37,7 @@ def test_settings_are_read_back(cam):
     got = cam.configure(CameraSettings(frame_rate_hz=123.4, exposure_s=0.002, roi=ROI))
     assert got.roi == ROI and got.pixel_format == "mono8" and cam.device_pixel_format == "Mono8"
     assert got.frame_rate_hz == pytest.approx(123.4) and got.exposure_s == pytest.approx(0.002)
-    assert cam._cam.Width.GetValue() == 320 and cam._cam.OffsetX.GetValue() == 16
+    assert cam._device.Width.GetValue() == 320 and cam._device.OffsetX.GetValue() == 16
     got = cam.configure(CameraSettings(frame_rate_hz=50, roi=(0, 0, 64, 32), pixel_format="mono16"))
     assert cam.device_pixel_format == "Mono16" and got.exposure_s == pytest.approx(0.002)
     cam.start()
@@ -66,8 +66,8 @@ def test_software_trigger_one_frame_per_trigger(cam):
 def test_hardware_trigger_is_armed_on_the_named_line(cam):
     got = cam.configure(CameraSettings(frame_rate_hz=100, roi=ROI, trigger="hardware",
                                        hardware_line="Line2"))
-    assert got.trigger == "hardware" and cam._cam.TriggerSource.GetValue() == "Line2"
-    assert cam._cam.TriggerMode.GetValue() == "On"
+    assert got.trigger == "hardware" and cam._device.TriggerSource.GetValue() == "Line2"
+    assert cam._device.TriggerMode.GetValue() == "On"
     cam.start()
     assert cam.grab(0.2) is None                 # no edge, no frame (the emulator has no lines)
     cam.stop()
@@ -82,8 +82,8 @@ def test_free_run_at_the_set_rate_and_loss_counted(cam):
     cam.start()
     frames = [cam.grab(2.0) for _ in range(40)]
     # two buffers forced to fail: two frames the host never gets
-    cam._cam.ForceFailedBufferCount.SetValue(2)
-    cam._cam.ForceFailedBuffer.Execute()
+    cam._device.ForceFailedBufferCount.SetValue(2)
+    cam._device.ForceFailedBuffer.Execute()
     more = []
     while len(more) < 10:
         frame = cam.grab(2.0)
@@ -111,7 +111,7 @@ def test_limits_refused_before_the_device_is_touched(serials):
         cam.configure(CameraSettings(frame_rate_hz=1000))
     with pytest.raises(ValueError, match="longer than the frame period"):
         cam.configure(CameraSettings(frame_rate_hz=100, exposure_s=0.02))
-    assert cam._cam is None                       # never opened
+    assert cam._device is None                       # never opened
     with pytest.raises(RuntimeError, match="open"):
         cam.configure(CameraSettings(frame_rate_hz=100))
 

@@ -26,9 +26,9 @@ import numpy as np
 from genicam.gentl import TimeoutException
 from harvesters.core import Harvester
 
-from devices.camera.port import CameraLimits, CameraSettings, Frame, check_settings
+from devices.camera.port import (MONO16_FORMATS, CameraLimits, CameraSettings, DriverBase, Frame,
+                                 check_range, check_settings, pick_format, trigger_source)
 
-_MONO16_FORMATS = ("Mono16", "Mono12", "Mono10")
 _COLOUR = {"RGB8": (3, (0, 1, 2)), "RGBa8": (4, (0, 1, 2)),
            "BGR8": (3, (2, 1, 0)), "BGRa8": (4, (2, 1, 0))}   # channels, (R, G, B) indices
 _LUMA = np.array([0.299, 0.587, 0.114])
@@ -51,7 +51,7 @@ def colour_to_mono8(data: np.ndarray, fmt: str, width: int, height: int) -> np.n
     return np.rint(pix @ _LUMA).astype(np.uint8)
 
 
-class GenICamCamera:
+class GenICamCamera(DriverBase):
     """One camera of a GenTL producer; see the module docstring.
 
     cti: path of the GenTL producer (`.cti`).
@@ -71,7 +71,7 @@ class GenICamCamera:
         self.buffers = buffers
         self.device_format = device_format
         self._h = None
-        self._ia = None
+        self._device = None
         self._info: dict[str, str] = {}
         self.settings: CameraSettings | None = None
         self.device_pixel_format: str | None = None
@@ -86,7 +86,7 @@ class GenICamCamera:
         return f"{i['vendor']} {i['model']} serial {i['serial']} ({i['id']})"
 
     def open(self) -> None:
-        if self._ia is not None:
+        if self._device is not None:
             return
         if not self.cti.is_file():
             raise ValueError(f"GenTL producer {self.cti} does not exist")
@@ -108,7 +108,7 @@ class GenICamCamera:
                                      f"{self.cti.name}; visible: {seen}")
                 index = self.index
             d = infos[index]
-            self._ia = h.create(index) if hasattr(h, "create") else \
+            self._device = h.create(index) if hasattr(h, "create") else \
                 h.create_image_acquirer(list_index=index)
         except BaseException:
             h.reset()
@@ -117,24 +117,12 @@ class GenICamCamera:
         self._info = {"vendor": str(d.vendor), "model": str(d.model),
                       "serial": str(d.serial_number), "id": str(d.id_)}
 
-    def _require_open(self):
-        if self._ia is None:
-            raise RuntimeError(f"{self.identity}: open() the camera first")
-        return self._ia
-
-    def __enter__(self) -> GenICamCamera:
-        self.open()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
     # -- settings --------------------------------------------------------------------------
     def _has(self, name: str) -> bool:
-        return self._ia.remote_device.node_map.has_node(name)
+        return self._device.remote_device.node_map.has_node(name)
 
     def _nm(self):
-        return self._ia.remote_device.node_map
+        return self._device.remote_device.node_map
 
     def configure(self, settings: CameraSettings) -> CameraSettings:
         check_settings(settings, self.limits)        # before the device is touched
@@ -179,26 +167,19 @@ class GenICamCamera:
     def _set_float(self, name: str, value: float, what: str, unit: str,
                    scale: float = 1.0) -> float:
         node = getattr(self._nm(), name)
-        lo, hi = node.min, node.max
-        if not lo <= value <= hi:
-            raise ValueError(f"{what} {value / scale:g} {unit} is outside the camera's range "
-                             f"{lo / scale:g}..{hi / scale:g} {unit}")
+        check_range(value, node.min, node.max, what, unit, scale)
         node.value = type(node.value)(value) if isinstance(node.value, int) else float(value)
         return float(node.value)
 
     def _set_pixel_format(self, fmt: str) -> str:
         node = self._nm().PixelFormat
-        offered = tuple(node.symbolics)
         if fmt == "mono8" and self.device_format is not None:
             wanted: tuple[str, ...] = (self.device_format,)
         else:
-            wanted = ("Mono8",) if fmt == "mono8" else _MONO16_FORMATS
-        for name in wanted:
-            if name in offered:
-                node.value = name
-                return name
-        raise ValueError(f"{self.identity} offers no {'/'.join(wanted)} for {fmt} "
-                         f"(pixel formats: {', '.join(offered)})")
+            wanted = ("Mono8",) if fmt == "mono8" else MONO16_FORMATS
+        name = pick_format(wanted, tuple(node.symbolics), self.identity, fmt)
+        node.value = name
+        return name
 
     def _set_roi(self, roi) -> tuple[int, int, int, int]:
         nm = self._nm()
@@ -233,11 +214,7 @@ class GenICamCamera:
         if s.trigger == "free":
             nm.TriggerMode.value = "Off"
             return
-        source = "Software" if s.trigger == "software" else s.hardware_line
-        offered = tuple(nm.TriggerSource.symbolics)
-        if source not in offered:
-            raise ValueError(f"{self.identity} has no trigger source {source!r} "
-                             f"(offered: {', '.join(offered)})")
+        source = trigger_source(s, tuple(nm.TriggerSource.symbolics), self.identity)
         nm.TriggerMode.value = "On"
         nm.TriggerSource.value = source
 
@@ -279,14 +256,14 @@ class GenICamCamera:
                      device_time_s=ts_ns * 1e-9 if ts_ns else None, host_time_ns=host_ns)
 
     def stop(self) -> None:
-        if self._ia is not None and self._ia.is_acquiring():
-            self._ia.stop()
+        if self._device is not None and self._device.is_acquiring():
+            self._device.stop()
 
     def close(self) -> None:
-        if self._ia is None:
+        if self._device is None:
             return
         self.stop()
-        self._ia.destroy()
-        self._ia = None
+        self._device.destroy()
+        self._device = None
         self._h.reset()
         self._h = None

@@ -163,6 +163,67 @@ class Camera(Protocol):
     def __exit__(self, *exc) -> None: ...
 
 
+# what a driver shares, whatever the vendor API ------------------------------------------------
+# mono16: the camera's 16-bit words, else its 12- or 10-bit ones (unscaled), in that order
+MONO16_FORMATS = ("Mono16", "Mono12", "Mono10")
+
+
+def pick_format(wanted: tuple[str, ...], offered: tuple[str, ...], identity: str,
+                what: str) -> str:
+    """The first of `wanted` the device offers; else a one-line refusal naming what it has."""
+    for name in wanted:
+        if name in offered:
+            return name
+    raise ValueError(f"{identity} offers no {'/'.join(wanted)} for {what} "
+                     f"(pixel formats: {', '.join(offered)})")
+
+
+def check_range(value: float, lo: float, hi: float, what: str, unit: str,
+                scale: float = 1.0) -> None:
+    """A one-line refusal if `value` is outside the device's own range [lo, hi] (all three in
+    the device's units; shown divided by `scale`, in `unit`)."""
+    if not lo <= value <= hi:
+        raise ValueError(f"{what} {value / scale:g} {unit} is outside the camera's range "
+                         f"{lo / scale:g}..{hi / scale:g} {unit}")
+
+
+def trigger_source(settings: CameraSettings, offered: tuple[str, ...], identity: str) -> str:
+    """The device's trigger source for `settings` ("Software" or the named input line), or a
+    one-line refusal if the device does not offer it."""
+    source = "Software" if settings.trigger == "software" else settings.hardware_line
+    if source not in offered:
+        raise ValueError(f"{identity} has no trigger source {source!r} "
+                         f"(offered: {', '.join(offered)})")
+    return source
+
+
+class DriverBase:
+    """The lifecycle every driver shares: a context manager (open on enter, stop and close on
+    exit) and the refusal of a call that needs an open device. A driver keeps its device
+    handle in `_device` (None while closed) and names itself in `identity`."""
+
+    _device = None
+    identity = "camera"
+
+    def open(self) -> None:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+    def _require_open(self):
+        if self._device is None:
+            raise RuntimeError(f"{self.identity}: open() the camera first")
+        return self._device
+
+    def __enter__(self):
+        self.open()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
 class FrameCounter:
     """Counts frames lost from the camera's frame counter.
 

@@ -33,10 +33,10 @@ import numpy as np
 from pypylon import genicam as _gc
 from pypylon import pylon
 
-from devices.camera.port import CameraLimits, CameraSettings, Frame, check_settings
+from devices.camera.port import (MONO16_FORMATS, CameraLimits, CameraSettings, DriverBase, Frame,
+                                 check_range, check_settings, pick_format, trigger_source)
 
 EMULATOR_CLASS = "BaslerCamEmu"
-_MONO16_FORMATS = ("Mono16", "Mono12", "Mono10")
 _DEFAULT_TICK_HZ = 1.0e9
 
 
@@ -51,7 +51,7 @@ def _readable(cam, name: str) -> bool:
     return _gc.IsReadable(cam.GetNodeMap().GetNode(name))
 
 
-class PylonCamera:
+class PylonCamera(DriverBase):
     """One Basler camera (or emulated camera) through pypylon; see the module docstring.
 
     serial: the camera's serial number; None picks the camera at `index` of `list_cameras()`.
@@ -67,7 +67,7 @@ class PylonCamera:
         self.limits = limits if limits is not None else CameraLimits()
         self.buffers = buffers
         self.emulator_images = emulator_images
-        self._cam = None
+        self._device = None
         self._info: dict[str, str] = {}
         self._tick_hz = _DEFAULT_TICK_HZ
         self.settings: CameraSettings | None = None
@@ -94,7 +94,7 @@ class PylonCamera:
         return (16, 1) if self._info.get("device_class") == "BaslerGigE" else (64, 0)
 
     def open(self) -> None:
-        if self._cam is not None:
+        if self._device is not None:
             return
         factory = pylon.TlFactory.GetInstance()
         devs = list(factory.EnumerateDevices())
@@ -110,7 +110,7 @@ class PylonCamera:
             dev = devs[self.index]
         cam = pylon.InstantCamera(factory.CreateDevice(dev))
         cam.Open()
-        self._cam = cam
+        self._device = cam
         self._info = {"serial": dev.GetSerialNumber(), "model": dev.GetModelName(),
                       "vendor": dev.GetVendorName(), "device_class": dev.GetDeviceClass()}
         self._tick_hz = _DEFAULT_TICK_HZ
@@ -126,22 +126,10 @@ class PylonCamera:
             raise ValueError(f"emulator_images works on pylon's emulator only, not {self.identity}")
         if not path.exists():
             raise ValueError(f"emulator_images {path} does not exist")
-        cam = self._cam
+        cam = self._device
         cam.TestImageSelector.Value = "Off"   # the test pattern overrides the image files
         cam.ImageFilename.Value = str(path)
         cam.ImageFileMode.Value = "On"
-
-    def _require_open(self):
-        if self._cam is None:
-            raise RuntimeError(f"{self.identity}: open() the camera first")
-        return self._cam
-
-    def __enter__(self) -> PylonCamera:
-        self.open()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
     # -- settings --------------------------------------------------------------------------
     def configure(self, settings: CameraSettings) -> CameraSettings:
@@ -163,7 +151,7 @@ class PylonCamera:
         return self.settings
 
     def _node(self, *names: str):
-        nm = self._cam.GetNodeMap()
+        nm = self._device.GetNodeMap()
         for name in names:
             if _gc.IsWritable(nm.GetNode(name)):
                 return nm.GetNode(name)
@@ -180,26 +168,15 @@ class PylonCamera:
         if lacks:
             raise ValueError(f"{self.identity} has no {' and no '.join(lacks)}")
 
-    @staticmethod
-    def _in_range(node, value: float, what: str, unit: str, scale: float = 1.0) -> None:
-        lo, hi = node.GetMin(), node.GetMax()
-        if not lo <= value <= hi:
-            raise ValueError(f"{what} {value / scale:g} {unit} is outside the camera's range "
-                             f"{lo / scale:g}..{hi / scale:g} {unit}")
-
     def _set_pixel_format(self, fmt: str) -> str:
         node = self._node("PixelFormat")
-        offered = node.GetSymbolics()
-        wanted = ("Mono8",) if fmt == "mono8" else _MONO16_FORMATS
-        for name in wanted:
-            if name in offered:
-                node.SetValue(name)
-                return name
-        raise ValueError(f"{self.identity} offers no {'/'.join(wanted)} "
-                         f"(pixel formats: {', '.join(offered)})")
+        name = pick_format(("Mono8",) if fmt == "mono8" else MONO16_FORMATS,
+                           tuple(node.GetSymbolics()), self.identity, fmt)
+        node.SetValue(name)
+        return name
 
     def _set_roi(self, roi) -> tuple[int, int, int, int]:
-        cam = self._cam
+        cam = self._device
         wmax, hmax = int(cam.WidthMax.GetValue()), int(cam.HeightMax.GetValue())
         if roi is None:
             roi = (0, 0, wmax, hmax)
@@ -219,7 +196,7 @@ class PylonCamera:
         if enable is not None:
             enable.SetValue(True)
         node = self._node("AcquisitionFrameRate", "AcquisitionFrameRateAbs")
-        self._in_range(node, rate_hz, "frame rate", "Hz")
+        check_range(rate_hz, node.GetMin(), node.GetMax(), "frame rate", "Hz")
         node.SetValue(float(rate_hz))
         return float(node.GetValue())
 
@@ -229,23 +206,20 @@ class PylonCamera:
             auto = self._node("ExposureAuto")
             if auto is not None:
                 auto.SetValue("Off")
-            self._in_range(node, exposure_s * 1e6, "exposure", "s", scale=1e6)
+            check_range(exposure_s * 1e6, node.GetMin(), node.GetMax(), "exposure", "s",
+                        scale=1e6)
             node.SetValue(exposure_s * 1e6)
         return None if node is None else float(node.GetValue()) * 1e-6
 
     def _set_trigger(self, s: CameraSettings) -> None:
-        cam = self._cam
+        cam = self._device
         if self._node("TriggerSelector") is not None:
             cam.TriggerSelector.SetValue("FrameStart")
         if s.trigger == "free":
             if self._node("TriggerMode") is not None:
                 cam.TriggerMode.SetValue("Off")
             return
-        source = "Software" if s.trigger == "software" else s.hardware_line
-        offered = cam.TriggerSource.GetSymbolics()
-        if source not in offered:
-            raise ValueError(f"{self.identity} has no trigger source {source!r} "
-                             f"(offered: {', '.join(offered)})")
+        source = trigger_source(s, tuple(cam.TriggerSource.GetSymbolics()), self.identity)
         cam.TriggerMode.SetValue("On")
         cam.TriggerSource.SetValue(source)
 
@@ -290,13 +264,13 @@ class PylonCamera:
             result.Release()
 
     def stop(self) -> None:
-        if self._cam is not None and self._cam.IsGrabbing():
-            self._cam.StopGrabbing()
+        if self._device is not None and self._device.IsGrabbing():
+            self._device.StopGrabbing()
 
     def close(self) -> None:
-        if self._cam is None:
+        if self._device is None:
             return
         self.stop()
-        self._cam.Close()
-        self._cam.DestroyDevice()
-        self._cam = None
+        self._device.Close()
+        self._device.DestroyDevice()
+        self._device = None

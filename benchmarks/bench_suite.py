@@ -64,8 +64,9 @@ def main(argv: list[str] | None = None) -> int:
     load_after = os.getloadavg()
 
     summary = next((m for m in map(SUMMARY.search, reversed(lines)) if m), None)
-    slowest = [{"seconds": float(m[1]), "phase": m[2], "test": m[3]}
-               for m in map(DURATION.match, lines) if m]
+    # every test phase, longest first (pytest sorts them)
+    durations = [{"seconds": float(m[1]), "phase": m[2], "test": m[3]}
+                 for m in map(DURATION.match, lines) if m]
     result = {
         "command": " ".join(["python -m pytest", *MAKE_TEST_ARGS, *args.pytest_args]),
         "cold_cache": args.cold,
@@ -73,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
         "wall_s": round(wall, 1),
         "pytest_s": float(summary[2]) if summary else None,
         "counts": _counts(summary[1]) if summary else {},
-        "slowest": slowest[:10],
+        "slowest": durations[:10],
         "machine": {"cpu": cpu_model(), "cores": os.cpu_count(),
                     "python": platform.python_version()},
         "load_average_1min": {"before": round(load_before[0], 2),
@@ -82,9 +83,9 @@ def main(argv: list[str] | None = None) -> int:
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
-    if args.cold and rc == 0 and slowest:
+    if args.cold and rc == 0 and durations:
         per_file: dict[str, float] = {}
-        for row in slowest:
+        for row in durations:
             name = row["test"].split("::")[0]
             per_file[name] = per_file.get(name, 0.0) + row["seconds"]
         FILE_SECONDS.write_text(json.dumps(

@@ -126,8 +126,10 @@ def test_stop_aborts_and_turns_the_output_off(drive, panel):
     wf = prepare(drive.limits, WaveformRequest("pulse", amplitude_m=0.005, frequency_hz=20.0))
     drive.play(wf, start_s=drive._clock() + drive._offset_s + 30.0)   # armed, far ahead
     assert panel("OUTP?") == "1"
+    armed = drive._armed
     drive.stop()
     assert _commands(drive.spy)[-2:] == ["ABOR", "OUTP 0"] and panel("OUTP?") == "0"
+    drive._trigger_later(armed)      # a timer that fired just as stop() ran: sends nothing
     time.sleep(0.05)
     assert "*TRG" not in drive.spy.sent and drive.read(drive.time_s + 1.0).x_m == 0.0
     drive.close()

@@ -120,6 +120,7 @@ class FunctionGeneratorShaker:
         self._t = 0.0
         self._waveform: Waveform | None = None
         self._timer: threading.Timer | None = None
+        self._armed = 0                         # which play() a pending trigger belongs to
         self.started_s: float | None = None     # rig time the last *TRG was sent
         self.fault = ""                         # a failed trigger (from the timer thread)
         self.open()
@@ -171,6 +172,7 @@ class FunctionGeneratorShaker:
         self._cancel_timer()
         data = ",".join(f"{v:.5f}" for v in upload.values)
         with self._io:
+            self._armed += 1                    # an older trigger under way sends nothing
             for cmd in ("ABOR", "OUTP 0", "DATA:VOL:CLE", f"DATA:ARB {ARB_NAME},{data}",
                         "FUNC ARB", f"FUNC:ARB {ARB_NAME}",
                         f"FUNC:ARB:SRAT {upload.sample_rate_hz:.8e}", "VOLT:OFFS 0",
@@ -181,9 +183,9 @@ class FunctionGeneratorShaker:
         self._waveform, self.started_s, self.fault = waveform, None, ""
         wait = start_s - (self._clock() + self._offset_s)
         if wait <= 0.0:
-            self._trigger()
+            self._trigger(self._armed)
         else:
-            self._timer = threading.Timer(wait, self._trigger_later)
+            self._timer = threading.Timer(wait, self._trigger_later, (self._armed,))
             self._timer.daemon = True
             self._timer.start()
 
@@ -191,6 +193,7 @@ class FunctionGeneratorShaker:
         self._cancel_timer()
         self._waveform = None
         with self._io:
+            self._armed += 1                    # a trigger already under way sends nothing
             if self._device is not None:
                 self._send("ABOR")
                 self._send("OUTP 0")
@@ -214,14 +217,16 @@ class FunctionGeneratorShaker:
                 self._send(cmd)
 
     # -- SCPI ------------------------------------------------------------------------------
-    def _trigger(self) -> None:
+    def _trigger(self, armed: int) -> None:
         with self._io:
+            if armed != self._armed:            # stopped or replaced since it was armed
+                return
             self._send("*TRG")
             self.started_s = self._clock() + self._offset_s
 
-    def _trigger_later(self) -> None:
+    def _trigger_later(self, armed: int) -> None:
         try:
-            self._trigger()
+            self._trigger(armed)
         except Exception as e:  # a timer thread has no caller to raise to
             self.fault = str(e)
 

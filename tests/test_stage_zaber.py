@@ -153,6 +153,8 @@ def test_a_controller_that_never_answers_is_refused_on_open(emu):
     with pytest.raises(StageControllerError, match=r"no reply .* to '/1 1 set maxspeed \d+'"):
         ZaberStages(emu.port, CFG)
     assert time.monotonic() - t0 < 1.0
+    with pytest.raises(StageControllerError, match="cannot open the stage controller's port"):
+        ZaberStages("/nonexistent/ttyUSB9", CFG)
 
 
 def test_config_keeps_the_strain_rate_limit():

@@ -107,9 +107,13 @@ class ZaberStages:
     def __init__(self, port: str, cfg: ZaberConfig | None = None):
         self.port = port
         self.cfg = self.limits = cfg if cfg is not None else ZaberConfig()
-        self._serial = serial.serial_for_url(port, baudrate=self.cfg.baudrate,
-                                             timeout=self.cfg.reply_timeout_s,
-                                             write_timeout=self.cfg.reply_timeout_s)
+        try:
+            self._serial = serial.serial_for_url(port, baudrate=self.cfg.baudrate,
+                                                 timeout=self.cfg.reply_timeout_s,
+                                                 write_timeout=self.cfg.reply_timeout_s)
+        except (serial.SerialException, ValueError) as e:
+            raise StageControllerError(f"cannot open the stage controller's port {port}: "
+                                       f"{e}") from None
         self._t = 0.0
         self._mode, self._fault = StageMode.IDLE, ""
         self._target_m = 0.0

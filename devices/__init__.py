@@ -13,4 +13,9 @@ port before a driver touches the device.
     devices.camera   the camera port (`Camera`, `CameraSettings`, `Frame`, limits, frame-loss
                      counting, device-clock mapping) and its drivers: Basler pylon (pypylon)
                      and GenICam GenTL producers (harvesters)
+    devices.lab      the lab file (TOML): drivers, addresses, calibration, limits, ROS domain
+    devices.connect  opens the real devices a lab file names, checked to be those
+    devices.probe    what this machine can see (cameras, VISA instruments, serial ports)
+    devices.labcheck a lab file checked against the devices, nothing moved
+    devices.cli      the `metarig devices` command
 """

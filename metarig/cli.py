@@ -20,6 +20,8 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     "export": ("design_engine.export", "export_main", "export a design's outlines for fabrication (SVG, DXF)"),
     "bench": ("design_engine.studies.cli", "bench_main", "speed-accuracy studies (work-precision, speedup)"),
     "rig": ("ros_nodes.cli_rig", "rig_main", "run an experiment on the simulated (or real) rig"),
+    "devices": ("devices.cli", "devices_main",
+                "list the lab devices this machine sees, or check a lab file against them"),
     "recover": ("ros_nodes.cli_rig", "recover_main", "salvage an MCAP recording whose writer was killed"),
     "track": ("tracking.cli", "track_main", "track unit poses in frames by DIC"),
     "demo": ("ros_nodes.cli_demo", "demo_main",

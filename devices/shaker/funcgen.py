@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 import pyvisa
 
-from devices.limits import LimitError
+from devices.limits import DeviceError, LimitError
 from devices.shaker.port import ShakerReading
 from devices.shaker.waveform import ShakerLimits, Waveform
 from metarig.fields import param
@@ -49,9 +49,9 @@ MIN_POINTS = 8          # the 33500B's shortest arbitrary waveform
 VENDORS = ("Keysight Technologies", "Agilent Technologies")
 
 
-class InstrumentError(RuntimeError):
-    """The instrument refused a command (the message names the command and its reply) or
-    is not the instrument expected."""
+class InstrumentError(DeviceError):
+    """The instrument refused a command (the message names the command and its reply), did
+    not answer (VISA's reason), or is not the instrument expected."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -96,6 +96,10 @@ def arb_upload(cfg: FuncGenConfig, waveform: Waveform) -> ArbUpload:
     return ArbUpload(volts / peak, rate, peak)
 
 
+def _shown(cmd: str) -> str:
+    return cmd if len(cmd) <= 60 else f"{cmd[:40]}... ({len(cmd)} chars)"
+
+
 class FunctionGeneratorShaker:
     """The shaker port on a Keysight 33500B series function generator; see the module docstring.
 
@@ -116,6 +120,7 @@ class FunctionGeneratorShaker:
         self._io = threading.Lock()             # the trigger timer shares the VISA session
         self._device = None
         self.identity = f"function generator {resource} (not open)"
+        self.model = self.serial = ""            # from *IDN? when open
         self._offset_s = 0.0                    # rig time minus host clock
         self._t = 0.0
         self._waveform: Waveform | None = None
@@ -129,17 +134,25 @@ class FunctionGeneratorShaker:
     def open(self) -> None:
         if self._device is not None:
             return
-        dev = self._rm.open_resource(self.resource, read_termination="\n",
-                                     write_termination="\n")
-        dev.timeout = int(self.cfg.timeout_s * 1000)
-        idn = dev.query("*IDN?").strip()
+        dev = None
+        try:
+            dev = self._rm.open_resource(self.resource, read_termination="\n",
+                                         write_termination="\n")
+            dev.timeout = int(self.cfg.timeout_s * 1000)
+            idn = dev.query("*IDN?").strip()
+        except pyvisa.errors.VisaIOError as e:
+            if dev is not None:
+                dev.close()
+            raise InstrumentError(f"cannot reach the function generator {self.resource}: "
+                                  f"{e}") from None
         fields = [f.strip() for f in idn.split(",")]
         if len(fields) < 2 or fields[0] not in VENDORS or not fields[1].startswith("335"):
             dev.close()
             raise InstrumentError(f"{self.resource} answers *IDN? with {idn!r}: not a Keysight "
                                   "33500B series function generator")
         self._device = dev
-        self.identity = f"{fields[0]} {fields[1]} serial {fields[2] if len(fields) > 2 else '?'}"
+        self.model, self.serial = fields[1], fields[2] if len(fields) > 2 else ""
+        self.identity = f"{fields[0]} {fields[1]} serial {self.serial or '?'}"
         self._send("*CLS", check=False)
         self._drain_errors()
         for cmd in ("OUTP 0", "OUTP:LOAD INF", f"VOLT:LIM:HIGH {self.cfg.max_volts:.6e}",
@@ -179,7 +192,7 @@ class FunctionGeneratorShaker:
                         f"VOLT {2.0 * upload.peak_v:.6e}", "BURS:MODE TRIG", "BURS:NCYC 1",
                         "TRIG:SOUR BUS", "BURS:STAT 1", "OUTP 1"):
                 self._send(cmd)
-            self._device.query("*OPC?")     # the upload is done before the trigger
+            self._query("*OPC?")            # the upload is done before the trigger
         self._waveform, self.started_s, self.fault = waveform, None, ""
         wait = start_s - (self._clock() + self._offset_s)
         if wait <= 0.0:
@@ -238,18 +251,35 @@ class FunctionGeneratorShaker:
     def _send(self, cmd: str, check: bool = True) -> None:
         if self._device is None:
             raise RuntimeError(f"{self.identity}: open() the function generator first")
-        self._device.write(cmd)
+        try:
+            self._device.write(cmd)
+        except pyvisa.errors.VisaIOError as e:
+            raise InstrumentError(f"{self.identity} did not take {_shown(cmd)!r}: {e}") from None
         if check:
             errors = self._drain_errors()
             if errors:
-                shown = cmd if len(cmd) <= 60 else f"{cmd[:40]}... ({len(cmd)} chars)"
-                raise InstrumentError(f"{self.identity} refused {shown!r}: {'; '.join(errors)}")
+                raise InstrumentError(f"{self.identity} refused {_shown(cmd)!r}: "
+                                      f"{'; '.join(errors)}")
+
+    def query(self, cmd: str) -> str:
+        """The instrument's answer to a query (e.g. "VOLT:LIM:HIGH?"), stripped; for checks
+        that change nothing. `InstrumentError` if it does not answer."""
+        if self._device is None:
+            raise RuntimeError(f"{self.identity}: open() the function generator first")
+        with self._io:
+            return self._query(cmd)
+
+    def _query(self, cmd: str) -> str:
+        try:
+            return self._device.query(cmd).strip()
+        except pyvisa.errors.VisaIOError as e:
+            raise InstrumentError(f"{self.identity} did not answer {cmd!r}: {e}") from None
 
     def _drain_errors(self, most: int = 20) -> list[str]:
         """The queued errors (SYST:ERR? until "No error"), oldest first."""
         errors = []
         for _ in range(most):
-            reply = self._device.query("SYST:ERR?").strip()
+            reply = self._query("SYST:ERR?")
             code = reply.split(",", 1)[0].strip()
             if code in ("0", "+0") or "no error" in reply.lower():
                 break

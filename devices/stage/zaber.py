@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import serial
 
-from devices.limits import LimitError
+from devices.limits import DeviceError, LimitError
 from devices.stage.port import (StageCommand, StageLimits, StageMode, StageReading, StageStatus,
                                 check_strain)
 from metarig.fields import param
@@ -40,7 +40,7 @@ FLAGS = {"FS": "stalled and stopped", "FQ": "encoder error", "FD": "driver disab
          "NI": "command interrupted"}
 
 
-class StageControllerError(RuntimeError):
+class StageControllerError(DeviceError):
     """The controller could not be set up (no reply, a rejected command): one line."""
 
 
@@ -181,6 +181,22 @@ class ZaberStages:
             self._set_speed()
         except (_NoReply, StageControllerError) as e:
             self._to_fault(str(e), answering=isinstance(e, StageControllerError))
+
+    def get(self, setting: str) -> tuple[str, str]:
+        """A setting of both axes (`get <setting>`, e.g. "deviceid", "limit.max"), as the
+        controllers answer it: (bottom, top). Nothing moves; `StageControllerError` (one line)
+        for a rejected setting or no reply."""
+        out = []
+        for device, axis in self._axes():
+            try:
+                reply = self._ask(device, axis, f"get {setting}")
+            except _NoReply as e:
+                raise StageControllerError(str(e)) from None
+            if not reply.ok:
+                raise StageControllerError(f"{self._name(device, axis)} rejected "
+                                           f"'get {setting}': {reply.data}")
+            out.append(reply.data)
+        return out[0], out[1]
 
     def close(self) -> None:
         """Stop a move in progress (the stages hold where they are) and release the port."""

@@ -9,14 +9,19 @@ trying, or IDLE with a fault flag such as FS) and to go silent (`silent = True`:
 never answers, as a controller without power or with a broken cable).
 
 Understood (one device and axis per command, no message ids, checksums ignored): `get pos`,
-`get maxspeed`, `set maxspeed N`, `get limit.min`, `get limit.max`, `move abs N`, `stop`,
-`warnings`, `warnings clear`. Replies follow the protocol: `@01 1 OK IDLE -- 1000`, `RJ` with
+`get maxspeed`, `set maxspeed N`, `get limit.min`, `get limit.max`, `get deviceid` (the
+`device_id` given, the same for every device; made up, not a Zaber product's), `move abs N`,
+`stop`, `warnings`, `warnings clear`. Replies follow the protocol: `@01 1 OK IDLE -- 1000`, `RJ` with
 BADCOMMAND, BADDATA or BADAXIS; an absent device does not answer. Notices: a stopped or
 replaced move sets NI (command interrupted).
+
+`python -m devices.stage.zaber_emulator` serves two stages (devices 1 and 2, axis 1) and prints
+the port to give the driver or a lab file, until Ctrl-C.
 """
 
 import os
 import select
+import sys
 import threading
 import time
 import tty
@@ -24,6 +29,7 @@ from dataclasses import dataclass, field
 
 SPEED_UNIT = 1.6384       # Zaber's maxspeed data value per microstep/s
 FLAG_ORDER = "FWN"        # faults before warnings before notices
+DEVICE_ID = 99999         # what `get deviceid` answers unless told otherwise (made up)
 
 
 @dataclass
@@ -70,8 +76,10 @@ class ZaberEmulator:
     maxspeed: each axis's maxspeed at start (Zaber units: microsteps/s x 1.6384).
     """
 
-    def __init__(self, axes=((1, 1), (2, 1)), maxspeed: int = 153600):
+    def __init__(self, axes=((1, 1), (2, 1)), maxspeed: int = 153600,
+                 device_id: int = DEVICE_ID):
         self._axes = {tuple(a): _Axis(maxspeed=maxspeed) for a in axes}
+        self.device_id = device_id
         self.silent = False
         self.received: list[str] = []      # every command line, as received
         self._lock = threading.Lock()
@@ -167,7 +175,8 @@ class ZaberEmulator:
 
     def _do(self, a: _Axis, command: list[str]) -> tuple[str, str]:
         getters = {"pos": lambda: round(a.pos), "maxspeed": lambda: a.maxspeed,
-                   "limit.min": lambda: a.lo, "limit.max": lambda: a.hi}
+                   "limit.min": lambda: a.lo, "limit.max": lambda: a.hi,
+                   "deviceid": lambda: self.device_id}
         match command:
             case ["get", name] if name in getters:
                 return "OK", str(getters[name]())
@@ -200,3 +209,20 @@ class ZaberEmulator:
                     a.flags.clear()
                 return "OK", " ".join([f"{len(shown):02d}", *shown])
         return "RJ", "BADCOMMAND"
+
+
+def main() -> int:
+    """Serve two emulated stages on a pseudo-terminal until Ctrl-C."""
+    with ZaberEmulator() as emu:
+        print(f"Zaber emulator (devices 1 and 2, axis 1) on {emu.port}; Ctrl-C stops it",
+              flush=True)
+        try:
+            while True:
+                select.select([], [], [], 3600)
+        except KeyboardInterrupt:
+            print("stopped", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -8,6 +8,7 @@ this machine (`os.pathsep`-separated); the emulating producer of the `genicam` w
 before the probe runs.
 """
 
+import ctypes
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -77,6 +78,10 @@ def probe_gentl(cti: Path) -> Probe:
         from harvesters.core import Harvester
     except ImportError as e:
         return Probe(kind, error=f"harvesters is not installed ({_why(e)})", source=str(cti))
+    try:  # harvesters skips a producer it cannot load without a word: load it first
+        ctypes.CDLL(str(cti))
+    except OSError as e:
+        return Probe(kind, error=f"not a loadable GenTL producer: {_why(e)}", source=str(cti))
     h = Harvester()
     try:
         h.add_file(str(cti))

@@ -21,10 +21,16 @@ from metarig.fields import param
 from ros_nodes.topics import IMAGE, RECORDED
 
 SOURCES = ("sim", "mcap", "folder", "video", "pattern")
+HARDWARE = ("sim", "lab")  # shaker and stage: the simulator, or the devices of a lab file
 
 
 class ConfigError(ValueError):
     """A parameter value that is out of range or inconsistent (the message says which)."""
+
+
+def _check_lab_file(hardware: str, lab_file: str) -> None:
+    if hardware == "lab" and not lab_file.strip():
+        raise ValueError("hardware 'lab' needs lab_file (the lab file naming the devices)")
 
 
 @dataclass(frozen=True, slots=True)
@@ -37,9 +43,13 @@ class ShakerNodeConfig:
     command_rate_hz: float = param(2000.0, "sample rate of the published commanded waveform, Hz",
                                 10.0, 100000.0)
     seed: int = param(0, "seed of the simulated sensor noise", 0, 2**31 - 1)
-    hardware: str = param("sim", "device backend (only the simulator exists here)",
-                       choices=("sim",))
+    hardware: str = param("sim", "device backend: the simulated shaker, or the [shaker] of "
+                          "lab_file (whose limits replace device.*)", choices=HARDWARE)
+    lab_file: str = param("", "lab file (TOML) naming the devices, when hardware is 'lab'")
     autostart: bool = param(True, "configure and activate on start-up (the launcher drives it)")
+
+    def __post_init__(self):
+        _check_lab_file(self.hardware, self.lab_file)
 
 
 @dataclass(frozen=True, slots=True)
@@ -49,9 +59,13 @@ class StageNodeConfig:
     device: StageConfig = param(StageConfig, "stage physics and safety limits")
     rate_hz: float = param(500.0, "device step and joint-state rate (node clock), Hz", 1.0, 10000.0)
     seed: int = param(1, "seed of the simulated encoder noise", 0, 2**31 - 1)
-    hardware: str = param("sim", "device backend (only the simulator exists here)",
-                       choices=("sim",))
+    hardware: str = param("sim", "device backend: the simulated stages, or the [stage] of "
+                          "lab_file (whose limits replace device.*)", choices=HARDWARE)
+    lab_file: str = param("", "lab file (TOML) naming the devices, when hardware is 'lab'")
     autostart: bool = param(True, "configure and activate on start-up (the launcher drives it)")
+
+    def __post_init__(self):
+        _check_lab_file(self.hardware, self.lab_file)
 
 
 @dataclass(frozen=True, slots=True)

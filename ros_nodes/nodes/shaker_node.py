@@ -1,15 +1,19 @@
 """Shaker command node (lifecycle): pulse requests in, commanded waveform and measured motion out.
 
 Interfaces (node name `shaker`):
-- service `~/fire` (metarig_msgs/srv/FirePulse): play a waveform; refused outside the limits
+- service `~/fire` (metarig_msgs/srv/FirePulse): play a waveform; refused outside the limits,
+  when the drive refuses it (a function generator: volts over max_volts, an instrument error)
   or when the node is not active, with the reason in `message`.
 - service `~/stop` (std_srvs/Trigger) and topic `/rig/stop` (std_msgs/Empty): drop the program,
   the actuator returns to rest at zero.
 - `~/command` (trajectory_msgs/JointTrajectory, latched): the accepted waveform, absolute start.
 - `~/joint_states` (sensor_msgs/JointState): measured displacement and velocity at `rate_hz`.
 - `/diagnostics`: accepted / refused / stopped / finished events.
-Transitions: configure creates the publishers and the device; activate starts the device clock;
-deactivate stops any program; cleanup releases everything.
+Transitions: configure creates the publishers and the device (parameter `hardware`: "sim", or
+"lab" with `lab_file`, `ros_nodes.hardware`; a lab file or device that cannot be used fails the
+transition with one logged line); activate starts the device clock; deactivate stops any
+program; cleanup releases everything. With `hardware` "lab" the lab file's limits hold:
+`device.*` changes at run time do not reach the drive.
 """
 
 import numpy as np
@@ -18,11 +22,13 @@ from rclpy.lifecycle import LifecycleNode, State, TransitionCallbackReturn
 from std_msgs.msg import Empty
 from std_srvs.srv import Trigger
 
-from devices.limits import LimitError
+from devices.lab import LabFileError
+from devices.limits import DeviceError, LimitError
 from devices.shaker.port import ShakerDrive, prepare
 from devices.shaker.waveform import WaveformRequest
 from ros_nodes import convert
 from ros_nodes import topics as T
+from ros_nodes.hardware import shaker_drive
 from ros_nodes.logic.sampling import due_samples
 from ros_nodes.nodes._common import COMMAND, LATCHED, STREAM, run_node
 from ros_nodes.nodes._params import TypedParams
@@ -32,12 +38,8 @@ NAME = "shaker"
 
 
 def _drive(cfg: ShakerNodeConfig, rng: np.random.Generator) -> ShakerDrive:
-    """The shaker behind the port that `cfg.hardware` names (only the simulator exists yet)."""
-    if cfg.hardware != "sim":
-        raise ValueError(f"no shaker drive {cfg.hardware!r} (only 'sim')")
-    from hardware_sim.shaker import SimulatedShaker
-
-    return SimulatedShaker(cfg.device, rng)
+    """The shaker behind the port that `cfg.hardware` names ("sim", or "lab": `lab_file`)."""
+    return shaker_drive(cfg, rng)
 
 
 class ShakerNode(LifecycleNode):
@@ -54,8 +56,8 @@ class ShakerNode(LifecycleNode):
         self.create_service(FirePulse, T.SHAKER_FIRE.name, self._on_fire)
         self.create_service(Trigger, T.SHAKER_STOP.name, self._on_stop)
         self.create_subscription(Empty, T.RIG_STOP.name, lambda _m: self._stop("rig stop"), COMMAND)
-        if self._params.config.autostart:
-            self.trigger_configure()
+        if self._params.config.autostart and \
+                self.trigger_configure() == TransitionCallbackReturn.SUCCESS:
             self.trigger_activate()
 
     # lifecycle -----------------------------------------------------------------------------
@@ -67,7 +69,12 @@ class ShakerNode(LifecycleNode):
             "cmd": self.create_publisher(convert.JointTrajectory, T.SHAKER_COMMAND.name, LATCHED),
             "diag": self.create_publisher(convert.DiagnosticArray, T.DIAGNOSTICS.name, COMMAND),
         }
-        self._drive = _drive(cfg, self._rng)
+        try:
+            self._drive = _drive(cfg, self._rng)
+        except (LabFileError, DeviceError, ValueError, OSError) as e:
+            self.get_logger().error(f"cannot configure the shaker: {e}")
+            self._report("error", f"cannot configure the shaker: {e}")
+            return TransitionCallbackReturn.FAILURE
         self._report("ok", "configured")
         return TransitionCallbackReturn.SUCCESS
 
@@ -103,8 +110,13 @@ class ShakerNode(LifecycleNode):
 
     # callbacks ------------------------------------------------------------------------------
     def _reconfigured(self, cfg: ShakerNodeConfig) -> None:
-        if self._drive is not None:  # new limits hold from the next request
-            self._drive.reconfigure(cfg.device)
+        if self._drive is None:
+            return
+        if cfg.hardware == "lab":  # the lab file's limits stand
+            self.get_logger().warning("hardware 'lab': the limits are the lab file's; device.* "
+                                      "parameters do not change them")
+            return
+        self._drive.reconfigure(cfg.device)  # new limits hold from the next request
 
     def _now_s(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
@@ -139,7 +151,10 @@ class ShakerNode(LifecycleNode):
             self._report("warn", res.message)
             return res
         start_ns = self.get_clock().now().nanoseconds + int(round(req.delay_s * 1e9))
-        self._drive.play(wf, start_ns * 1e-9)
+        try:  # a drive's own refusals: volts over its limit, an instrument error
+            self._drive.play(wf, start_ns * 1e-9)
+        except (LimitError, DeviceError) as e:
+            return self._refused(res, e)
         self._playing_until = start_ns * 1e-9 + wf.duration_s
         ts = np.arange(0.0, wf.duration_s + 0.5 / cfg.command_rate_hz, 1.0 / cfg.command_rate_hz)
         self._pubs["cmd"].publish(convert.command_trajectory(start_ns, ts, wf.displacement(ts),
@@ -151,6 +166,22 @@ class ShakerNode(LifecycleNode):
         res.duration_s = wf.duration_s
         self.get_logger().info(res.message)
         self._report("ok", res.message)
+        return res
+
+    def _refused(self, res, e: Exception):
+        """Refuse a request the drive would not play; after a device error, the drive is told
+        to stop (its output off), as far as it still answers."""
+        res.accepted, res.message = False, f"refused: {e}"
+        if isinstance(e, DeviceError):
+            self.get_logger().error(res.message)
+            self._report("error", res.message)
+            try:
+                self._drive.stop()
+            except (DeviceError, OSError) as stop_error:
+                self.get_logger().error(f"and the drive did not stop: {stop_error}")
+        else:
+            self.get_logger().warning(res.message)
+            self._report("warn", res.message)
         return res
 
     def _on_stop(self, req, res):

@@ -8,6 +8,10 @@ Interfaces (node name `stage`):
 - `~/joint_states` (sensor_msgs/JointState: stage_bottom, stage_top; m toward the centre).
 - `~/target_strain` (std_msgs/Float64, latched) and `~/state` (std_msgs/String, latched:
   idle / moving / holding / fault[: reason]); `/diagnostics` on every state change.
+The stages are those of parameter `hardware`: "sim", or "lab" with `lab_file`
+(`ros_nodes.hardware`); a lab file or controller that cannot be used fails the configure
+transition with one logged line. With "lab" the lab file's limits hold: `device.*` changes at
+run time do not reach the stages.
 """
 
 import numpy as np
@@ -16,10 +20,12 @@ from rclpy.lifecycle import LifecycleNode, State, TransitionCallbackReturn
 from std_msgs.msg import Empty, Float64, String
 from std_srvs.srv import Trigger
 
-from devices.limits import LimitError
+from devices.lab import LabFileError
+from devices.limits import DeviceError, LimitError
 from devices.stage.port import StageCommand, StageMode, StagePair, check_strain
 from ros_nodes import convert
 from ros_nodes import topics as T
+from ros_nodes.hardware import stage_pair
 from ros_nodes.logic.sampling import due_samples
 from ros_nodes.nodes._common import COMMAND, LATCHED, STREAM, run_node
 from ros_nodes.nodes._params import TypedParams
@@ -29,12 +35,8 @@ NAME = "stage"
 
 
 def _stages(cfg: StageNodeConfig, rng: np.random.Generator) -> StagePair:
-    """The stages behind the port that `cfg.hardware` names (only the simulator exists yet)."""
-    if cfg.hardware != "sim":
-        raise ValueError(f"no stage controller {cfg.hardware!r} (only 'sim')")
-    from hardware_sim.stage import SimulatedStages
-
-    return SimulatedStages(cfg.device, rng)
+    """The stages behind the port that `cfg.hardware` names ("sim", or "lab": `lab_file`)."""
+    return stage_pair(cfg, rng)
 
 
 class StageNode(LifecycleNode):
@@ -52,8 +54,8 @@ class StageNode(LifecycleNode):
         self.create_service(Trigger, T.STAGE_STOP.name, self._on_stop)
         self.create_service(Trigger, T.STAGE_RESET.name, self._on_reset)
         self.create_subscription(Empty, T.RIG_STOP.name, lambda _m: self._stop(), COMMAND)
-        if self._params.config.autostart:
-            self.trigger_configure()
+        if self._params.config.autostart and \
+                self.trigger_configure() == TransitionCallbackReturn.SUCCESS:
             self.trigger_activate()
 
     def on_configure(self, state: State) -> TransitionCallbackReturn:
@@ -65,7 +67,14 @@ class StageNode(LifecycleNode):
             "state": self.create_publisher(String, T.STAGE_STATE.name, LATCHED),
             "diag": self.create_publisher(convert.DiagnosticArray, T.DIAGNOSTICS.name, COMMAND),
         }
-        self._stages = _stages(cfg, self._rng)
+        try:
+            self._stages = _stages(cfg, self._rng)
+        except (LabFileError, DeviceError, ValueError, OSError) as e:
+            self.get_logger().error(f"cannot configure the stages: {e}")
+            self._pubs["diag"].publish(convert.diagnostics(
+                self.get_clock().now().nanoseconds, NAME, "error",
+                f"cannot configure the stages: {e}", {}))
+            return TransitionCallbackReturn.FAILURE
         self._publish_mode(force=True)
         return TransitionCallbackReturn.SUCCESS
 
@@ -98,8 +107,13 @@ class StageNode(LifecycleNode):
         return TransitionCallbackReturn.SUCCESS
 
     def _reconfigured(self, cfg: StageNodeConfig) -> None:
-        if self._stages is not None:  # new limits hold from the next command
-            self._stages.reconfigure(cfg.device)
+        if self._stages is None:
+            return
+        if cfg.hardware == "lab":  # the lab file's limits stand
+            self.get_logger().warning("hardware 'lab': the limits are the lab file's; device.* "
+                                      "parameters do not change them")
+            return
+        self._stages.reconfigure(cfg.device)  # new limits hold from the next command
 
     def _now_s(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9

@@ -74,6 +74,7 @@ class ShakerNode(LifecycleNode):
         except (LabFileError, DeviceError, ValueError, OSError) as e:
             self.get_logger().error(f"cannot configure the shaker: {e}")
             self._report("error", f"cannot configure the shaker: {e}")
+            self.on_cleanup(state)  # back to unconfigured: a later configure starts afresh
             return TransitionCallbackReturn.FAILURE
         self._report("ok", "configured")
         return TransitionCallbackReturn.SUCCESS

@@ -74,6 +74,7 @@ class StageNode(LifecycleNode):
             self._pubs["diag"].publish(convert.diagnostics(
                 self.get_clock().now().nanoseconds, NAME, "error",
                 f"cannot configure the stages: {e}", {}))
+            self.on_cleanup(state)  # back to unconfigured: a later configure starts afresh
             return TransitionCallbackReturn.FAILURE
         self._publish_mode(force=True)
         return TransitionCallbackReturn.SUCCESS

@@ -128,7 +128,7 @@ def test_a_lab_device_that_cannot_be_opened_leaves_the_node_unconfigured(
     client, ex = ros_node
     stage = _node(StageNode, ros_context, ex, lab)
     try:
-        assert stage._stages is None and not stage._active
+        assert stage._stages is None and not stage._active and stage._pubs == {}
         r = call(client.create_client(SetStrain, "/stage/set_strain"),
                  SetStrain.Request(strain=0.01), ex, timeout_s=20.0)
         assert not r.accepted and "not active" in r.message

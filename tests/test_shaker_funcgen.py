@@ -183,3 +183,23 @@ def test_long_waveform_fits_the_generator_memory():
     up = arb_upload(cfg, wf)
     assert up.values.size == 4096 and up.sample_rate_hz == pytest.approx(4095 / 2.0)
     assert up.peak_v == pytest.approx(1.0, rel=1e-3)
+
+
+def test_an_instrument_that_stops_answering_is_one_instrument_error(drive):
+    from pyvisa.constants import StatusCode
+    from pyvisa.errors import VisaIOError
+
+    def silent(*a, **kw):
+        raise VisaIOError(StatusCode.error_timeout)
+
+    drive._device.write = silent
+    wf = prepare(drive.limits, WaveformRequest("pulse", amplitude_m=0.005, frequency_hz=30.0))
+    with pytest.raises(InstrumentError) as e:
+        drive.play(wf, 0.0)
+    assert str(e.value).startswith("Keysight Technologies 33522B serial MY52400001 did not take "
+                                   "'ABOR': VI_ERROR_TMO") and "\n" not in str(e.value)
+    assert e.value.__cause__ is None and drive.started_s is None
+    drive._device.query = silent
+    with pytest.raises(InstrumentError, match=r"did not answer 'VOLT:LIM:HIGH\?': VI_ERROR_TMO"):
+        drive.query("VOLT:LIM:HIGH?")
+    del drive._device.write, drive._device.query     # the emulator again, to close cleanly

@@ -1,7 +1,7 @@
 """The shaker and stage nodes with `hardware: lab`, in this process on the test's isolated domain:
 the shaker drives the pyvisa-sim function generator of a lab file (a pulse uploaded and the
-output on; volts over max_volts and an instrument error refused with the reason, the output
-left off), the stages move the Zaber emulator, and a lab device that cannot be opened leaves
+output on; volts over max_volts, an instrument error and a generator that stops answering
+refused with the reason, the output left off), the stages move the Zaber emulator, and a lab device that cannot be opened leaves
 the node unconfigured with one logged line, refusing requests."""
 
 import pytest
@@ -83,6 +83,34 @@ def test_volts_over_the_drive_limit_are_refused_before_the_generator_hears(
         r = _fire(client, ex, 0.0075)       # within the amplitude limit, but 7.5 V > 5 V
         assert not r.accepted and "peak 7.5 V exceeds the drive limit 5 V" in r.message
         assert sent == [] and shaker._drive.query("OUTP?") == "0"
+    finally:
+        ex.remove_node(shaker)
+        shaker.destroy_node()
+
+
+def test_a_generator_that_stops_answering_refuses_with_one_line(ros_context, ros_node,
+                                                               tmp_path):
+    from pyvisa.constants import StatusCode
+    from pyvisa.errors import VisaIOError
+
+    from ros_nodes.nodes.shaker_node import ShakerNode
+
+    lab = tmp_path / "lab.toml"
+    lab.write_text(FG)
+    client, ex = ros_node
+    shaker = _node(ShakerNode, ros_context, ex, lab, rate_hz=50.0)
+    device = shaker._drive._device
+    try:
+        def silent(*a, **kw):
+            raise VisaIOError(StatusCode.error_timeout)
+
+        device.write = silent                 # a cable pulled: every command times out
+        r = _fire(client, ex, 0.005)
+        assert not r.accepted and "did not take 'ABOR': VI_ERROR_TMO" in r.message
+        assert "\n" not in r.message and shaker._playing_until is None
+        del device.write                      # back: the node still serves
+        r = _fire(client, ex, 0.005)
+        assert r.accepted, r.message
     finally:
         ex.remove_node(shaker)
         shaker.destroy_node()

@@ -31,7 +31,8 @@ def _config(args) -> DICConfig:
                      zncc_lost=args.zncc_lost, zncc_reacquire=max(args.zncc_lost, 0.9)
                      if args.zncc_reacquire is None else args.zncc_reacquire,
                      search_radius_px=args.search_radius_px,
-                     prefilter_sigma_px=args.prefilter_sigma_px)
+                     prefilter_sigma_px=args.prefilter_sigma_px,
+                     sigma_floor_px=args.sigma_floor_px, sigma_blur_share=args.sigma_blur_share)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -69,8 +70,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--search-radius-px", type=non_negative(int),
                    default=_DEFAULTS.search_radius_px,
                    help="re-acquisition search half-width, px")
-    p.add_argument("--prefilter-sigma-px", type=non_negative(float), default=0.0,
-                   help="Gaussian smoothing of frames before tracking, px")
+    p.add_argument("--prefilter-sigma-px", type=non_negative(float),
+                   default=_DEFAULTS.prefilter_sigma_px,
+                   help="Gaussian smoothing of frames before tracking, px (it band-limits the "
+                        "units' edges, whose sub-pixel interpolation biases slender units)")
+    p.add_argument("--sigma-floor-px", type=non_negative(float),
+                   default=_DEFAULTS.sigma_floor_px,
+                   help="systematic error added to every pose's standard error, px at each "
+                        "subset point (measure it on your camera with a rigid-motion test)")
+    p.add_argument("--sigma-blur-share", type=non_negative(float),
+                   default=_DEFAULTS.sigma_blur_share,
+                   help="motion blur in every pose's standard error: this share of the unit's "
+                        "motion since the previous frame, px (0 for short exposures)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     return p
 

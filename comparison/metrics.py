@@ -102,10 +102,42 @@ def frame_rates(t: np.ndarray, q: np.ndarray) -> np.ndarray:
     return out
 
 
+# Share of a tracked pose's stated variance (`Trajectory.sigma`) that is the frame's own, white
+# from frame to frame; the rest is common to every frame of a unit (the reference image's noise)
+# and does not reach velocities. Measured against truth (`tracking.dic.pose_sigma` as
+# calibrated there): 0.42 / 0.40 / 0.35 (u, v, theta) on the default `metarig rig` footage
+# (lag-1 autocorrelation < 0.03), 0.81 / 0.56 / 0.48 on the blurred optimised design of
+# benchmarks/bench_dic_design.py. The lower end is taken: the noise is then rather under- than
+# over-estimated, and the model error left beyond it rather over-stated.
+FRAME_NOISE_SHARE = 0.4
+
+
+def rate_noise_var(t: np.ndarray, var: np.ndarray) -> np.ndarray:
+    """Variance [n_t, ...] of `frame_rates(t, q)` caused by independent noise of variance
+    var [n_t, ...] in each sample of q (the filter is linear: its weights squared times var;
+    NaN where a sample's variance is unknown)."""
+    t = np.asarray(t, np.float64)
+    weights = frame_rates(t, np.eye(t.size))  # [i, j]: rate at i per unit of sample j
+    v = np.asarray(var, np.float64).reshape(t.size, -1)
+    return (weights**2 @ v).reshape(np.shape(var))
+
+
 def kinetic_energy(qdot: np.ndarray, mass: np.ndarray, inertia: np.ndarray) -> np.ndarray:
     """[..., n] kinetic energy (J) of rates qdot [..., n, 3] (m/s, m/s, rad/s) for masses [n]
     (kg) and rotary inertias [n] (kg m^2) about the area centroids."""
     return 0.5 * (mass * (qdot[..., 0] ** 2 + qdot[..., 1] ** 2) + inertia * qdot[..., 2] ** 2)
+
+
+def _velocity_noise(t: np.ndarray, sigma: np.ndarray | None, used: np.ndarray,
+                    keep: np.ndarray) -> float:
+    """Mean squared translational velocity error (m^2/s^2, both components) that the stated
+    pose errors cause over the used units and kept samples; NaN where any is unknown."""
+    if sigma is None:
+        return float("nan")
+    var = FRAME_NOISE_SHARE * np.asarray(sigma, np.float64)[:, used, :2] ** 2
+    if not np.all(np.isfinite(var)):
+        return float("nan")
+    return float(np.mean(np.sum(rate_noise_var(t, var)[keep], axis=-1)))
 
 
 def compare(measured: Trajectory, simulated: Trajectory, mass: np.ndarray, inertia: np.ndarray,
@@ -126,6 +158,11 @@ def compare(measured: Trajectory, simulated: Trajectory, mass: np.ndarray, inert
         (Pearson correlation of the time-averaged kinetic-energy maps), `target_peak_ke_rel_err`
         (signed relative error of the measured peak target energy), `max_displacement_error_m`,
         `lost_units`, `units_compared`, `onset_s` and the two peak target energies (J).
+        Where every used pose has a stated standard error (`measured.sigma`), also
+        `velocity_noise_nrmse`, what the tracking noise alone adds to a perfect model's NRMSE
+        (the frame's own share of the variance, `FRAME_NOISE_SHARE`, through the same
+        differentiating filter), and `velocity_nrmse_beyond_noise` = sqrt(NRMSE^2 - that^2),
+        the part of the error the tracking noise does not explain (the model's).
 
     Raises:
         ValueError: different time axes or unit counts, too few samples, or nothing to compare.
@@ -154,6 +191,8 @@ def compare(measured: Trajectory, simulated: Trajectory, mass: np.ndarray, inert
     v_rms_sim = np.sqrt(np.mean(np.sum(qd_sim[:, used, :2] ** 2, axis=-1)))
     nrmse = float(np.sqrt(np.mean(np.sum(dv**2, axis=-1))) / v_rms_sim) if v_rms_sim > 0 \
         else float("nan")
+    noise = _velocity_noise(t, measured.sigma, used, keep)
+    noise_nrmse = float(np.sqrt(noise) / v_rms_sim) if v_rms_sim > 0 else float("nan")
     map_e, map_s = ke_exp[:, used].mean(axis=0), ke_sim[:, used].mean(axis=0)
     corr = float(np.corrcoef(map_e, map_s)[0, 1]) if used.sum() > 1 else float("nan")
     tgt = np.asarray(target)[used[np.asarray(target)]]
@@ -174,6 +213,10 @@ def compare(measured: Trajectory, simulated: Trajectory, mass: np.ndarray, inert
         "target_peak_ke_exp_J": peak_e,
         "target_peak_ke_sim_J": peak_s,
     }
+    if np.isfinite(noise_nrmse):
+        metrics["velocity_noise_nrmse"] = noise_nrmse
+        metrics["velocity_nrmse_beyond_noise"] = float(np.sqrt(max(nrmse**2 - noise_nrmse**2,
+                                                                   0.0)))
     row = np.asarray(row)
     return Comparison(
         t=t[keep] - onset_s, speed_exp=speed_exp, speed_sim=speed_sim, ke_exp=ke_exp,

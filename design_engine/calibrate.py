@@ -861,9 +861,24 @@ def window_frames(frame_t_s, input_t_s, input_u_m, fractions=WINDOWS, min_frames
     return out
 
 
+def pose_weights(sigma, use: np.ndarray) -> np.ndarray | None:
+    """Weights [n_t, n_units, 2] of the u, v residuals from the poses' standard errors sigma
+    [n_t, n_units, 3] (m): the median over the used poses divided by each one's own; None
+    without sigma, or where a used pose has none (or a non-positive one)."""
+    if sigma is None:
+        return None
+    s = np.asarray(sigma, np.float64)[..., :2]
+    if s.shape[:2] != use.shape:
+        raise CalibrationError(f"pose standard errors {s.shape} do not match the poses")
+    used = s[use]
+    if used.size == 0 or not np.all(np.isfinite(used)) or np.any(used <= 0):
+        return None
+    return np.where(use[..., None], np.median(used) / np.where(use[..., None], s, 1.0), 0.0)
+
+
 def fit_pulse(scene, frame_t_s, tracked_q, valid, input_t_s, input_u_m, stage_t_s=None,
               stage_closing_m=None, fit=DEFAULT_PULSE_FIT, start: Material | None = None,
-              config=None, units=None, progress=None) -> Fit:
+              config=None, units=None, progress=None, tracked_sigma=None) -> Fit:
     """Fit material constants to a recorded pulse experiment through the engine.
 
     Args:
@@ -882,6 +897,12 @@ def fit_pulse(scene, frame_t_s, tracked_q, valid, input_t_s, input_u_m, stage_t_
             `contact_forward_config()` if that fixed-step solve is not finite at the start).
         units: optional subset of unit ids whose motion is fitted (default all tracked).
         progress: optional `progress(stage, evaluation, rms_m)` (see `run_fit`).
+        tracked_sigma: optional [n_t, n_units, 3] standard errors of `tracked_q` (the
+            tracker's, m and rad): each pose's u and v residuals are weighted by the median
+            stated error over its own (least squares weighted by 1 / sigma^2, the residual
+            still in m of a typical pose), so that poorly tracked units and frames count less;
+            `extra["weighted_by_pose_sigma"]` says whether they were (not where any fitted pose
+            lacks one).
 
     Standard errors are two-way cluster-robust over units and time blocks of a tenth of the
     record (`covariance`): tracking errors are correlated along a unit's record, and the
@@ -920,6 +941,9 @@ def fit_pulse(scene, frame_t_s, tracked_q, valid, input_t_s, input_u_m, stage_t_
     start_si["damping_ratio"] = start_damping_ratio(start, scene.lattice)
     material = make_fitted_material(start, names, start_si, scene.lattice)
     data = jnp.asarray(np.where(use[..., None], q[..., :2] * 1e3, 0.0))
+    weight = pose_weights(tracked_sigma, use)
+    weighted = weight is not None
+    weight = jnp.asarray(weight if weighted else np.ones(use.shape + (2,)))
     x = jnp.asarray(scene.design)
     frames = window_frames(ts_ms / 1e3, input_t_s, input_u_m)
 
@@ -935,7 +959,7 @@ def fit_pulse(scene, frame_t_s, tracked_q, valid, input_t_s, input_u_m, stage_t_
             return sim(x, material(p), loading, tsj)
 
         def residual(p):
-            return (simulate(p).q[..., :2] - data[:n]).reshape(-1)[sel]
+            return ((simulate(p).q[..., :2] - data[:n]) * weight[:n]).reshape(-1)[sel]
 
         label = "pulse" if n == ts_ms.size else f"pulse, first {n} frames"
         out = run_fit(residual, names, names, start_si, SI_UNITS, "m", scale=1e-3, max_iter=20,
@@ -967,6 +991,7 @@ def fit_pulse(scene, frame_t_s, tracked_q, valid, input_t_s, input_u_m, stage_t_
     sol = simulate(jnp.asarray(out.extra["p"]))
     out.wall_s = time.perf_counter() - t0
     out.extra["windows"] = frames
+    out.extra["weighted_by_pose_sigma"] = weighted
     if "damping_ratio" in names:
         out.extra["derived"] = derived_damping(out, material(jnp.asarray(out.extra["p"])))
     out.extra["config"] = f"{type(config.solver).__name__}, contact {config.use_contact}"

@@ -158,8 +158,10 @@ def calibrate_pulse(files, fit, material_path=None, poses_source="auto", calibra
                                                          workers)
     out = cal.fit_pulse(scene, poses.t + t0, poses.q, poses.valid, t_in, u_in,
                         *(stage or (None, None)), fit=fit or cal.DEFAULT_PULSE_FIT,
-                        start=_start_material(material_path, scene.lattice), progress=progress)
+                        start=_start_material(material_path, scene.lattice), progress=progress,
+                        tracked_sigma=poses.sigma)
     return out, {"n_frames": poses.n_t, "n_units": poses.n_units,
+                 "weighted_by_pose_sigma": out.extra["weighted_by_pose_sigma"],
                  "solver": out.extra["config"], "windows_frames": out.extra["windows"],
                  "min_void_margin_rad": out.extra["min_void_margin"]}
 

@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 
 from metarig.argtypes import non_negative, positive, text
-from ros_nodes.logic.comparison_run import CompareError
+from ros_nodes.logic.comparison_run import CompareError, velocity_text
 from ros_nodes.recorded_compare import compare_recording
 from ros_nodes.recorded_run import POSE_SOURCES
 
@@ -67,7 +67,7 @@ def compare_main(argv: list[str] | None = None) -> int:
     except CompareError as exc:
         print(f"metarig compare: error: {exc}", file=sys.stderr)
         return 2
-    print(f"velocity NRMSE {s['velocity_nrmse']:.2%}, energy-map correlation "
+    print(f"{velocity_text(s)}, energy-map correlation "
           f"{s['energy_map_correlation']:.3f}, target peak KE error "
           f"{s['target_peak_ke_rel_err']:+.1%}, max displacement error "
           f"{s['max_displacement_error_m'] * 1e3:.3f} mm, {s['lost_units']} lost units")

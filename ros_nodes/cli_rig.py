@@ -173,7 +173,7 @@ def compare_run(out: Path, workers: int | None) -> int:
     folder gains the comparison files and `run.json` its summary and timings."""
     import time
 
-    from ros_nodes.logic.comparison_run import CompareError
+    from ros_nodes.logic.comparison_run import CompareError, velocity_text
     from ros_nodes.recorded_compare import compare_recording
     from ros_nodes.logic.sequence import SUMMARY_NAME
 
@@ -186,17 +186,18 @@ def compare_run(out: Path, workers: int | None) -> int:
               file=sys.stderr)
         return 1
     run = json.loads((out / SUMMARY_NAME).read_text())
-    run["comparison"] = {k: s[k] for k in ("velocity_nrmse", "energy_map_correlation",
-                                           "target_peak_ke_rel_err", "max_displacement_error_m",
-                                           "lost_units", "onset_s", "mcap", "rrd")}
+    run["comparison"] = {k: s[k] for k in ("velocity_nrmse", "velocity_noise_nrmse",
+                                           "velocity_nrmse_beyond_noise",
+                                           "energy_map_correlation", "target_peak_ke_rel_err",
+                                           "max_displacement_error_m", "lost_units", "onset_s",
+                                           "mcap", "rrd") if k in s}
     run.setdefault("timings_s", {})["track_and_compare"] = time.perf_counter() - t0
     run["timings_s"]["total_with_comparison"] = (run["timings_s"].get("total_wall", 0.0)
                                                  + run["timings_s"]["track_and_compare"])
     (out / SUMMARY_NAME).write_text(json.dumps(run, indent=2, default=str))
-    log.info("compared in %.1f s: velocity NRMSE %.2f %%, target peak KE %+.1f %%, %d lost "
-             "units; open with: rerun %s", run["timings_s"]["track_and_compare"],
-             100 * s["velocity_nrmse"], 100 * s["target_peak_ke_rel_err"], s["lost_units"],
-             s["rrd"])
+    log.info("compared in %.1f s: %s, target peak KE %+.1f %%, %d lost units; open with: "
+             "rerun %s", run["timings_s"]["track_and_compare"], velocity_text(s),
+             100 * s["target_peak_ke_rel_err"], s["lost_units"], s["rrd"])
     return 0
 
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from comparison.metrics import compare, kinetic_energy, pulse_onset
+from comparison.metrics import FRAME_NOISE_SHARE, compare, kinetic_energy, pulse_onset
 from metarig.trajectory import Trajectory
 
 
@@ -81,3 +81,37 @@ def test_pulse_onset_of_a_noisy_one_minus_cosine_pulse(onset):
     assert pulse_onset(t, u) == pytest.approx(onset, abs=0.6e-3)
     with pytest.raises(ValueError, match="no pulse"):
         pulse_onset(t, rng.normal(scale=2e-6, size=t.size))
+
+
+def _noisy(traj, sigma, seed):
+    """traj with tracking-like errors of stated standard error `sigma` (m, rad): a share
+    `FRAME_NOISE_SHARE` of the variance white from frame to frame, the rest a per-unit constant
+    (the reference image's noise)."""
+    rng = np.random.default_rng(seed)
+    n_t, n = traj.q.shape[:2]
+    s, share = np.asarray(sigma), FRAME_NOISE_SHARE
+    q = traj.q + rng.normal(0.0, 1.0, (1, n, 3)) * s * np.sqrt(1 - share) \
+        + rng.normal(0.0, 1.0, (n_t, n, 3)) * s * np.sqrt(share)
+    return Trajectory.from_positions(traj.t, q, sigma=np.broadcast_to(sigma, q.shape).copy())
+
+
+@pytest.mark.parametrize("scale", [1.0, 1.1])
+def test_the_tracking_noise_part_of_the_velocity_error_is_told_apart(scale):
+    """The stated pose errors predict what noise adds to the NRMSE; what is left is the model's
+    error (a perfect model: about 0; a 10 % faster measurement: 10 %)."""
+    sim = _wave(nt=400, n=12)
+    sigma = (3e-5, 3e-5, 2e-3)
+    exp = _noisy(_wave(nt=400, n=12, scale=scale), sigma, seed=3)
+    m = compare(exp, sim, MASS, INERTIA, TARGET, ROW, onset_s=0.01).metrics
+    clean = compare(_wave(nt=400, n=12, scale=scale), sim, MASS, INERTIA, TARGET, ROW,
+                    onset_s=0.01).metrics["velocity_nrmse"]
+    assert m["velocity_nrmse"] > clean + 0.01  # the noise matters here
+    assert m["velocity_nrmse_beyond_noise"] == pytest.approx(clean, abs=0.01)
+    if scale == 1.0:  # the noise alone: its predicted size is what was measured
+        assert m["velocity_noise_nrmse"] == pytest.approx(m["velocity_nrmse"], rel=0.1)
+
+
+def test_no_noise_part_without_stated_pose_errors():
+    a = _wave()
+    m = compare(a, a, MASS, INERTIA, TARGET, ROW, onset_s=0.01).metrics
+    assert "velocity_noise_nrmse" not in m and "velocity_nrmse_beyond_noise" not in m

@@ -97,11 +97,22 @@ def summary_of(ec, scene, poses_source: str, recording: str) -> dict:
     sig = ec.measured.sigma
     if sig is not None and np.isfinite(sig).any():
         # how sure the tracking was (median stated standard error of the compared poses); the
-        # metrics above are not weighted by it
+        # metrics above are not weighted by it (`velocity_noise_nrmse` and
+        # `velocity_nrmse_beyond_noise` say what of the velocity error its noise explains)
         summary["pose_sigma_median_m"] = float(np.nanmedian(np.hypot(sig[..., 0], sig[..., 1])))
         summary["pose_sigma_median_rad"] = float(np.nanmedian(sig[..., 2]))
         summary["weighted_by_pose_sigma"] = False
     return summary
+
+
+def velocity_text(summary: dict) -> str:
+    """'velocity NRMSE 1.81 %', with the part the tracking noise explains and the rest where the
+    summary has them."""
+    text = f"velocity NRMSE {summary['velocity_nrmse']:.2%}"
+    if "velocity_nrmse_beyond_noise" in summary:
+        text += (f" ({summary['velocity_noise_nrmse']:.2%} expected from tracking noise, "
+                 f"{summary['velocity_nrmse_beyond_noise']:.2%} beyond it)")
+    return text
 
 
 def write_summary(out: Path, summary: dict) -> Path:

@@ -33,7 +33,7 @@ from ros_nodes import convert
 from ros_nodes import topics as T
 from ros_nodes.logic import comparison_run as run
 from ros_nodes.logic.compare_session import CompareSession
-from ros_nodes.logic.comparison_run import CompareError
+from ros_nodes.logic.comparison_run import CompareError, velocity_text
 from ros_nodes.logic.recording import stamp_s, total_closing_m
 from ros_nodes.nodes._common import qos_profile, run_node
 from ros_nodes.nodes._params import TypedParams
@@ -142,7 +142,7 @@ class CompareNode(Node):
             for topic, _ns, msg in convert.comparison_messages(res.ec, summary, res.reference_m):
                 self._pubs[topic].publish(msg)
             self.get_logger().info(
-                f"velocity NRMSE {summary['velocity_nrmse']:.2%}, energy-map correlation "
+                f"{velocity_text(summary)}, energy-map correlation "
                 f"{summary['energy_map_correlation']:.3f}, {summary['lost_units']} lost units "
                 f"({summary['frames']} frames)")
             out = self._params.config.out_dir

@@ -53,7 +53,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--processes", action="store_true",
                    help="one process per node (default: all nodes in this process)")
     p.add_argument("--hardware", choices=("sim", "real"), default="sim",
-                   help="simulated rig, or real devices (no driver exists in this project)")
+                   help="simulated rig, or real devices (the experiment sequence on real "
+                        "devices is not built yet; the device nodes take a lab file)")
     p.add_argument("--params", type=Path, default=None,
                    help="ROS 2 YAML parameter file applied to the nodes (node_name: "
                         "ros__parameters: ...)")
@@ -123,8 +124,10 @@ def rig_main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s",
                         datefmt="%H:%M:%S")
     if args.hardware == "real":
-        print("metarig rig: no driver for real shaker/stage/camera hardware exists in this "
-              "project; use the simulated rig (--hardware sim)", file=sys.stderr)
+        print("metarig rig: the experiment sequence on real devices is not built yet (the "
+              "shaker and stage nodes take a lab file: see 'Connecting your lab' in the README; "
+              "`metarig devices --lab FILE` checks one); use the simulated rig (--hardware sim)",
+              file=sys.stderr)
         return 2
     from ros_nodes.params import ConfigError
 

@@ -1,23 +1,30 @@
-"""The device behind the shaker and stage nodes' ports, from their `hardware` parameter.
+"""The device behind the shaker, stage and camera nodes' ports, from their `hardware` parameter.
 
 - "sim": the simulated device with the node's `device.*` parameters (as always).
 - "lab": the [shaker] / [stage] section of the node's `lab_file` (`devices.lab`): a real
   driver opened and checked by `devices.connect`, or, for `driver = "sim"`, the simulated
   device with the lab file's limits in place of the node's `device.*` limits (its physics
   stay the node's).
-Pure (no rclpy): the nodes call these in their configure transition. A lab file that cannot be
-used raises `LabFileError`, a device that cannot be opened `DeviceError` (one line each).
+- the camera: "sim" keeps the frames of the node's `source` (simulated or replayed), and so
+  does "lab" with `driver = "sim"`; "lab" with a real driver opens the camera of the file's
+  [camera] (`lab_camera`, `camera_device`), with the settings of the file and the node's
+  overrides, checked against the file's limits before the device is configured
+  (`camera_settings`).
+Pure (no rclpy): the nodes call these in their configure transition (the camera node when it
+starts). A lab file that cannot be used raises `LabFileError`, a device that cannot be opened
+`DeviceError` (a camera driver `ValueError`), one line each.
 """
 
 import dataclasses
 
 import numpy as np
 
-from devices.lab import read_lab
+from devices.camera.port import Camera, CameraSettings, check_settings
+from devices.lab import CameraSection, read_lab
 from devices.shaker.port import ShakerDrive
 from devices.shaker.waveform import ShakerLimits
 from devices.stage.port import StageLimits, StagePair
-from ros_nodes.params import ShakerNodeConfig, StageNodeConfig
+from ros_nodes.params import CameraNodeConfig, ShakerNodeConfig, StageNodeConfig
 
 
 def with_limits(device, limits, limits_cls):
@@ -55,3 +62,37 @@ def stage_pair(cfg: StageNodeConfig, rng: np.random.Generator) -> StagePair:
     from hardware_sim.stage import SimulatedStages
 
     return SimulatedStages(device, rng)
+
+
+def lab_camera(cfg: CameraNodeConfig) -> CameraSection | None:
+    """The [camera] section of the node's lab file when it names a real camera ("pylon" or
+    "genicam"); None when the node keeps its `source` (hardware "sim", or a "sim" entry)."""
+    if cfg.hardware != "lab":
+        return None
+    section = read_lab(cfg.lab_file).camera
+    return None if section.driver == "sim" else section
+
+
+def camera_settings(cfg: CameraNodeConfig, section: CameraSection) -> CameraSettings:
+    """What the node asks of the lab camera: the lab file's settings with the node's overrides
+    (`frame_rate_hz`, `exposure_s`, `pixel_format`, `trigger`; 0 or empty keeps the file's),
+    checked against the file's limits before any device is configured (ValueError, one line)."""
+    over = {}
+    if cfg.frame_rate_hz > 0:
+        over["frame_rate_hz"] = cfg.frame_rate_hz
+    if cfg.exposure_s > 0:
+        over["exposure_s"] = cfg.exposure_s
+    if cfg.pixel_format:
+        over["pixel_format"] = cfg.pixel_format
+    if cfg.trigger:
+        over["trigger"] = cfg.trigger
+    settings = dataclasses.replace(section.settings, **over)
+    check_settings(settings, section.limits)
+    return settings
+
+
+def camera_device(section: CameraSection) -> Camera:
+    """The camera of a real [camera] section, open and its identity checked (not configured)."""
+    from devices.connect import open_camera
+
+    return open_camera(section)

@@ -21,7 +21,7 @@ from metarig.fields import param
 from ros_nodes.topics import IMAGE, RECORDED
 
 SOURCES = ("sim", "mcap", "folder", "video", "pattern")
-HARDWARE = ("sim", "lab")  # shaker and stage: the simulator, or the devices of a lab file
+HARDWARE = ("sim", "lab")  # the simulator (or replay), or the devices of a lab file
 
 
 class ConfigError(ValueError):
@@ -106,6 +106,24 @@ class CameraNodeConfig:
                                    "under load cannot start the capture early", -1.0, 1e9)
     supersample: int = param(2, "sim: sub-pixel samples per pixel side", 1, 8)
     seed: int = param(0, "seed of noise and speckle", 0, 2**31 - 1)
+    hardware: str = param("sim", "camera backend: the frames `source` names, or the [camera] of "
+                          "lab_file (a pylon or GenICam camera; a 'sim' entry keeps `source`)",
+                          choices=HARDWARE)
+    lab_file: str = param("", "lab file (TOML) naming the camera, when hardware is 'lab'")
+    frame_rate_hz: float = param(0.0, "lab camera: frame rate, Hz (0: the lab file's)",
+                                 0.0, 1.0e6)
+    exposure_s: float = param(0.0, "lab camera: exposure, s (0: the lab file's)", 0.0, 100.0)
+    pixel_format: str = param("", "lab camera: pixel format (empty: the lab file's)",
+                              choices=("", "mono8", "mono16"))
+    trigger: str = param("", "lab camera: free, software (the node fires at the frame rate) or "
+                         "hardware trigger (empty: the lab file's)",
+                         choices=("", "free", "software", "hardware"))
+    grab_timeout_s: float = param(2.0, "lab camera: no frame for this long while streaming is "
+                                  "an error (hardware trigger: counted from the first frame), s",
+                                  0.05, 3600.0)
+
+    def __post_init__(self):
+        _check_lab_file(self.hardware, self.lab_file)
 
 
 @dataclass(frozen=True, slots=True)

@@ -1,4 +1,5 @@
-"""Camera source node: frames from the simulated rig or from a recording (MCAP, images, video).
+"""Camera source node: frames from the simulated rig, a recording (MCAP, images, video) or a lab
+camera (pylon or GenICam, through the camera port).
 
 Interfaces (node name `camera`):
 - services `~/start` / `~/stop` (std_srvs/Trigger): replay sources stream from start; the
@@ -16,8 +17,20 @@ measured shaker and stage motion (their joint states); at stop the specimen is s
 that motion, frames are rendered at `fps` for the capture window (frame k exposed for half a
 period up to k / fps) and published stamped at the middle of their exposure (as fast as the
 readers acknowledge them, or `rate_factor` x real time).
+Lab camera (parameter `hardware` "lab" with `lab_file`, read at start-up; `source` is ignored
+unless the file's [camera] is `driver = "sim"`): the camera is opened and its identity checked
+when the node starts (`ros_nodes.hardware`; a failure is one logged line, an "error" status and
+refused services). `~/start` checks the requested settings (the file's, with the node's
+`frame_rate_hz`, `exposure_s`, `pixel_format`, `trigger` overrides) against the file's limits
+before the device is configured, then streams from a grab thread (`ros_nodes.logic.camera_stream`):
+frames stamped with the camera clock mapped to ROS time where the camera sends time stamps (else
+the host receive time; `~/status` "stamps" says which), frames lost counted from the camera's
+frame counter (`~/status` "lost", "received"), a camera silent for `grab_timeout_s` ends the
+stream in "error" with one line. `~/stop` ends the stream ("done"); `~/snapshot` takes the next
+streamed frame, or grabs one (software trigger or free run) when not streaming.
 """
 
+import dataclasses
 import json
 import threading
 import time
@@ -36,6 +49,8 @@ from std_srvs.srv import Trigger
 
 from ros_nodes import convert
 from ros_nodes import topics as T
+from ros_nodes.hardware import camera_device, camera_settings, lab_camera
+from ros_nodes.logic.camera_stream import CameraStream, FrameStamper, one_line
 from ros_nodes.logic.cdr import ImageEncoder, restamp
 from ros_nodes.nodes._common import CLOCK, LATCHED, STREAM, run_node
 from ros_nodes.nodes._params import TypedParams
@@ -73,6 +88,22 @@ class CameraNode(Node):
         self._enc_key = None
         self._enc: ImageEncoder | None = None
         self._info_cdr = b""
+        # the lab camera (hardware "lab" naming a real camera): see the module docstring
+        self._lab = cfg.hardware == "lab"
+        self._section = None
+        self._camera = None
+        self._stream: CameraStream | None = None
+        self._lab_error = ""
+        self._lab_lock = threading.RLock()  # the grab thread's error vs the status timer
+        if self._lab:
+            self._open_lab()
+        if self._lab:
+            self.create_timer(0.5, self._lab_tick)
+            if self._camera is None:
+                self._status("error", self._lab_error)
+            else:
+                self._lab_status("idle", f"ready: {self._camera.identity}")
+            return
         if cfg.source == "sim":
             self._truth = self.create_publisher(UnitPose2DArray, T.GROUND_TRUTH.name, STREAM)
             self._design = self.create_publisher(String, T.RIG_DESIGN.name, LATCHED)
@@ -83,10 +114,10 @@ class CameraNode(Node):
         self._status("idle", "ready")
 
     # helpers ---------------------------------------------------------------------------------
-    def _status(self, state: str, message: str = "") -> None:
+    def _status(self, state: str, message: str = "", **extra) -> None:
         self._state = state
         self._status_pub.publish(String(data=json.dumps(
-            {"state": state, "frames": self._published, "message": message})))
+            {"state": state, "frames": self._published, "message": message, **extra})))
 
     def _build_specimen(self) -> None:
         from hardware_sim.specimen import SpecimenConfig, build
@@ -259,8 +290,145 @@ class CameraNode(Node):
                                 exposure_samples=cfg.exposure_samples, noise_std=cfg.noise_std,
                                 lighting_gradient=cfg.lighting_gradient, seed=cfg.seed)
 
+    # lab camera -------------------------------------------------------------------------------
+    def _open_lab(self) -> None:
+        """Open the lab file's camera; a "sim" entry leaves the node to its `source`."""
+        cfg = self._params.config
+        try:
+            self._section = lab_camera(cfg)
+            if self._section is None:
+                self._lab = False
+                return
+            self._camera = camera_device(self._section)
+        except Exception as e:  # noqa: BLE001 - lab file, driver and vendor errors: one line
+            self._lab_error = f"cannot open the lab camera: {one_line(e)}"
+            self.get_logger().error(self._lab_error)
+            return
+        self.get_logger().info(f"lab camera: {self._camera.identity}")
+        try:
+            camera_settings(cfg, self._section)
+        except ValueError as e:
+            self.get_logger().warning(f"the requested camera settings are refused: {e}")
+
+    def _lab_status(self, state: str, message: str) -> None:
+        extra = {"camera": self._camera.identity if self._camera is not None else ""}
+        if self._stream is not None:
+            counts = self._stream.counts()
+            counts.pop("frames")
+            extra.update(counts, settings=dataclasses.asdict(self._stream.settings))
+        with self._lab_lock:
+            self._status(state, message, **extra)
+
+    def _lab_tick(self) -> None:
+        with self._lab_lock:  # never a "streaming" after the grab thread's "error"
+            if self._stream is not None and self._stream.running and not self._stream.error:
+                self._lab_status("streaming", f"{self._published} frames")
+
+    def _host_to_ros(self, host_ns: int) -> int:
+        """Host clock (ns) -> this node's ROS time: the same clock unless simulated time runs."""
+        clock = self.get_clock()
+        if not clock.ros_time_is_active:
+            return host_ns
+        return host_ns + clock.now().nanoseconds - time.time_ns()
+
+    def _lab_configure(self):
+        """The requested settings, checked against the lab limits (ValueError before the device
+        is touched), then set on the device; returns what the device set."""
+        settings = camera_settings(self._params.config, self._section)
+        try:
+            return self._camera.configure(settings)
+        except Exception as e:  # noqa: BLE001 - the device's own refusal, vendor exceptions
+            raise RuntimeError(f"{self._camera.identity} refused the settings: {one_line(e)}") \
+                from None
+
+    def _lab_refuse(self, res, why: str):
+        res.success, res.message = False, f"refused: {why}"
+        self.get_logger().warning(res.message)
+        return res
+
+    def _lab_start(self, res):
+        cfg = self._params.config
+        if self._camera is None:
+            return self._lab_refuse(res, self._lab_error)
+        if self._stream is not None and self._stream.running:
+            return self._lab_refuse(res, f"camera busy ({self._state})")
+        try:
+            settings = self._lab_configure()
+        except (ValueError, RuntimeError) as e:
+            return self._lab_refuse(res, str(e))
+        self._published = 0
+        self._stream = CameraStream(self._camera, settings, self._publish, cfg.grab_timeout_s,
+                                    to_time_ns=self._host_to_ros, on_end=self._lab_failed)
+        try:
+            self._stream.start()
+        except Exception as e:  # noqa: BLE001 - a camera that will not start: one line
+            return self._lab_refuse(res, f"{self._camera.identity} did not start: {one_line(e)}")
+        roi = "x".join(str(v) for v in settings.roi[2:]) if settings.roi else "full sensor"
+        self._lab_status("streaming", f"{settings.frame_rate_hz:g} Hz, {roi}, "
+                                      f"{settings.pixel_format}, trigger {settings.trigger}")
+        res.success, res.message = True, "streaming"
+        return res
+
+    def _lab_failed(self, line: str) -> None:
+        """The stream ended by itself (grab thread): the camera stopped delivering or failed."""
+        self.get_logger().error(line)
+        self._lab_status("error", line)
+
+    def _lab_stop(self, res):
+        stream = self._stream
+        if stream is None:
+            res.success, res.message = True, "stopped (was not streaming)"
+            return res
+        stream.stop()
+        lost = stream.counter.lost
+        if stream.error:
+            self._lab_status("error", stream.error)
+        else:
+            self._lab_status("done", f"published {self._published} frames, {lost} lost "
+                                     "(camera frame counter)")
+        res.success, res.message = True, self._state
+        return res
+
+    def _lab_snapshot(self, res):
+        if self._camera is None:
+            return self._lab_refuse(res, self._lab_error)
+        timeout_s = self._params.config.grab_timeout_s
+        if self._stream is not None and self._stream.running:
+            got = self._stream.next_frame(timeout_s)
+            if got is None:
+                return self._lab_refuse(res, f"no streamed frame within {timeout_s:g} s")
+            ns, image = got
+        else:
+            try:
+                if camera_settings(self._params.config, self._section).trigger == "hardware":
+                    return self._lab_refuse(res, "a hardware-triggered camera takes its snapshot "
+                                                 "from the stream: start it first")
+                settings = self._lab_configure()
+                self._camera.start()
+                try:
+                    if settings.trigger == "software":
+                        self._camera.trigger()
+                    frame = self._camera.grab(timeout_s)
+                finally:
+                    self._camera.stop()
+            except (ValueError, RuntimeError) as e:
+                return self._lab_refuse(res, str(e))
+            except Exception as e:  # noqa: BLE001 - vendor exceptions: one line
+                return self._lab_refuse(res, f"{self._camera.identity}: {one_line(e)}")
+            if frame is None:
+                return self._lab_refuse(res, f"{self._camera.identity} gave no frame within "
+                                             f"{timeout_s:g} s")
+            ns, image = self._host_to_ros(FrameStamper().stamp(frame)), frame.image
+        enc = ImageEncoder(image.shape[0], image.shape[1], image.dtype,
+                           self._params.config.frame_id)
+        self._reference.publish(enc.encode(ns, image))
+        res.success, res.message = True, "reference image published"
+        return res
+
     # services ---------------------------------------------------------------------------------
     def _on_snapshot(self, req, res):
+        if self._lab:
+            return self._lab_snapshot(res)
         from hardware_sim.rig import reference_frame
 
         cfg = self._params.config
@@ -280,6 +448,8 @@ class CameraNode(Node):
 
     def _on_start(self, req, res):
         cfg = self._params.config
+        if self._lab:
+            return self._lab_start(res)
         if self._thread is not None and self._thread.is_alive() or self._state == "capturing":
             res.success, res.message = False, f"refused: camera busy ({self._state})"
             return res
@@ -301,6 +471,8 @@ class CameraNode(Node):
 
     def _on_stop(self, req, res):
         cfg = self._params.config
+        if self._lab:
+            return self._lab_stop(res)
         if cfg.source == "sim" and self._state == "capturing":
             self._window[1] = None  # set by `_develop` once the clock has settled
             self._thread = threading.Thread(target=self._develop, daemon=True)
@@ -315,6 +487,14 @@ class CameraNode(Node):
         self._stop_evt.set()
         if self._thread is not None:
             self._thread.join(timeout=5.0)
+        if self._stream is not None:
+            self._stream.stop()
+        if self._camera is not None:
+            try:
+                self._camera.close()
+            except Exception as e:  # noqa: BLE001 - closing on the way out: say so, go on
+                self.get_logger().warning(f"the lab camera did not close: {one_line(e)}")
+            self._camera = None
 
 
 def main(args=None) -> int:

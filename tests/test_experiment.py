@@ -190,6 +190,19 @@ def test_frames_missing_from_the_recording_are_reported_not_fatal(caplog):
     assert "the recorder to write 41 frames" in caplog.text
 
 
+def test_frames_a_real_camera_lost_go_into_the_timings():
+    rig = FakeRig(PLAN)
+    camera_stop = rig.camera_stop
+
+    def stop_with_loss():  # a lab camera's status counts the frames its counter says it lost
+        camera_stop()
+        rig._camera["lost"] = 2
+
+    rig.camera_stop = stop_with_loss
+    timings = Experiment(PLAN, rig).run()
+    assert timings["frames"] == 41 and timings["camera_lost"] == 2
+
+
 def test_phase_values_are_the_published_names():
     assert [p.value for p in Phase][:6] == ["starting", "precompress", "settle", "record",
                                             "pulse", "develop"]

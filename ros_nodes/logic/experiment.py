@@ -199,6 +199,8 @@ class Experiment:
             log.warning("%s; finishing with what arrived (the report counts the loss)", e)
         timings["develop_publish"] = port.now() - w
         timings["frames"] = n
+        if "lost" in cam:  # a real camera: frames its own frame counter says never came
+            timings["camera_lost"] = int(cam["lost"])
         return timings
 
     def finish(self, completed: bool, recorder_timeout_s: float = 30.0) -> dict | None:

@@ -116,7 +116,9 @@ def summary(plan: ExperimentPlan, params: dict, report: dict | None, timings: di
     recording: `lost` counts every frame missing from the file, trailing ones included (frames
     still in transit when the recording stopped leave no gap for the recorder to see); and with
     the plan's capture window from the `record` phase on, `expected` (published differs when a
-    node's clock lagged the sequencer's at the camera's start or stop: recorded, not hidden).
+    node's clock lagged the sequencer's at the camera's start or stop: recorded, not hidden);
+    and from a real camera (`timings["camera_lost"]`), `lost_at_camera`: frames the camera's
+    frame counter says it took but never delivered (they were never published either).
     """
     out = {"status": status, "plan": plan.as_dict(), "node_parameters": params,
            "recording": report, "timings_s": timings,
@@ -126,6 +128,8 @@ def summary(plan: ExperimentPlan, params: dict, report: dict | None, timings: di
         recorded = int(report.get("topics", {}).get(IMAGE_TOPIC, {}).get("count", 0))
         out["frames"] = {"published": published, "recorded": recorded,
                          "lost": max(0, published - recorded)}
+        if "camera_lost" in timings:
+            out["frames"]["lost_at_camera"] = int(timings["camera_lost"])
         t_rec = next((t for ph, t in events if ph == Phase.RECORD.value), None)
         if t_rec is not None:
             out["frames"]["expected"] = plan.expected_frames(t_rec)

@@ -98,6 +98,9 @@ def run_rig(plan, node_params: dict[str, dict], out: Path, processes: bool = Fal
         if frames and frames["lost"]:
             log.warning("%d of %d camera frames are missing from the recording",
                         frames["lost"], frames["published"])
+        if frames and frames.get("lost_at_camera"):
+            log.warning("the camera lost %d frames before publishing (its frame counter jumped)",
+                        frames["lost_at_camera"])
         if frames and frames.get("expected", frames["published"]) != frames["published"]:
             log.warning("the camera published %d frames where the plan's capture window holds %d "
                         "(a clock that lagged at its start or stop; run.json keeps both)",

@@ -24,6 +24,8 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
                 "list the lab devices this machine sees, or check a lab file against them"),
     "recover": ("ros_nodes.cli_rig", "recover_main", "salvage an MCAP recording whose writer was killed"),
     "track": ("tracking.cli", "track_main", "track unit poses in frames by DIC"),
+    "camera-calibrate": ("tracking.camera_calibrate_cli", "camera_calibrate_main",
+                         "camera and sample plane from photographs of a calibration target"),
     "demo": ("ros_nodes.cli_demo", "demo_main",
              "the main job: design a small lattice, test it on the simulated rig, compare"),
     "compare": ("ros_nodes.cli_compare", "compare_main",

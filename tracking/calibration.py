@@ -10,6 +10,11 @@ Calibration JSON keys:
         image points to their square-on positions). Frames are rectified with it first.
     rectified_size_px (optional [width, height]): size of the rectified image; defaults to
         the raw frame size.
+    camera_matrix (optional 3x3) and dist_coeffs (optional list of 4, 5, 8, 12 or 14): the
+        lens (OpenCV's model, as `metarig camera-calibrate` writes them). With them, frames
+        are undistorted before the homography, which then maps undistorted pixels (of the
+        same camera matrix) to the rectified grid; both steps are one resampling, its maps
+        built once per frame size. Other keys (reprojection errors, board) are ignored.
 
 Pixel convention (as OpenCV): pixel (col, row) has its centre at integer coordinates, so a
 sample point (x, y) m lies at col = origin_px[0] + x / m_per_px and
@@ -17,7 +22,7 @@ row = origin_px[1] - y / m_per_px when y_up (row = origin_px[1] + y / m_per_px o
 """
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -41,6 +46,8 @@ class Calibration:
         y_up: sample y points up the image.
         homography: optional [3, 3] raw pixel -> rectified pixel map.
         rectified_size_px: optional (width, height) of the rectified image.
+        camera_matrix: optional [3, 3] lens intrinsics K, px (with `dist_coeffs`).
+        dist_coeffs: optional OpenCV distortion coefficients (k1, k2, p1, p2[, k3, ...]).
     """
 
     fps: float
@@ -49,6 +56,9 @@ class Calibration:
     y_up: bool = True
     homography: tuple[tuple[float, ...], ...] | None = None
     rectified_size_px: tuple[int, int] | None = None
+    camera_matrix: tuple[tuple[float, ...], ...] | None = None
+    dist_coeffs: tuple[float, ...] | None = None
+    _maps: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self):
         if not (math.isfinite(self.fps) and self.fps > 0):
@@ -67,6 +77,17 @@ class Calibration:
             raise CalibrationError(
                 f"rectified_size_px must be [width, height] > 0, got {self.rectified_size_px!r}"
             )
+        if (self.camera_matrix is None) != (self.dist_coeffs is None):
+            raise CalibrationError("camera_matrix and dist_coeffs come together (or neither)")
+        if self.camera_matrix is not None:
+            k = np.asarray(self.camera_matrix, dtype=np.float64)
+            if k.shape != (3, 3) or not np.all(np.isfinite(k)) or k[0, 0] <= 0 or \
+                    k[1, 1] <= 0 or not np.allclose(k[2], [0.0, 0.0, 1.0]) or k[1, 0] != 0:
+                raise CalibrationError("camera_matrix must be [[fx, s, cx], [0, fy, cy], "
+                                       "[0, 0, 1]] with fx, fy > 0")
+            d = np.asarray(self.dist_coeffs, dtype=np.float64)
+            if d.ndim != 1 or len(d) not in (4, 5, 8, 12, 14) or not np.all(np.isfinite(d)):
+                raise CalibrationError("dist_coeffs must be 4, 5, 8, 12 or 14 numbers")
 
     def sample_to_px(self, xy_m: np.ndarray) -> np.ndarray:
         """Sample-frame points [..., 2] (m) -> rectified pixel (col, row) [..., 2]."""
@@ -98,7 +119,15 @@ class Calibration:
         return -1.0 if self.y_up else 1.0
 
     def rectify(self, frame: np.ndarray) -> np.ndarray:
-        """Warp a raw frame [h, w] onto the rectified grid (identity without a homography)."""
+        """Warp a raw frame [h, w] onto the rectified grid (identity without a homography
+        and lens); with a lens, undistortion and homography are one remap."""
+        if self.camera_matrix is not None:
+            key = frame.shape[:2]
+            maps = self._maps.get(key)
+            if maps is None:
+                maps = self._maps[key] = self._lens_maps(frame.shape[1], frame.shape[0])
+            return cv2.remap(frame, maps[0], maps[1], cv2.INTER_CUBIC,
+                             borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         if self.homography is None:
             return frame
         h = np.asarray(self.homography, dtype=np.float64)
@@ -107,6 +136,35 @@ class Calibration:
             frame, h, (int(w_out), int(h_out)), flags=cv2.INTER_CUBIC,
             borderMode=cv2.BORDER_CONSTANT, borderValue=0,
         )
+
+    def _lens_maps(self, w_in: int, h_in: int) -> tuple[np.ndarray, np.ndarray]:
+        """Raw-pixel (col, row) float32 maps [h_out, w_out] of every rectified pixel: the
+        homography's inverse to undistorted pixels, then the lens model forward."""
+        k = np.asarray(self.camera_matrix, dtype=np.float64)
+        d = np.asarray(self.dist_coeffs, dtype=np.float64)
+        h = np.eye(3) if self.homography is None else np.asarray(self.homography, np.float64)
+        w_out, h_out = self.rectified_size_px or (w_in, h_in)
+        cc, rr = np.meshgrid(np.arange(w_out, dtype=np.float64),
+                             np.arange(h_out, dtype=np.float64))
+        grid = np.stack([cc, rr, np.ones_like(cc)], -1).reshape(-1, 3)
+        und = grid @ (np.linalg.inv(k) @ np.linalg.inv(h)).T  # normalised camera rays
+        # points beyond the plane's horizon come back with the other sign than the plane
+        # point the optical axis meets (assumed seen: the camera looks at the sample)
+        ahead = und[:, 2] * np.sign((h @ k @ [0.0, 0.0, 1.0])[2]) > 0
+        xy = und[:, :2] / np.where(np.abs(und[:, 2:3]) > 1e-300, und[:, 2:3], 1e-300)
+        # the distortion polynomial folds back beyond the frame: keep rays within 5 % of the
+        # widest ray the raw frame sees, map the rest outside the frame
+        corners = np.array([[0, 0], [w_in - 1, 0], [0, h_in - 1], [w_in - 1, h_in - 1]],
+                           dtype=np.float64).reshape(-1, 1, 2)
+        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+        r_max = np.max(np.sum(cv2.undistortPoints(corners, k, d, criteria=crit) ** 2, -1))
+        inside = ahead & (np.sum(xy**2, 1) <= 1.1 * r_max)
+        pts = np.column_stack([np.where(inside[:, None], xy, 0.0), np.ones(len(xy))])
+        raw, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), k, d)
+        raw = raw.reshape(-1, 2)
+        raw[~inside] = -10.0
+        return (raw[:, 0].reshape(h_out, w_out).astype(np.float32),
+                raw[:, 1].reshape(h_out, w_out).astype(np.float32))
 
     def to_json(self) -> dict:
         """The calibration as a JSON-ready dict (inverse of `calibration_from_dict`)."""
@@ -120,6 +178,9 @@ class Calibration:
             out["homography"] = [list(r) for r in self.homography]
         if self.rectified_size_px is not None:
             out["rectified_size_px"] = list(self.rectified_size_px)
+        if self.camera_matrix is not None:
+            out["camera_matrix"] = [list(r) for r in self.camera_matrix]
+            out["dist_coeffs"] = list(self.dist_coeffs)
         return out
 
 
@@ -158,6 +219,15 @@ def calibration_from_dict(d: dict, where: str = "calibration") -> Calibration:
             size = (int(size[0]), int(size[1]))
         except (TypeError, ValueError, IndexError) as exc:
             raise CalibrationError(f"{where}: 'rectified_size_px' must be [width, height]") from exc
+    lens = {}
+    for key in ("camera_matrix", "dist_coeffs"):
+        if d.get(key) is None:
+            continue
+        try:
+            a = np.asarray(d[key], dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise CalibrationError(f"{where}: {key!r} must be numbers") from exc
+        lens[key] = tuple(map(tuple, a.tolist())) if a.ndim == 2 else tuple(a.ravel().tolist())
     try:
         return Calibration(
             fps=_number(d, "fps", where),
@@ -166,6 +236,7 @@ def calibration_from_dict(d: dict, where: str = "calibration") -> Calibration:
             y_up=y_up,
             homography=hom,
             rectified_size_px=size,
+            **lens,
         )
     except CalibrationError as exc:
         if str(exc).startswith(where):

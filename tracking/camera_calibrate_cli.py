@@ -86,7 +86,7 @@ def _run(args) -> int:
     found = [i for i, d in enumerate(dets) if d is not None]
     out = Path(args.out)
     sheet_path = out.with_name(out.stem + "_corners.png")
-    labels = [Path(n).name + ("" if d is None else f": {len(d.ids)} corners")
+    labels = [Path(n).name + (": target not found" if d is None else f": {len(d.ids)} corners")
               for n, d in zip(names, dets)]
     if len(found) < args.min_views:
         _write_sheet(sheet_path, images, dets, labels)

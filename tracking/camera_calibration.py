@@ -374,14 +374,13 @@ def contact_sheet(images: list[np.ndarray], detections: list[Detection | None],
         tile = cv2.resize(img, (tile_width, max(1, round(img.shape[0] * scale))),
                           interpolation=cv2.INTER_AREA)
         tile = cv2.cvtColor(tile, cv2.COLOR_GRAY2BGR)
-        colour = (0, 0, 255) if det is None else (0, 200, 0)
+        colour = (80, 80, 255) if det is None else (80, 255, 80)
         if det is not None:
             for c, r in (det.image_px + 0.5) * scale - 0.5:
                 cv2.circle(tile, (round(c * 16), round(r * 16)), 3 * 16, (0, 255, 0), 1,
                            cv2.LINE_AA, shift=4)
-        cv2.putText(tile, label, (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 3,
-                    cv2.LINE_AA)
-        cv2.putText(tile, label, (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.45, colour, 1,
+        tile[:24] = 0
+        cv2.putText(tile, label, (6, 17), cv2.FONT_HERSHEY_SIMPLEX, 0.45, colour, 1,
                     cv2.LINE_AA)
         tiles.append(tile)
     th = max(t.shape[0] for t in tiles)

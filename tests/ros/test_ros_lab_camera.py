@@ -116,10 +116,10 @@ def test_pylon_emulator_streams_through_the_lab_file(ros_context, ros_node, tmp_
         assert np.all(np.diff(stamps) > 0)             # one stamp per frame, increasing
         assert [_ns(m) for m in w.infos] == stamps     # camera_info beside every image
         assert _ns(w.refs[1]) in stamps                # the reference is a streamed frame
-        # host receive times (the emulator sends no stamps) of frames taken at 50 Hz: a busy
-        # host may receive some in a burst, but never all of them faster than they were taken
-        span = (stamps[-1] - stamps[0]) * 1e-9
-        assert 0.5 * (len(stamps) - 1) / 50 < span < 5 * (len(stamps) - 1) / 50 + 2.0
+        # host receive times (the emulator sends no stamps) of frames taken at 50 Hz: no lower
+        # bound, a grab thread starved by a busy host receives the buffered frames in a burst
+        # (seen: 33 frames within 0.12 s beside two busy processes)
+        assert (stamps[-1] - stamps[0]) * 1e-9 < 5 * (len(stamps) - 1) / 50 + 2.0
         assert abs(stamps[-1] - time.time_ns()) < 30e9
         assert done["lost"] == 0 and done["received"] == done["frames"]
         assert done["stamps"].startswith("host receive time")

@@ -1,7 +1,7 @@
 """The camera node with `hardware: lab`, in this process on the test's isolated domain: pylon's
 emulated camera (PYLON_CAMEMU, set before pypylon's transport-layer factory is first used)
-streams through a lab file onto `/camera/image_raw` + `/camera/camera_info` and gives
-snapshots on `/camera/reference_image`; settings beyond the lab file's limits are refused before
+streams through a lab file onto `/camera/image_raw` + `/camera/camera_info`, into the recorder's
+MCAP as tracking reads it, and gives snapshots on `/camera/reference_image`; settings beyond the lab file's limits are refused before
 the camera is configured; frame loss from jumps of the frame counter, stamps from the camera
 clock and a camera that stops delivering, with a small fake driver (the emulator neither drops
 frames on request nor sends time stamps); a GenICam camera through the `genicam` wheel's
@@ -138,6 +138,46 @@ def test_pylon_emulator_streams_through_the_lab_file(ros_context, ros_node, tmp_
         assert w.status[-1]["settings"]["trigger"] == "software"
         assert w.status[-1]["lost"] == 0
     finally:
+        _drop(cam, ex)
+
+
+def test_the_recorder_records_the_lab_camera_frames_for_tracking(ros_context, ros_node,
+                                                                 tmp_path):
+    pytest.importorskip("pypylon", reason="pip install pypylon (Basler pylon and its emulator)")
+    from rclpy.parameter import Parameter
+
+    from ros_nodes.nodes.recorder_node import RecorderNode
+    from tracking.frame_sources import mcap_frames
+
+    lab = tmp_path / "lab.toml"
+    lab.write_text(EMULATOR.replace("roi = [0, 0, 1024, 1040]", "roi = [64, 32, 320, 240]"))
+    client, ex = ros_node
+    w = _Watch(client, ex)
+    cam = _camera_node(ros_context, ex, lab)
+    path = tmp_path / "recording.mcap"
+    rec = RecorderNode(context=ros_context, parameter_overrides=[
+        Parameter("path", value=str(path)), Parameter("autostart", value=True)])
+    ex.add_node(rec)
+    try:
+        w.until(lambda: T.IMAGE.name in rec._subs and rec.matched(), "the recorder to subscribe")
+        wait_matched(w.sub, ex)
+        assert w.call("start").success
+        w.until(lambda: len(w.images) >= 10, "10 frames")
+        assert w.call("stop").success
+        w.until(lambda: w.state() == "done", "the done status")
+        n = w.status[-1]["frames"]
+        w.until(lambda: rec.message_counts().get(T.IMAGE.name, 0) >= n
+                and len(w.images) >= n, "the recorder to write every frame")
+        report = rec.stop()
+        assert report["topics"][T.IMAGE.name]["count"] == n and report["dropped"] == 0
+        frames = list(mcap_frames(path, T.IMAGE.name))      # as `metarig track` reads them
+        stamps = [_ns(m) for m in w.images]                   # replayed from the first one
+        assert [t for t, _ in frames] == [t - stamps[0] for t in stamps]
+        assert all(f.shape == (240, 320) and f.dtype == np.uint8 for _, f in frames)
+        assert np.array_equal(frames[3][1], np.asarray(w.images[3].data).reshape(240, 320))
+    finally:
+        ex.remove_node(rec)
+        rec.destroy_node()
         _drop(cam, ex)
 
 

@@ -167,5 +167,10 @@ class CameraStream:
                     slot["done"].set()
         except Exception as e:  # noqa: BLE001 - a driver or publisher failure ends the stream
             self.error = f"{self.camera.identity}: {one_line(e)}"
-        if self.error and self.on_end is not None:
-            self.on_end(self.error)
+        if self.error:
+            try:                # the camera stops acquiring, so that it can be configured again
+                self.camera.stop()
+            except Exception:  # noqa: BLE001, S110 - a camera gone away: the error says enough
+                pass
+            if self.on_end is not None:
+                self.on_end(self.error)

@@ -335,6 +335,8 @@ class CameraNode(Node):
         """The requested settings, checked against the lab limits (ValueError before the device
         is touched), then set on the device; returns what the device set."""
         settings = camera_settings(self._params.config, self._section)
+        if self._stream is not None and not self._stream.running:
+            self._stream.stop()  # a stream that ended by itself: the camera stops acquiring
         try:
             return self._camera.configure(settings)
         except Exception as e:  # noqa: BLE001 - the device's own refusal, vendor exceptions

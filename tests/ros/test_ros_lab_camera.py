@@ -227,6 +227,7 @@ class _FakeCamera:
         self.sent: list[Frame] = []
         self.settings = None
         self.k = 0
+        self.stops = 0
 
     def open(self):
         pass
@@ -255,7 +256,7 @@ class _FakeCamera:
         return frame
 
     def stop(self):
-        pass
+        self.stops += 1
 
     def close(self):
         pass
@@ -283,6 +284,7 @@ def test_frame_loss_counted_camera_clock_and_a_camera_that_stops_delivering(
                                   "(grab_timeout_s): stream stopped after 10 frames")
         assert (err["frames"], err["received"], err["lost"]) == (10, 10, 4)
         assert err["stamps"].startswith("camera clock")
+        assert fake.stops == 1                       # the stream stopped the camera itself
         # frames already published stay published, stamped by the camera clock + the offset
         w.until(lambda: len(w.images) >= 10, "the 10 frames")
         assert [_ns(m) for m in w.images] == [round(f.device_time_s * 1e9) + fake.offset_ns
@@ -291,6 +293,10 @@ def test_frame_loss_counted_camera_clock_and_a_camera_that_stops_delivering(
         assert r.success and w.state() == "error"
         r = w.call("snapshot")                       # no frame comes: refused in one line
         assert not r.success and r.message == "refused: Fake camera serial 7 gave no frame within 0.3 s"
+        fake.counters += [20, 21, 22]                # the camera is back: a new stream
+        assert w.call("start").success
+        w.until(lambda: len(w.images) >= 13 and w.state() == "error", "the second stream")
+        assert (w.status[-1]["frames"], w.status[-1]["lost"]) == (3, 0)
     finally:
         _drop(cam, ex)
 

@@ -30,7 +30,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from design_engine.dynamics import dof_masses
-from design_engine.energy import bond_geometry, followed_voids, make_energy
+from design_engine.energy import (
+    DEFAULT_MODEL,
+    Model,
+    bond_geometry,
+    followed_voids,
+    make_energy,
+    void_stiffness,
+)
 from design_engine.fixed_step import FixedStepVerlet, is_fixed_step
 from design_engine.geometry import block_geometry
 from design_engine.scenes import Scene
@@ -66,7 +73,7 @@ def make_frequency_estimator(scene: Scene, iterations: int):
     below.
     """
     lat, free = scene.lattice, scene.supports.free
-    energy = make_energy(lat)
+    energy = make_energy(lat, model=scene.model)
     material = scene.material
 
     @jax.jit
@@ -172,19 +179,22 @@ def static_void_margin(scene: Scene, state) -> float:
     return float(jnp.min(voids) - scene.material.contact_min)
 
 
-def contact_frequency(min_void_margin: float, material, min_inertia: float) -> float:
-    """Upper bound (rad/ms) of the frequency the contact barrier adds at its deepest point.
+def contact_frequency(min_void_margin: float, material, min_inertia: float,
+                      model: Model = DEFAULT_MODEL) -> float:
+    """Upper bound (rad/ms) of the frequency the contact law adds at its deepest point.
 
-    At a void angle alpha between the cutoff and the asymptote (tau = (theta_cut - alpha) /
-    span in [0, 1)) the barrier's stiffness is d2V/dalpha2 = k_c (1 + 3 tau^2) / (1 - tau^2)^3
-    (N mm/rad); two units of rotary inertia >= `min_inertia` (g mm^2) joined by it vibrate at
-    most at sqrt(2 d2V/dalpha2 / min_inertia). `min_void_margin` is `Solution.min_void_margin`
-    (rad above the asymptote).
+    At the deepest void angle alpha (`min_void_margin` rad above the asymptote, as
+    `Solution.min_void_margin` gives it; taken just inside the cutoff and short of the
+    asymptote) the model's stiffness in that angle, d2V/dalpha2 (N mm/rad, differentiated from
+    the law itself: `energy.void_stiffness`; for the default barrier
+    k_c (1 + 3 tau^2) / (1 - tau^2)^3), joins two units of rotary inertia >= `min_inertia`
+    (g mm^2): they vibrate at most at sqrt(2 d2V/dalpha2 / min_inertia).
     """
     span = float(material.contact_cutoff - material.contact_min)
-    tau = min(max((span - float(min_void_margin)) / span, 0.0), 1.0 - 1e-12)
-    stiffness = float(material.k_contact) * (1.0 + 3.0 * tau**2) / (1.0 - tau**2) ** 3
-    return float(np.sqrt(2.0 * stiffness / min_inertia))
+    tau = min(max((span - float(min_void_margin)) / span, 1e-9), 1.0 - 1e-12)
+    alpha = float(material.contact_cutoff) - tau * span
+    stiffness = void_stiffness(model, material, alpha)
+    return float(np.sqrt(2.0 * max(stiffness, 0.0) / min_inertia))
 
 
 def contact_config() -> SolverConfig:
@@ -225,7 +235,8 @@ def next_config(config: SolverConfig, health: dict, scene: Scene) -> tuple[Solve
         how = ("Verlet at the same step" if is_fixed_step(nxt.solver) else "adaptive Dopri8")
         return nxt, f"a void reached the contact cutoff: re-solved with contact ({how})"
     if config.use_contact and is_fixed_step(config.solver) and config.solver.stability_limited:
-        w_c = contact_frequency(margin, scene.material, float(health["min_inertia"]))
+        w_c = contact_frequency(margin, scene.material, float(health["min_inertia"]),
+                                scene.model)
         ratio = config.solver.max_dt * w_c
         if ratio > CONTACT_STEP_LIMIT:
             return contact_config(), (

@@ -949,7 +949,7 @@ def fit_pulse(scene, frame_t_s, tracked_q, valid, input_t_s, input_u_m, stage_t_
 
     def fit_with(cfg, n, p0=None):
         """The fit on the first n frames."""
-        sim = make_simulator(scene.lattice, scene.supports, cfg, ts_ms[:n])
+        sim = make_simulator(scene.lattice, scene.supports, cfg, ts_ms[:n], model=scene.model)
         tsj = jnp.asarray(ts_ms[:n])
         sel = np.nonzero(np.repeat(use[:n, :, None], 2, axis=-1).reshape(-1))[0]
         unit = (sel // 2) % scene.n_units  # residual order: (frame, unit, u/v)

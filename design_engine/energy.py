@@ -6,15 +6,21 @@ Three layers, as a scalar law is kept apart from the map that lifts it over a sy
 - laws: plain functions `law(measures, material) -> {term name: [n_bonds] energy}` of those
   measures and their material fields (`ligament_law`, spec 5.1; `contact_law`, spec 5.3);
 - the bond map: `make_bond_terms` / `make_energy` evaluate the measures and call the laws.
-A new law is one such function (plus the `Material` fields it reads), passed in `laws=`.
+A model (`Model`) is the set of laws: a ligament law, a contact law and any extra terms. A new
+law is one such function (plus the `Material` fields it reads) in a `Model`, which a `Scene`
+carries (`Scene.model`) to the simulator, the statics, the modal analysis, the calibration and
+the solver policy (whose contact frequency is the law's own second derivative:
+`void_stiffness`).
 
 Energies in mJ, angles rad, lengths mm. Forces are never written by hand: the dynamics take
 `jax.grad` of `make_energy(...)`.
 """
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -198,45 +204,84 @@ def no_contact_law(m: BondMeasures, mat: Material) -> BondTerms:
 BondLaw = Callable[[BondMeasures, Material], BondTerms]
 
 
-def default_laws(use_contact: bool = True) -> tuple[BondLaw, ...]:
-    """The model of spec 5: ligament law plus contact (or its zero stand-in)."""
-    return (ligament_law, contact_law if use_contact else no_contact_law)
+@dataclass(frozen=True)
+class Model:
+    """The energy model: which law gives each part of a bond's energy (one value, hashable, so
+    compiled programs are kept per model).
+
+    Attributes:
+        ligament: the ligament law (spec 5.1).
+        contact: the contact law (spec 5.3); a solve without contact (`use_contact=False`, the
+            policy's first try) replaces it by `no_contact_law`.
+        extra: further laws whose terms are added (their term names must be new).
+    """
+
+    ligament: BondLaw = ligament_law
+    contact: BondLaw = contact_law
+    extra: tuple[BondLaw, ...] = ()
+
+    def laws(self, use_contact: bool = True) -> tuple[BondLaw, ...]:
+        """The laws of a solve with or without the contact terms."""
+        return (self.ligament, self.contact if use_contact else no_contact_law, *self.extra)
+
+
+DEFAULT_MODEL = Model()  # spec 5: ligament law plus contact barrier
+
+
+def void_stiffness(model: Model, material: Material, alpha) -> float:
+    """Second derivative (N mm/rad) of the model's energy of one bond with respect to one void
+    angle at `alpha` (rad), every other measure at rest: the stiffness the contact law adds as
+    a void closes (for the default law k_c (1 + 3 tau^2) / (1 - tau^2)^3). Differentiated, not
+    written out, so that any contact law reaches the solver policy (`auto.contact_frequency`)."""
+
+    def energy(a):
+        zero = jnp.zeros(1)
+        far = jnp.full(1, material.contact_cutoff + 1.0)  # the other void: wide open
+        m = BondMeasures(strain=zero, shear=zero, bend=zero,
+                         voids=jnp.stack([jnp.reshape(a, 1), far], axis=1), rest_length=1.0)
+        return sum(jnp.sum(v) for v in _call_laws(model.laws(True), m, material).values())
+
+    return float(jax.grad(jax.grad(energy))(jnp.asarray(alpha, jnp.float64)))
+
+
+def _call_laws(laws, m: BondMeasures, mat: Material) -> BondTerms:
+    out: BondTerms = {}
+    for law in laws:
+        part = law(m, mat)
+        if out.keys() & part.keys():
+            raise ValueError(f"two laws define the terms {sorted(out.keys() & part.keys())}")
+        out.update(part)
+    return out
 
 
 # --- the bond map ---------------------------------------------------------------------------
 
 
 def make_bond_terms(lattice: Lattice, *, linearized: bool = False, use_contact: bool = True,
-                    laws: Sequence[BondLaw] | None = None):
+                    model: Model = DEFAULT_MODEL):
     """Factory: `terms(q, bonds, material) -> dict` of per-bond energies (mJ), each [n_bonds].
 
-    The measures are computed once and every law is called on them; the keys are the laws'
-    term names, in law order (default: stretch, shear, bend, contact). `q` is [n_blocks, 3]
-    (u mm, v mm, theta rad). `laws` (default `default_laws(use_contact)`) replaces the model.
+    The measures are computed once and every law of `model` is called on them; the keys are
+    the laws' term names, in law order (default: stretch, shear, bend, contact). `q` is
+    [n_blocks, 3] (u mm, v mm, theta rad).
     """
     measures_fn = make_bond_measures(lattice, linearized=linearized)
-    laws = default_laws(use_contact) if laws is None else tuple(laws)
+    laws = model.laws(use_contact)
 
     def terms(q: BlockState, bonds: BondGeometry, mat: Material) -> BondTerms:
-        m = measures_fn(q, bonds)
-        out: BondTerms = {}
-        for law in laws:
-            part = law(m, mat)
-            if out.keys() & part.keys():
-                raise ValueError(f"two laws define the terms {sorted(out.keys() & part.keys())}")
-            out.update(part)
-        return out
+        return _call_laws(laws, measures_fn(q, bonds), mat)
 
     return terms
 
 
 def make_energy(lattice: Lattice, *, linearized: bool = False, use_contact: bool = True,
-                laws: Sequence[BondLaw] | None = None):
+                model: Model = DEFAULT_MODEL):
     """Factory: `energy(q [n_blocks, 3], bonds, material) -> total potential energy (mJ)`.
 
     The sum over bonds of every term of `make_bond_terms` (same arguments).
     """
-    terms_fn = make_bond_terms(lattice, linearized=linearized, use_contact=use_contact, laws=laws)
+    terms_fn = make_bond_terms(lattice, linearized=linearized, use_contact=use_contact,
+                               model=model)
 
     def energy(q: BlockState, bonds: BondGeometry, mat: Material) -> Scalar:
         per_bond = None

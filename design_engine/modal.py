@@ -44,7 +44,7 @@ def modal_analysis(scene: Scene, q_state: np.ndarray | None = None, *, linearize
     free = sup.free
     geom = block_geometry(lat, jnp.asarray(scene.design))
     bonds = bond_geometry(lat, geom)
-    energy = make_energy(lat, linearized=linearized, use_contact=use_contact)
+    energy = make_energy(lat, linearized=linearized, use_contact=use_contact, model=scene.model)
     q0 = jnp.zeros(3 * lat.n_blocks) if q_state is None else jnp.asarray(q_state).reshape(-1)
 
     def v_free(qf):

@@ -70,7 +70,8 @@ def energy_components(scene, sol: Solution, linearized: bool = False,
 
     Returns dict with [n_t] arrays: kinetic, stretch, shear, bend, contact.
     """
-    terms_fn = make_bond_terms(scene.lattice, linearized=linearized, use_contact=use_contact)
+    terms_fn = make_bond_terms(scene.lattice, linearized=linearized, use_contact=use_contact,
+                               model=scene.model)
     bonds = bond_geometry(scene.lattice, block_geometry(scene.lattice, jnp.asarray(scene.design)))
     per_t = jax.jit(jax.vmap(lambda q: {k: jnp.sum(v) for k, v in
                                         terms_fn(q, bonds, scene.material).items()}))(sol.q)

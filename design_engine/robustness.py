@@ -183,7 +183,8 @@ def batched_simulator(scene: Scene, config: SolverConfig, ts_ms):
     ids = np.asarray(next(iter(scene.targets.values())))
     key = compile_key(scene, config, "robustness", ts_ms) + (ids.tobytes(),)
     if key not in _BATCHED:
-        sim = make_simulator(scene.lattice, scene.supports, config, np.asarray(ts_ms))
+        sim = make_simulator(scene.lattice, scene.supports, config, np.asarray(ts_ms),
+                             model=scene.model)
         _BATCHED[key] = jax.jit(jax.vmap(_summary_fn(sim, ids), in_axes=(None, None, 0, None)))
     return _BATCHED[key]
 

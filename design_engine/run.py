@@ -32,7 +32,7 @@ def compile_key(scene: Scene, config: SolverConfig, tag: str, ts_ms) -> tuple:
     grid = np.asarray(ts_ms).tobytes() if is_fixed_step(config.solver) else b""
     return (tag, scene.lattice.kind, scene.lattice.shape, scene.lattice.spacing,
             scene.lattice.ligament_length, s.constrained.tobytes(), s.channel.tobytes(),
-            s.gain.tobytes(), repr(config), grid)
+            s.gain.tobytes(), repr(config), grid, scene.model)
 
 
 def compiled_simulator(scene: Scene, config: SolverConfig, ts_ms=None):
@@ -44,7 +44,8 @@ def compiled_simulator(scene: Scene, config: SolverConfig, ts_ms=None):
     ts_ms = scene.sample_times if ts_ms is None else np.asarray(ts_ms)
     key = compile_key(scene, config, "sim", ts_ms)
     if key not in _COMPILED:
-        _COMPILED[key] = jax.jit(make_simulator(scene.lattice, scene.supports, config, ts_ms))
+        _COMPILED[key] = jax.jit(make_simulator(scene.lattice, scene.supports, config, ts_ms,
+                                                model=scene.model))
     return _COMPILED[key]
 
 
@@ -302,7 +303,8 @@ def make_objective(scene: Scene, config: SolverConfig | None = None, weights=Non
 
 
 def _jitted_objective(scene: Scene, config: SolverConfig, weights):
-    sim = make_simulator(scene.lattice, scene.supports, config, scene.sample_times)
+    sim = make_simulator(scene.lattice, scene.supports, config, scene.sample_times,
+                         model=scene.model)
     names = list(scene.targets)
     if weights is None:
         weights = [1.0 / len(names)] * len(names) if len(names) > 1 else [1.0]

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field, replace
 import jax.numpy as jnp
 import numpy as np
 
+from design_engine.energy import DEFAULT_MODEL, Model
 from design_engine.geometry import block_geometry, check_design
 from design_engine.lattice import Lattice, kagome, periodic_design, quads
 from design_engine.loading import CH_INPUT, CH_STAGE, CH_ZERO, PRECOMPRESSION, Loading, Supports
@@ -67,6 +68,8 @@ class Scene:
         stage_units_bottom, stage_units_top: ids of the stage-driven rows (empty without stages).
         line_row: row used for the "peak kinetic energy along a line" metric.
         spin_point: reference point S of the angular-momentum objective (mm), or None.
+        model: the energy model (`energy.Model`: which ligament and contact laws), passed by
+            every solve of the scene (simulator, statics, modal analysis, solver policy).
     """
 
     name: str
@@ -86,6 +89,7 @@ class Scene:
     line_row: int
     spin_point: np.ndarray | None = None
     recipe: dict = field(default_factory=dict)
+    model: Model = DEFAULT_MODEL
 
     @property
     def n_units(self) -> int:

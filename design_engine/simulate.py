@@ -14,7 +14,7 @@ import numpy as np
 
 from design_engine._types import Array, DesignVector, Float, Int
 from design_engine.dynamics import VELOCITY_SCALE, make_dynamics_args, make_full_state, make_rhs
-from design_engine.energy import followed_voids, make_energy
+from design_engine.energy import DEFAULT_MODEL, Model, followed_voids, make_energy
 from design_engine.fixed_step import AbstractFixedStep, is_fixed_step, step_grid
 from design_engine.geometry import block_geometry
 from design_engine.lattice import Lattice
@@ -103,7 +103,7 @@ class StepBudgetError(SimulationError):
 
 
 def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = SolverConfig(),
-                   time_grid: np.ndarray | None = None):
+                   time_grid: np.ndarray | None = None, model: Model = DEFAULT_MODEL):
     """Factory: `simulate(x, material, loading, ts, initial=None) -> Solution` (pure; jit/grad/vmap).
 
     Args:
@@ -121,7 +121,8 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
             under the closed stages, solved in float64 with the model's energy and
             differentiated by the implicit function theorem, `statics.make_static_solver`).
     """
-    energy_fn = make_energy(lattice, linearized=config.linearized, use_contact=config.use_contact)
+    energy_fn = make_energy(lattice, linearized=config.linearized, use_contact=config.use_contact,
+                            model=model)
     rhs = make_rhs(supports, energy_fn, VELOCITY_SCALE)
     full = make_full_state(supports)
     _, prescribed = make_prescribed(supports)
@@ -179,7 +180,7 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
         if not static_solvers:
             static_solvers.append(make_static_solver(lattice, supports,
                                                      use_contact=config.use_contact,
-                                                     linearized=config.linearized))
+                                                     linearized=config.linearized, model=model))
         q_f, info = static_solvers[0](*cast((x, material, loading), jnp.float64), 0.0)
         return (q_f, jnp.zeros_like(q_f)), info["gradient_norm"]
 

@@ -37,7 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from design_engine.energy import bond_geometry, followed_voids, make_energy
+from design_engine.energy import DEFAULT_MODEL, Model, bond_geometry, followed_voids, make_energy
 from design_engine.geometry import block_geometry
 from design_engine.lattice import Lattice
 from design_engine.linalg import implicit_point
@@ -134,7 +134,7 @@ def _solve(a, b):
 
 def make_static_solver(lattice: Lattice, supports: Supports, *, use_contact: bool = True,
                        linearized: bool = False, n_load: int = N_LOAD,
-                       newton_iters: int = NEWTON_ITERS):
+                       newton_iters: int = NEWTON_ITERS, model: Model = DEFAULT_MODEL):
     """Factory: `equilibrium(x, material, loading, t_hold) -> (q_f [n_free], info)` (jit/grad).
 
     Args of the returned function:
@@ -149,7 +149,7 @@ def make_static_solver(lattice: Lattice, supports: Supports, *, use_contact: boo
     (mJ), "damping" (the last Newton damping mu, relative to the largest Hessian diagonal),
     "load" (the lambda reached, 1 when complete) and "levels" (load levels tried).
     """
-    energy_fn = make_energy(lattice, use_contact=use_contact, linearized=linearized)
+    energy_fn = make_energy(lattice, use_contact=use_contact, linearized=linearized, model=model)
     values, _ = make_prescribed(supports)
     n_free = int(np.asarray(supports.free).size)
     index = np.asarray(supports.assemble_index)
@@ -269,9 +269,9 @@ def equilibrium_state(scene) -> np.ndarray:
     solve does not converge."""
     lat, sup = scene.lattice, scene.supports
     key = (lat.shape, lat.n_blocks, np.asarray(lat.bond_blocks).tobytes(),
-           sup.constrained.tobytes(), sup.channel.tobytes(), sup.gain.tobytes())
+           sup.constrained.tobytes(), sup.channel.tobytes(), sup.gain.tobytes(), scene.model)
     if key not in _SOLVERS:
-        _SOLVERS[key] = jax.jit(make_static_solver(lat, sup))
+        _SOLVERS[key] = jax.jit(make_static_solver(lat, sup, model=scene.model))
     q_f, info = _SOLVERS[key](jnp.asarray(scene.design), scene.material, scene.loading, 0.0)
     check_equilibrium(info)
     values, _ = make_prescribed(scene.supports)

@@ -151,7 +151,8 @@ class TaskEvaluator:
             None if self.task.spin_point is None else tuple(self.task.spin_point),)
         if key in _PROGRAMS:
             return _PROGRAMS[key]
-        sim = make_simulator(scene.lattice, scene.supports, config, scene.sample_times)
+        sim = make_simulator(scene.lattice, scene.supports, config, scene.sample_times,
+                             model=scene.model)
         targets = [np.asarray(self.task.targets[t.target]) for t in terms]
         quantities = [t.quantity for t in terms]
         point = None if self.task.spin_point is None else jnp.asarray(self.task.spin_point)

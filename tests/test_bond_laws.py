@@ -1,5 +1,6 @@
 """Bond kinematics apart from the laws: hand values for one bond, and a pluggable law."""
 
+import dataclasses
 import math
 
 import equinox as eqx
@@ -9,14 +10,16 @@ import numpy as np
 import pytest
 
 from design_engine.energy import (
+    DEFAULT_MODEL,
     BondMeasures,
+    Model,
     bond_geometry,
     contact_law,
-    default_laws,
     ligament_law,
     make_bond_measures,
     make_bond_terms,
     make_energy,
+    void_stiffness,
 )
 from design_engine.geometry import block_geometry
 from design_engine.lattice import periodic_design, quads
@@ -81,7 +84,7 @@ def test_a_new_law_is_one_function_that_the_bond_map_calls():
     q = jnp.asarray(np.random.default_rng(4).normal(size=(lat.n_blocks, 3)) * 0.8)
     energy = make_energy(lat)
     # the default model, passed explicitly, is the same function
-    explicit = make_energy(lat, laws=default_laws(True))
+    explicit = make_energy(lat, model=Model(ligament_law, contact_law))
     assert float(explicit(q, bonds, mat)) == float(energy(q, bonds, mat))
     assert float(energy(q, bonds, mat)) == float(jnp.sum(sum(make_bond_terms(lat)(q, bonds,
                                                                                  mat).values())))
@@ -90,8 +93,8 @@ def test_a_new_law_is_one_function_that_the_bond_map_calls():
         """A stiffening hinge: k_b dtheta^4 / 4 (mJ) on top of the quadratic bending."""
         return {"bend4": 0.25 * mat.k_bend * m.bend**4}
 
-    laws = (*default_laws(True), quartic_bend)
-    terms = make_bond_terms(lat, laws=laws)(q, bonds, mat)
+    model = Model(extra=(quartic_bend,))
+    terms = make_bond_terms(lat, model=model)(q, bonds, mat)
     assert list(terms) == ["stretch", "shear", "bend", "contact", "bend4"]
     bend = make_bond_measures(lat)(q, bonds).bend
     def extra(qq):
@@ -99,11 +102,76 @@ def test_a_new_law_is_one_function_that_the_bond_map_calls():
 
     np.testing.assert_allclose(np.asarray(terms["bend4"]), np.asarray(0.25 * 1.5 * bend**4),
                                rtol=1e-14)
-    extended = make_energy(lat, laws=laws)
+    extended = make_energy(lat, model=model)
     assert float(extended(q, bonds, mat)) == pytest.approx(
         float(energy(q, bonds, mat) + extra(q)), rel=1e-13)
     np.testing.assert_allclose(np.asarray(jax.grad(extended)(q, bonds, mat)),
                                np.asarray(jax.grad(energy)(q, bonds, mat) + jax.grad(extra)(q)),
                                rtol=1e-10, atol=1e-12)
     with pytest.raises(ValueError, match="two laws"):
-        make_bond_terms(lat, laws=(ligament_law, ligament_law))(q, bonds, mat)
+        make_bond_terms(lat, model=Model(extra=(ligament_law,)))(q, bonds, mat)
+
+
+def hardening_ligament(m: BondMeasures, mat: Material):
+    """A new law, written in one place: the ligament of spec 5.1 twice as stiff in stretch, with
+    a hinge that hardens cubically (moment k_bend (dtheta + dtheta^3 / 0.1^2)), for the test
+    below."""
+    terms = ligament_law(m, mat)
+    terms["stretch"] = 2.0 * terms["stretch"]
+    terms["bend"] = terms["bend"] + 0.25 * mat.k_bend * m.bend**4 / 0.01
+    return terms
+
+
+def stiff_contact(m: BondMeasures, mat: Material):
+    """The default barrier, four times as stiff."""
+    return {"contact": 4.0 * contact_law(m, mat)["contact"]}
+
+
+def test_the_contact_frequency_is_the_law_s_own():
+    """The solver policy's contact stiffness is differentiated from the law: the default
+    barrier's closed form k_c (1 + 3 tau^2) / (1 - tau^2)^3 to rounding, and a law four times
+    as stiff has twice the frequency without a line of policy code changed."""
+    from design_engine.auto import contact_frequency
+
+    _, _, _, mat = _one_bond()
+    span = float(mat.contact_cutoff - mat.contact_min)
+    for tau in (0.05, 0.5, 0.9):
+        alpha = float(mat.contact_cutoff) - tau * span
+        closed = float(mat.k_contact) * (1 + 3 * tau**2) / (1 - tau**2) ** 3
+        assert void_stiffness(DEFAULT_MODEL, mat, alpha) == pytest.approx(closed, rel=1e-10)
+    margin = 0.3 * span
+    w = contact_frequency(margin, mat, 2.0)
+    assert contact_frequency(margin, mat, 2.0, Model(contact=stiff_contact)) == pytest.approx(
+        2.0 * w, rel=1e-10)
+    assert w == pytest.approx(math.sqrt(2 * float(mat.k_contact) * (1 + 3 * 0.49)
+                                        / (1 - 0.49) ** 3 / 2.0), rel=1e-10)
+
+
+def test_a_new_law_reaches_the_simulator_the_gradient_and_the_policy():
+    """A scene carrying a model with the new ligament law: the policy measures its stiffer
+    lattice (a smaller fixed step), the simulation differs from the default model's, and the
+    gradient through it matches a central finite difference."""
+    from design_engine.auto import choose_config
+    from design_engine.run import checked, make_objective
+    from design_engine.scenes import build_scene
+
+    base = build_scene("focusing-24x16", nx=4, ny=3, amplitude_m=2e-3)
+    new = dataclasses.replace(base, model=Model(ligament=hardening_ligament))
+    c_base, c_new = choose_config(base), choose_config(new)
+    # the highest mode is the ligaments' stretch: twice as stiff, sqrt(2) x the frequency
+    assert c_new.omega_max == pytest.approx(math.sqrt(2) * c_base.omega_max, rel=0.05)
+    assert c_new.config.solver.max_dt < c_base.config.solver.max_dt
+    # the new model's step in float64 (the policy's float32 first try is for speed, not for
+    # finite differences), both models solved with it
+    cfg = dataclasses.replace(c_new.config, dtype="float64")
+    x = jnp.asarray(base.design)
+    vg = make_objective(new, cfg)[0]
+    (j_new, _), grad = checked(vg(x), cfg)
+    j_base = checked(make_objective(base, cfg)[1](x), cfg)[0]
+    assert abs(float(j_new) / float(j_base) - 1) > 0.01, (j_base, j_new)
+    d = np.random.default_rng(2).normal(size=x.size)
+    d /= np.linalg.norm(d)
+    h = 1e-4
+    fd = (float(checked(vg(x + h * d), cfg)[0][0]) - float(checked(vg(x - h * d), cfg)[0][0])) \
+        / (2 * h)
+    assert float(jnp.dot(grad, d)) == pytest.approx(fd, rel=1e-4)

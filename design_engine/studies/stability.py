@@ -102,7 +102,7 @@ def step_sweep_in_contact(scene, ratios, ref_j: float, state=None) -> list[dict]
             continue
         health = solve_health(run.solution, np)
         w_c = contact_frequency(float(health["void_margin"]), scene.material,
-                                float(health["min_inertia"]))
+                                float(health["min_inertia"]), scene.model)
         nxt = next_config(config, health, scene)
         rows.append(row | {
             "ok": True, "J_mean_J": run.metrics["target_ke_mean_J"],

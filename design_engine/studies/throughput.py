@@ -47,7 +47,8 @@ def batch_throughput(batch_sizes=(1, 2, 4, 8, 16), repeats: int = 2, seed: int =
     """Forward cost per design of `vmap(simulate)` over perturbed 24x16 focusing designs."""
     scene = build_scene("focusing-24x16")
     config = default_choice(scene).config
-    sim = make_simulator(scene.lattice, scene.supports, config, scene.sample_times)
+    sim = make_simulator(scene.lattice, scene.supports, config, scene.sample_times,
+                         model=scene.model)
     batched = jax.jit(jax.vmap(sim, in_axes=(0, None, None, None)))
     ts = jnp.asarray(scene.sample_times)
     rng = np.random.default_rng(seed)

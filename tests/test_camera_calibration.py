@@ -240,9 +240,10 @@ def test_chessboard_target(rig, tmp_path):
     def to_px(xy):  # board frame: the first inner corner is one square in from the edge
         return (xy + 0.015) * (ppsq / 0.015) + (margin - 0.5)
 
-    names = []
+    names, poses = [], []
     for i, (rx, ry, rz, at) in enumerate(POSES[:5]):
         r, t = look_at(rx, ry, rz, (0.06, 0.0375), at)
+        poses.append((r, t))
         names.append(str(tmp_path / f"chess{i}.png"))
         cv2.imwrite(names[-1], view(pic, to_px, rig["rays"], r, t, SS,
                                     np.random.default_rng(i), noise=1.0, blur_px=BLUR))
@@ -255,3 +256,11 @@ def test_chessboard_target(rig, tmp_path):
           f" relative, RMS {doc['reprojection_error_px']['overall_rms']:.3f} px")
     assert abs(k[0, 0] / CAM.K[0, 0] - 1) < 2e-3 and abs(k[1, 1] / CAM.K[1, 1] - 1) < 2e-3
     assert abs(doc["m_per_px"] / (Z0 / np.sqrt(CAM.K[0, 0] * CAM.K[1, 1])) - 1) < 2e-3
+    # the sample frame is the board's as printed (the detector's order may come reversed)
+    corners = parse_board("chessboard:inner=9x6,square=0.015").corner_points()
+    raw = project(CAM, *poses[0], corners)
+    und = undistort_px(raw, k, np.array(doc["dist_coeffs"]))
+    p = np.column_stack([und, np.ones(len(und))]) @ np.array(doc["homography"]).T
+    sample = np.column_stack([corners[:, 0], 0.075 - corners[:, 1]])
+    e = np.abs(p[:, :2] / p[:, 2:] - load_calibration(out).sample_to_px(sample)).max()
+    assert e < 0.2, e

@@ -10,9 +10,11 @@ rows, both in metres, as the board is printed (Y runs down the printed picture).
 frame written to the calibration is the board seen square-on from the camera's side, with
 x = X - X0 along the bottom edge to the right and y = Y0 - Y up, its origin at the board's
 bottom-left corner (X0, Y0): ChArUco, the outer corner of its squares (0, rows * square);
-chessboard, its bottom-left inner corner (0, (inner rows - 1) * square). A chessboard with an
-even number of inner corners one way and an odd one the other has a defined orientation; a
-symmetric one may be detected turned by 180 degrees (the sample frame then turns with it).
+chessboard, its bottom-left inner corner (0, (inner rows - 1) * square). A chessboard's top
+left is the end whose corner square is black: with an even number of inner corners one way
+and an odd one the other, the opposite corner square is white and the orientation is
+defined; otherwise both are black and the board may be taken turned by 180 degrees (the
+sample frame then turns with it).
 """
 
 import math
@@ -184,7 +186,7 @@ def detect(board: BoardSpec, gray: np.ndarray, min_corners: int = 8) -> Detectio
             gray, (board.cols, board.rows), flags=cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY)
         if not ok or corners is None:
             return None
-        px = corners.reshape(-1, 2).astype(np.float64)
+        px = _orient_chessboard(gray, corners.reshape(-1, 2).astype(np.float64), board)
         ids = np.arange(len(px))
     return Detection(ids=ids, image_px=px, board_m=corners_m[ids])
 
@@ -199,6 +201,28 @@ def _refine_charuco(gray: np.ndarray, px: np.ndarray, marker_share: float) -> np
     crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-4)
     out = cv2.cornerSubPix(gray, px.reshape(-1, 1, 2).copy(), (half, half), (-1, -1), crit)
     return out.reshape(-1, 2).astype(np.float64)
+
+
+def _orient_chessboard(gray: np.ndarray, px: np.ndarray, board: BoardSpec) -> np.ndarray:
+    """Chessboard corners [n, 2] reordered into the board frame (the detector's order may be
+    mirrored or turned by 180 degrees): X runs along a row and Y down the rows as seen from the
+    camera (X x Y away from it), and corner 0 is at the end whose outer corner square is black.
+    """
+    grid = px.reshape(board.rows, board.cols, 2)
+    vx = (grid[:, -1] - grid[:, 0]).sum(0)
+    vy = (grid[-1] - grid[0]).sum(0)
+    if vx[0] * vy[1] - vx[1] * vy[0] < 0:  # image axes (col right, row down): mirrored
+        grid = grid[:, ::-1]
+
+    def outer_square(a, b, c):  # centre of the square diagonally outside corner a
+        p = a + 0.5 * ((a - b) + (a - c))
+        return float(cv2.getRectSubPix(gray, (3, 3), (float(p[0]), float(p[1]))).mean())
+
+    first = outer_square(grid[0, 0], grid[0, 1], grid[1, 0])
+    last = outer_square(grid[-1, -1], grid[-1, -2], grid[-2, -1])
+    if first > last:
+        grid = grid[::-1, ::-1]
+    return grid.reshape(-1, 2)
 
 
 @dataclass(frozen=True, slots=True)

@@ -264,3 +264,22 @@ def test_chessboard_target(rig, tmp_path):
     sample = np.column_stack([corners[:, 0], 0.075 - corners[:, 1]])
     e = np.abs(p[:, :2] / p[:, 2:] - load_calibration(out).sample_to_px(sample)).max()
     assert e < 0.2, e
+
+
+def test_track_refuses_frames_of_another_size(rig, tmp_path, capsys):
+    """`metarig track` with a calibration made for 640 x 480 px and 320 x 240 px frames."""
+    from tracking.cli import track_main
+
+    scene = make_scene(nx=2, ny=1)
+    units = tmp_path / "units.json"
+    units.write_text(json.dumps({"polygons_m": scene.polygons_m.tolist()}))
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for i in range(2):
+        cv2.imwrite(str(frames / f"{i:03d}.png"), cv2.resize(
+            cv2.imread(rig["names"][0], cv2.IMREAD_GRAYSCALE), (320, 240)))
+    rc = track_main([str(frames), "--units", str(units), "--calibration", str(rig["out"]),
+                     "--out", str(tmp_path / "t.npz"), "-q"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "\n" not in err, err
+    assert "frame is 320x240 px, the calibration was made for 640x480 px" in err

@@ -10,6 +10,8 @@ Calibration JSON keys:
         image points to their square-on positions). Frames are rectified with it first.
     rectified_size_px (optional [width, height]): size of the rectified image; defaults to
         the raw frame size.
+    image_size_px (optional [width, height]): size of the raw frames the calibration was made
+        for; frames of another size are refused.
     camera_matrix (optional 3x3) and dist_coeffs (optional list of 4, 5, 8, 12 or 14): the
         lens (OpenCV's model, as `metarig camera-calibrate` writes them). With them, frames
         are undistorted before the homography, which then maps undistorted pixels (of the
@@ -46,6 +48,7 @@ class Calibration:
         y_up: sample y points up the image.
         homography: optional [3, 3] raw pixel -> rectified pixel map.
         rectified_size_px: optional (width, height) of the rectified image.
+        image_size_px: optional (width, height) of the raw frames it was made for.
         camera_matrix: optional [3, 3] lens intrinsics K, px (with `dist_coeffs`).
         dist_coeffs: optional OpenCV distortion coefficients (k1, k2, p1, p2[, k3, ...]).
     """
@@ -56,6 +59,7 @@ class Calibration:
     y_up: bool = True
     homography: tuple[tuple[float, ...], ...] | None = None
     rectified_size_px: tuple[int, int] | None = None
+    image_size_px: tuple[int, int] | None = None
     camera_matrix: tuple[tuple[float, ...], ...] | None = None
     dist_coeffs: tuple[float, ...] | None = None
     _maps: dict = field(default_factory=dict, init=False, repr=False, compare=False)
@@ -76,6 +80,12 @@ class Calibration:
         ):
             raise CalibrationError(
                 f"rectified_size_px must be [width, height] > 0, got {self.rectified_size_px!r}"
+            )
+        if self.image_size_px is not None and (
+            len(self.image_size_px) != 2 or min(self.image_size_px) < 1
+        ):
+            raise CalibrationError(
+                f"image_size_px must be [width, height] > 0, got {self.image_size_px!r}"
             )
         if (self.camera_matrix is None) != (self.dist_coeffs is None):
             raise CalibrationError("camera_matrix and dist_coeffs come together (or neither)")
@@ -117,6 +127,14 @@ class Calibration:
     def image_rotation_sign(self) -> float:
         """Sign turning a rotation in (col, row) image axes into a CCW sample rotation."""
         return -1.0 if self.y_up else 1.0
+
+    def size_mismatch(self, shape: tuple[int, ...]) -> str:
+        """Why a raw frame of `shape` (rows, cols, ...) does not fit ("" when it does)."""
+        if self.image_size_px is None or tuple(shape[1::-1]) == tuple(self.image_size_px):
+            return ""
+        w, h = self.image_size_px
+        return (f"frame is {shape[1]}x{shape[0]} px, the calibration was made for {w}x{h} px "
+                "(another camera, binning or region of interest?)")
 
     def rectify(self, frame: np.ndarray) -> np.ndarray:
         """Warp a raw frame [h, w] onto the rectified grid (identity without a homography
@@ -178,6 +196,8 @@ class Calibration:
             out["homography"] = [list(r) for r in self.homography]
         if self.rectified_size_px is not None:
             out["rectified_size_px"] = list(self.rectified_size_px)
+        if self.image_size_px is not None:
+            out["image_size_px"] = list(self.image_size_px)
         if self.camera_matrix is not None:
             out["camera_matrix"] = [list(r) for r in self.camera_matrix]
             out["dist_coeffs"] = list(self.dist_coeffs)
@@ -213,13 +233,15 @@ def calibration_from_dict(d: dict, where: str = "calibration") -> Calibration:
             hom = tuple(tuple(float(v) for v in row) for row in hom)
         except (TypeError, ValueError) as exc:
             raise CalibrationError(f"{where}: 'homography' must be a 3x3 list of numbers") from exc
-    size = d.get("rectified_size_px")
-    if size is not None:
+    optional = {}
+    for key in ("rectified_size_px", "image_size_px"):
+        v = d.get(key)
+        if v is None:
+            continue
         try:
-            size = (int(size[0]), int(size[1]))
-        except (TypeError, ValueError, IndexError) as exc:
-            raise CalibrationError(f"{where}: 'rectified_size_px' must be [width, height]") from exc
-    lens = {}
+            optional[key] = (int(v[0]), int(v[1]))
+        except (TypeError, ValueError, IndexError, KeyError) as exc:
+            raise CalibrationError(f"{where}: {key!r} must be [width, height]") from exc
     for key in ("camera_matrix", "dist_coeffs"):
         if d.get(key) is None:
             continue
@@ -227,7 +249,7 @@ def calibration_from_dict(d: dict, where: str = "calibration") -> Calibration:
             a = np.asarray(d[key], dtype=np.float64)
         except (TypeError, ValueError) as exc:
             raise CalibrationError(f"{where}: {key!r} must be numbers") from exc
-        lens[key] = tuple(map(tuple, a.tolist())) if a.ndim == 2 else tuple(a.ravel().tolist())
+        optional[key] = tuple(map(tuple, a.tolist())) if a.ndim == 2 else tuple(a.ravel().tolist())
     try:
         return Calibration(
             fps=_number(d, "fps", where),
@@ -235,8 +257,7 @@ def calibration_from_dict(d: dict, where: str = "calibration") -> Calibration:
             origin_px=(float(origin[0]), float(origin[1])),
             y_up=y_up,
             homography=hom,
-            rectified_size_px=size,
-            **lens,
+            **optional,
         )
     except CalibrationError as exc:
         if str(exc).startswith(where):

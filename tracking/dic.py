@@ -202,6 +202,8 @@ def prepare_frame(tracker: DICTracker, frame: np.ndarray) -> PreparedFrame:
         a = cv2.cvtColor(a, cv2.COLOR_BGR2GRAY if a.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
     if a.ndim != 2 or a.size == 0:
         raise FrameError(f"frame has shape {a.shape}, expected a 2-D grey image")
+    if why := tracker.calib.size_mismatch(a.shape):
+        raise FrameError(why)
     img = tracker.calib.rectify(a.astype(np.float32, copy=False))
     if not np.all(np.isfinite(img)):
         raise FrameError("frame has non-finite pixels")

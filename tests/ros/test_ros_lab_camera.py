@@ -1,11 +1,12 @@
 """The camera node with `hardware: lab`, in this process on the test's isolated domain: pylon's
 emulated camera (PYLON_CAMEMU, set before pypylon's transport-layer factory is first used)
-streams through a lab file onto `/camera/image_raw` + `/camera/camera_info`, into the recorder's
-MCAP as tracking reads it, and gives snapshots on `/camera/reference_image`; settings beyond the lab file's limits are refused before
-the camera is configured; frame loss from jumps of the frame counter, stamps from the camera
-clock and a camera that stops delivering, with a small fake driver (the emulator neither drops
-frames on request nor sends time stamps); a GenICam camera through the `genicam` wheel's
-viky.cti."""
+streams through a lab file onto `/camera/image_raw` + `/camera/camera_info`, into the
+recorder's MCAP as tracking reads it, and gives snapshots on `/camera/reference_image`;
+settings beyond the lab file's limits are refused before the camera is configured; buffers
+the emulator is told to fail are counted as lost frames (block id jumps); frame loss across a
+16-bit block-id wrap, stamps from the camera clock and a camera that stops delivering, with a
+small fake driver (the emulator sends no time stamps and cannot be silenced); a GenICam camera
+through the `genicam` wheel's viky.cti."""
 
 import json
 import os
@@ -178,6 +179,33 @@ def test_the_recorder_records_the_lab_camera_frames_for_tracking(ros_context, ro
     finally:
         ex.remove_node(rec)
         rec.destroy_node()
+        _drop(cam, ex)
+
+
+def test_buffers_the_emulator_fails_are_counted_as_lost(ros_context, ros_node, tmp_path):
+    pytest.importorskip("pypylon", reason="pip install pypylon (Basler pylon and its emulator)")
+    lab = tmp_path / "lab.toml"
+    lab.write_text(EMULATOR.replace("roi = [0, 0, 1024, 1040]", "roi = [0, 0, 320, 240]"))
+    client, ex = ros_node
+    w = _Watch(client, ex)
+    cam = _camera_node(ros_context, ex, lab)
+    try:
+        wait_matched(w.sub, ex)
+        assert w.call("start").success
+        w.until(lambda: len(w.images) >= 5, "5 frames")
+        device = cam._camera._device       # the emulator fails the next 2 buffers: 2 frames the
+        device.ForceFailedBufferCount.SetValue(2)     # host never gets, a jump of the block id
+        device.ForceFailedBuffer.Execute()
+        n0 = len(w.images)
+        w.until(lambda: len(w.images) >= n0 + 5, "5 frames after the failed buffers")
+        assert w.call("stop").success
+        w.until(lambda: w.state() == "done", "the done status")
+        done = w.status[-1]
+        assert done["lost"] == 2 and done["received"] == done["frames"]
+        assert done["message"] == f"published {done['frames']} frames, 2 lost (camera frame counter)"
+        w.until(lambda: len(w.images) >= done["frames"], "every frame")
+        assert len(w.images) == done["frames"]
+    finally:
         _drop(cam, ex)
 
 

@@ -52,7 +52,7 @@ from ros_nodes import topics as T
 from ros_nodes.hardware import camera_device, camera_settings, lab_camera
 from ros_nodes.logic.camera_stream import CameraStream, FrameStamper, one_line
 from ros_nodes.logic.cdr import ImageEncoder, restamp
-from ros_nodes.nodes._common import CLOCK, LATCHED, STREAM, run_node
+from ros_nodes.nodes._common import CLOCK, LATCHED, STREAM, qos_profile, run_node
 from ros_nodes.nodes._params import TypedParams
 from ros_nodes.params import CameraNodeConfig
 from tracking.frame_sources import SourceError, open_replay
@@ -107,9 +107,11 @@ class CameraNode(Node):
         if cfg.source == "sim":
             self._truth = self.create_publisher(UnitPose2DArray, T.GROUND_TRUTH.name, STREAM)
             self._design = self.create_publisher(String, T.RIG_DESIGN.name, LATCHED)
-            self.create_subscription(JointState, T.SHAKER_JOINTS.name, self._on_shaker, STREAM)
+            self.create_subscription(JointState, T.SHAKER_JOINTS.name, self._on_shaker,
+                                     qos_profile(T.SHAKER_JOINTS.qos))
             self._stage_sub = self.create_subscription(JointState, T.STAGE_JOINTS.name,
-                                                       self._on_stage, STREAM)
+                                                       self._on_stage,
+                                                       qos_profile(T.STAGE_JOINTS.qos))
             threading.Thread(target=self._build_specimen, daemon=True).start()
         self._status("idle", "ready")
 
@@ -259,6 +261,11 @@ class CameraNode(Node):
             self._await_device_records(t1)
             shaker = MotionRecord.from_samples(list(self._shaker), t1)
             stage = MotionRecord.from_samples(list(self._stage), t1)
+            self.get_logger().info(
+                "device records: " + ", ".join(
+                    f"{name} {len(rec)} samples {min(rec)[0]:.4f}-{max(rec)[0]:.4f} s" if rec
+                    else f"{name} none" for name, rec in (("shaker", list(self._shaker)),
+                                                          ("stage", list(self._stage)))))
             traj = exposure_motion(self._specimen, times, shaker, stage, cfg.fps)
             ccfg = self._camera_config()
             c0 = self._specimen.centroids_m()

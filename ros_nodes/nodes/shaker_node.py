@@ -30,7 +30,7 @@ from ros_nodes import convert
 from ros_nodes import topics as T
 from ros_nodes.hardware import shaker_drive
 from ros_nodes.logic.sampling import due_samples
-from ros_nodes.nodes._common import COMMAND, LATCHED, STREAM, run_node
+from ros_nodes.nodes._common import COMMAND, LATCHED, qos_profile, run_node
 from ros_nodes.nodes._params import TypedParams
 from ros_nodes.params import ShakerNodeConfig
 
@@ -65,7 +65,8 @@ class ShakerNode(LifecycleNode):
         cfg = self._params.config
         self._rng = np.random.default_rng(cfg.seed)
         self._pubs = {
-            "js": self.create_publisher(convert.JointState, T.SHAKER_JOINTS.name, STREAM),
+            "js": self.create_publisher(convert.JointState, T.SHAKER_JOINTS.name,
+                                        qos_profile(T.SHAKER_JOINTS.qos)),
             "cmd": self.create_publisher(convert.JointTrajectory, T.SHAKER_COMMAND.name, LATCHED),
             "diag": self.create_publisher(convert.DiagnosticArray, T.DIAGNOSTICS.name, COMMAND),
         }

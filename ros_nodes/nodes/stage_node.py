@@ -27,7 +27,7 @@ from ros_nodes import convert
 from ros_nodes import topics as T
 from ros_nodes.hardware import stage_pair
 from ros_nodes.logic.sampling import due_samples
-from ros_nodes.nodes._common import COMMAND, LATCHED, STREAM, run_node
+from ros_nodes.nodes._common import COMMAND, LATCHED, qos_profile, run_node
 from ros_nodes.nodes._params import TypedParams
 from ros_nodes.params import StageNodeConfig
 
@@ -62,7 +62,8 @@ class StageNode(LifecycleNode):
         cfg = self._params.config
         self._rng = np.random.default_rng(cfg.seed)
         self._pubs = {
-            "js": self.create_publisher(convert.JointState, T.STAGE_JOINTS.name, STREAM),
+            "js": self.create_publisher(convert.JointState, T.STAGE_JOINTS.name,
+                                        qos_profile(T.STAGE_JOINTS.qos)),
             "target": self.create_publisher(Float64, T.STAGE_TARGET.name, LATCHED),
             "state": self.create_publisher(String, T.STAGE_STATE.name, LATCHED),
             "diag": self.create_publisher(convert.DiagnosticArray, T.DIAGNOSTICS.name, COMMAND),

@@ -262,6 +262,7 @@ def test_pose_weights_follow_the_stated_errors():
     assert cal.pose_weights(sigma, use) is None
 
 
+@pytest.mark.slow  # 25-35 s; pose_weights above is the fast check of the weights
 def test_the_pulse_fit_weights_poses_by_their_stated_errors():
     """Half of the units tracked 8x worse than the others, and saying so: weighted by the
     stated errors, k_shear comes out closer than without (measured 0.15 % against 0.49 % off,

@@ -16,6 +16,7 @@ starts). A lab file that cannot be used raises `LabFileError`, a device that can
 """
 
 import dataclasses
+import importlib
 
 import numpy as np
 
@@ -34,34 +35,35 @@ def with_limits(device, limits, limits_cls):
                                           for f in dataclasses.fields(limits_cls)})
 
 
-def shaker_drive(cfg: ShakerNodeConfig, rng: np.random.Generator) -> ShakerDrive:
-    """The shaker the node's parameters name (see the module docstring)."""
+def _device(cfg, kind: str, limits_cls, rng: np.random.Generator):
+    """The `kind` ("shaker" or "stage") device the node's parameters name: a real driver opened
+    by `devices.connect` for a lab section with one, else the simulator (imported only then)
+    with the lab section's limits (hardware "lab") or the node's `device.*` ones."""
     device = cfg.device
     if cfg.hardware == "lab":
-        section = read_lab(cfg.lab_file).shaker
+        section = getattr(read_lab(cfg.lab_file), kind)
         if section.driver != "sim":
-            from devices.connect import open_shaker
+            from devices import connect
 
-            return open_shaker(section)
-        device = with_limits(device, section.limits, ShakerLimits)
-    from hardware_sim.shaker import SimulatedShaker
+            return getattr(connect, DRIVERS[kind][0])(section)
+        device = with_limits(device, section.limits, limits_cls)
+    module, name = DRIVERS[kind][1].split(":")
+    return getattr(importlib.import_module(module), name)(device, rng)
 
-    return SimulatedShaker(device, rng)
+
+# per lab section: the opener in devices.connect and the simulator
+DRIVERS = {"shaker": ("open_shaker", "hardware_sim.shaker:SimulatedShaker"),
+           "stage": ("open_stages", "hardware_sim.stage:SimulatedStages")}
+
+
+def shaker_drive(cfg: ShakerNodeConfig, rng: np.random.Generator) -> ShakerDrive:
+    """The shaker the node's parameters name (see the module docstring)."""
+    return _device(cfg, "shaker", ShakerLimits, rng)
 
 
 def stage_pair(cfg: StageNodeConfig, rng: np.random.Generator) -> StagePair:
     """The stages the node's parameters name (see the module docstring)."""
-    device = cfg.device
-    if cfg.hardware == "lab":
-        section = read_lab(cfg.lab_file).stage
-        if section.driver != "sim":
-            from devices.connect import open_stages
-
-            return open_stages(section)
-        device = with_limits(device, section.limits, StageLimits)
-    from hardware_sim.stage import SimulatedStages
-
-    return SimulatedStages(device, rng)
+    return _device(cfg, "stage", StageLimits, rng)
 
 
 def lab_camera(cfg: CameraNodeConfig) -> CameraSection | None:

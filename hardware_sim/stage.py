@@ -16,8 +16,15 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from devices.limits import LimitError
-from devices.stage.port import (StageCommand, StageLimits, StageMode, StageReading, StageStatus,
-                                check_strain)
+from devices.stage.port import (
+    StageCommand,
+    StageLimits,
+    StageMode,
+    StageReading,
+    StageStatus,
+    check_closing_speed,
+    check_strain,
+)
 from metarig.fields import param
 
 
@@ -36,11 +43,7 @@ class StageConfig(StageLimits):
                               0.0, math.inf)
 
     def __post_init__(self):
-        if self.closing_speed_m_s / self.sample_height_m > self.max_strain_rate_per_s * (1 + 1e-9):
-            raise ValueError(
-                f"closing speed {self.closing_speed_m_s} m/s is a strain rate of "
-                f"{self.closing_speed_m_s / self.sample_height_m:.3g}/s, above the limit "
-                f"{self.max_strain_rate_per_s}/s")
+        check_closing_speed(self, self.closing_speed_m_s)
         StageLimits.__post_init__(self)
 
 

@@ -81,6 +81,14 @@ def check_strain(limits: StageLimits, strain: float) -> float:
     return strain * limits.sample_height_m
 
 
+def check_closing_speed(limits: StageLimits, speed_m_s: float) -> None:
+    """ValueError (one line) when a closing speed (m/s) exceeds the strain-rate limit."""
+    rate = speed_m_s / limits.sample_height_m
+    if rate > limits.max_strain_rate_per_s * (1 + 1e-9):
+        raise ValueError(f"closing speed {speed_m_s} m/s is a strain rate of {rate:.3g}/s, "
+                         f"above the limit {limits.max_strain_rate_per_s}/s")
+
+
 @runtime_checkable
 class StagePair(Protocol):
     """A pair of linear stages and their controller."""

@@ -29,8 +29,15 @@ from dataclasses import dataclass
 import serial
 
 from devices.limits import DeviceError, LimitError
-from devices.stage.port import (StageCommand, StageLimits, StageMode, StageReading, StageStatus,
-                                check_strain)
+from devices.stage.port import (
+    StageCommand,
+    StageLimits,
+    StageMode,
+    StageReading,
+    StageStatus,
+    check_closing_speed,
+    check_strain,
+)
 from metarig.fields import param
 
 SPEED_UNIT = 1.6384            # maxspeed data value per microstep/s
@@ -76,11 +83,7 @@ class ZaberConfig(StageLimits):
     baudrate: int = param(115200, "serial baud rate (Zaber ASCII default 115200)", 1200, 921600)
 
     def __post_init__(self):
-        if self.closing_speed_m_s / self.sample_height_m > self.max_strain_rate_per_s * (1 + 1e-9):
-            raise ValueError(
-                f"closing speed {self.closing_speed_m_s} m/s is a strain rate of "
-                f"{self.closing_speed_m_s / self.sample_height_m:.3g}/s, above the limit "
-                f"{self.max_strain_rate_per_s}/s")
+        check_closing_speed(self, self.closing_speed_m_s)
         if self.bottom_direction not in (-1, 1) or self.top_direction not in (-1, 1):
             raise ValueError("bottom_direction and top_direction must be +1 or -1")
         if (self.bottom_device, self.bottom_axis) == (self.top_device, self.top_axis):

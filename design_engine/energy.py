@@ -16,6 +16,7 @@ Energies in mJ, angles rad, lengths mm. Forces are never written by hand: the dy
 `jax.grad` of `make_energy(...)`.
 """
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -233,15 +234,22 @@ def void_stiffness(model: Model, material: Material, alpha) -> float:
     angle at `alpha` (rad), every other measure at rest: the stiffness the contact law adds as
     a void closes (for the default law k_c (1 + 3 tau^2) / (1 - tau^2)^3). Differentiated, not
     written out, so that any contact law reaches the solver policy (`auto.contact_frequency`)."""
+    return float(_void_stiffness_program(model)(jnp.asarray(alpha, jnp.float64), material))
 
-    def energy(a):
+
+@functools.cache
+def _void_stiffness_program(model: Model):
+    """Compiled d2E/dalpha2 (alpha, material) of `void_stiffness`, one per model (the policy asks
+    for it after every fixed-step solve with contact)."""
+
+    def energy(a, material):
         zero = jnp.zeros(1)
         far = jnp.full(1, material.contact_cutoff + 1.0)  # the other void: wide open
         m = BondMeasures(strain=zero, shear=zero, bend=zero,
                          voids=jnp.stack([jnp.reshape(a, 1), far], axis=1), rest_length=1.0)
         return sum(jnp.sum(v) for v in _call_laws(model.laws(True), m, material).values())
 
-    return float(jax.grad(jax.grad(energy))(jnp.asarray(alpha, jnp.float64)))
+    return jax.jit(jax.grad(jax.grad(energy)))
 
 
 def _call_laws(laws, m: BondMeasures, mat: Material) -> BondTerms:

@@ -28,6 +28,9 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
                          "camera and sample plane from photographs of a calibration target"),
     "demo": ("ros_nodes.cli_demo", "demo_main",
              "the main job: design a small lattice, test it on the simulated rig, compare"),
+    "import": ("ros_nodes.cli_import", "import_main",
+               "a lab's own camera files (MRAW, CINE, TIFF, video, images) + drive signal -> a "
+               "run folder"),
     "compare": ("ros_nodes.cli_compare", "compare_main",
                 "compare a recorded experiment with the simulation of its measured input"),
     "calibrate": ("ros_nodes.cli_calibrate", "calibrate_main", "fit material constants to a recorded test"),

@@ -1,4 +1,6 @@
-"""Frames from a folder of images, a video file or an MCAP recording (and a synthetic pattern).
+"""Frames from a folder of images, a video file, an MCAP recording or a high-speed camera's
+own file (Photron MRAW, Phantom CINE, TIFF stack: `tracking.camera_files`), and a synthetic
+pattern.
 
 The one frame reader of the project: `metarig track`, the live DIC node and the camera node's
 replay all read frames here. A source is opened once (`open_source` checks it and resolves the
@@ -26,7 +28,8 @@ import numpy as np
 PNG = (".png",)
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg", ".pgm")
 VIDEO_SUFFIXES = (".avi", ".mp4", ".mkv", ".mov", ".m4v", ".mpg", ".mpeg", ".wmv")
-KINDS = ("folder", "video", "mcap")
+KINDS = ("folder", "video", "mcap", "mraw", "cine", "tiff")
+CAMERA_FILE_KINDS = ("mraw", "cine", "tiff")  # read by `tracking.camera_files`
 IMAGE_MSG = "sensor_msgs/msg/Image"
 _ENCODINGS = {
     "mono8": (np.uint8, 1), "8UC1": (np.uint8, 1), "mono16": (np.uint16, 1),
@@ -51,8 +54,8 @@ class SourceSpec:
     """Where frames come from.
 
     Attributes:
-        path: folder, video file or `.mcap` file.
-        kind: "folder", "video" or "mcap".
+        path: folder, video file, `.mcap` file or camera file (MRAW: its .cih/.cihx or .mraw).
+        kind: "folder", "video", "mcap", "mraw", "cine" or "tiff".
         topic: MCAP image topic (resolved when the source is opened).
         suffixes: image file suffixes a folder source reads (lower case, name order).
         reference_topic: MCAP image topic holding the reference image (the sample unloaded,
@@ -175,13 +178,39 @@ def _open_mcap(p: Path, topic: str | None) -> SourceSpec:
 
 
 def _kind_of(p: Path) -> str:
+    from tracking.camera_files import SUFFIXES
+
     if p.is_dir():
         return "folder"
     if p.suffix.lower() == ".mcap":
         return "mcap"
     if p.suffix.lower() in VIDEO_SUFFIXES:
         return "video"
-    raise SourceError(f"{p}: not a folder, a video ({', '.join(VIDEO_SUFFIXES)}) or .mcap")
+    for kind, suffixes in SUFFIXES.items():
+        if p.suffix.lower() in suffixes:
+            return kind
+    raise SourceError(f"{p}: not a folder, a video ({', '.join(VIDEO_SUFFIXES)}), .mcap or a "
+                      "camera file (.cihx/.cih/.mraw, .cine, .tif)")
+
+
+def camera_file(spec: SourceSpec):
+    """The header of a camera-file source (`tracking.camera_files.CameraFile`): its size, frame
+    count, bit depth and, where the file records them, frame rate and first frame number
+    relative to the trigger.
+
+    Raises:
+        SourceError: the file cannot be read or does not match its header.
+    """
+    from tracking.camera_files import CameraFileError, open_camera_file
+
+    if spec.kind not in CAMERA_FILE_KINDS:
+        raise SourceError(f"{spec.path}: a {spec.kind} source is not a camera file")
+    try:
+        return open_camera_file(spec.kind, spec.path)
+    except CameraFileError as exc:
+        raise SourceError(str(exc)) from None
+    except OSError as exc:
+        raise SourceError(f"{spec.path}: cannot read ({exc.strerror or exc})") from None
 
 
 def open_source(path: str | Path, topic: str | None = None, kind: str | None = None,
@@ -189,19 +218,25 @@ def open_source(path: str | Path, topic: str | None = None, kind: str | None = N
     """Identify a source and check that it can be read.
 
     Args:
-        path: a folder of images, a video file or an `.mcap` recording.
+        path: a folder of images, a video file, an `.mcap` recording or a camera file (MRAW
+            by its .cihx/.cih/.mraw, .cine, multi-page .tif).
         topic: MCAP image topic; by default the only image topic, or the one ending in
             `image_raw` (a topic ending in `reference_image` is the reference, not a frame).
-        kind: "folder", "video" or "mcap" (default: from the path).
+        kind: one of `KINDS` (default: from the path).
         suffixes: image file suffixes of a folder source (default: `*.png` only).
 
     Raises:
-        SourceError: missing path, no frames, unknown type or ambiguous topic.
+        SourceError: missing path, no frames, unknown type, ambiguous topic, or a camera file
+            that does not match its header.
     """
     p = Path(path)
     if not p.exists():
         raise SourceError(f"{p}: no such file or folder")
     kind = kind or _kind_of(p)
+    if kind in CAMERA_FILE_KINDS:
+        spec = SourceSpec(str(p), kind)
+        camera_file(spec)
+        return spec
     if kind == "folder":
         if not p.is_dir() or not _folder_files(p, suffixes):
             raise _no_images(p, suffixes)
@@ -224,6 +259,8 @@ def count_frames(spec: SourceSpec) -> int | None:
         return len(_folder_files(Path(spec.path), spec.suffixes))
     if spec.kind == "mcap":
         return _image_topics(Path(spec.path)).get(spec.topic or "", 0)
+    if spec.kind in CAMERA_FILE_KINDS:
+        return camera_file(spec).n_frames
     cap = cv2.VideoCapture(spec.path)
     n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
     cap.release()
@@ -265,7 +302,22 @@ def _mcap(spec: SourceSpec, topic: str | None = None) -> Iterator[Item]:
                 yield ns, BadFrame(f"message at log time {message.log_time} ns: {exc}")
 
 
+def _camera_file(spec: SourceSpec) -> Iterator[Item]:
+    """A camera file's frames; a file that ends early (cut after it was opened) stops with
+    `SourceError`, as an unreadable source does."""
+    from tracking.camera_files import CameraFileError, camera_frames
+
+    frames = camera_frames(spec.kind, camera_file(spec))
+    try:
+        for img in frames:
+            yield None, img
+    except CameraFileError as exc:
+        raise SourceError(str(exc)) from None
+
+
 def _items(spec: SourceSpec) -> Iterator[Item]:
+    if spec.kind in CAMERA_FILE_KINDS:
+        return _camera_file(spec)
     return {"folder": _folder, "video": _video, "mcap": _mcap}[spec.kind](spec)
 
 

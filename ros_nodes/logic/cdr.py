@@ -164,3 +164,77 @@ def compressed_image_cdr(stamp_ns: int, frame_id: str, fmt: str, data: bytes) ->
     body += _pad(len(body))
     body += _U32.pack(len(data))
     return b"".join((ENC_HEADER, bytes(body), data))
+
+
+class _Body:
+    """A CDR body under construction: offsets count from the end of the encapsulation header,
+    each primitive aligned to its own size (XCDR1)."""
+
+    def __init__(self):
+        self.buf = bytearray()
+
+    def align(self, n: int) -> None:
+        self.buf += b"\x00" * ((-len(self.buf)) % n)
+
+    def u32(self, *values: int) -> None:
+        self.align(4)
+        self.buf += struct.pack(f"<{len(values)}I", *values)
+
+    def string(self, s: str) -> None:
+        self.align(4)
+        self.buf += _string(s)
+
+    def doubles(self, values, sequence: bool = True) -> None:
+        """float64 values: a sequence (with its count) or a fixed-size array."""
+        a = np.asarray(values, "<f8").ravel()
+        if sequence:
+            self.u32(a.size)
+        self.align(8)  # even before no element, as Fast-CDR does
+        self.buf += a.tobytes()
+
+    def header(self, ns: int, frame_id: str) -> None:
+        self.buf += pack_stamp(ns)
+        self.string(frame_id)
+
+    def cdr(self) -> bytes:
+        return ENC_HEADER + bytes(self.buf)
+
+
+def joint_state_cdr(ns: int, names, positions, velocities=(), frame_id: str = "") -> bytes:
+    """A little-endian CDR `sensor_msgs/JointState` (no effort), lengths m, speeds m/s."""
+    b = _Body()
+    b.header(ns, frame_id)
+    b.u32(len(names))
+    for n in names:
+        b.string(n)
+    b.doubles(positions)
+    b.doubles(velocities)
+    b.doubles(())
+    return b.cdr()
+
+
+def camera_info_cdr(ns: int, width: int, height: int, m_per_px: float,
+                    frame_id: str = "camera") -> bytes:
+    """A little-endian CDR `sensor_msgs/CameraInfo` of the square-on camera, as the camera node
+    sends it (`ros_nodes.convert.camera_info`): K holds f = 1 / m_per_px, no distortion."""
+    f = 1.0 / m_per_px
+    cx, cy = (width - 1) / 2.0, (height - 1) / 2.0
+    b = _Body()
+    b.header(ns, frame_id)
+    b.u32(height, width)
+    b.string("plumb_bob")
+    b.doubles([0.0] * 5)
+    b.doubles([f, 0.0, cx, 0.0, f, cy, 0.0, 0.0, 1.0], sequence=False)
+    b.doubles([1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0], sequence=False)
+    b.doubles([f, 0.0, cx, 0.0, 0.0, f, cy, 0.0, 0.0, 0.0, 1.0, 0.0], sequence=False)
+    b.u32(0, 0)  # binning
+    b.u32(0, 0, 0, 0)  # roi x_offset, y_offset, height, width
+    b.buf += b"\x00"  # roi do_rectify
+    return b.cdr()
+
+
+def string_cdr(text: str) -> bytes:
+    """A little-endian CDR `std_msgs/String`."""
+    b = _Body()
+    b.string(text)
+    return b.cdr()

@@ -47,9 +47,12 @@ def dof_masses(geom: BlockGeometry, mat: Material) -> Float[Array, " n_dof"]:
 
 
 def dof_damping(n_blocks: int, mat: Material) -> Float[Array, " n_dof"]:
-    """[3 n_blocks] damping per global DOF (design-independent, spec 6.3)."""
-    per_block = jnp.stack([mat.damping_u, mat.damping_u, mat.damping_theta])
-    return jnp.tile(per_block, n_blocks)
+    """[3 n_blocks] damping per global DOF (design-independent, spec 6.3): (c_u, c_u, c_theta)
+    of every block, from scalar coefficients or from one per block ([n_blocks], a specimen's
+    true material)."""
+    c_u = jnp.broadcast_to(jnp.asarray(mat.damping_u), (n_blocks,))
+    c_t = jnp.broadcast_to(jnp.asarray(mat.damping_theta), (n_blocks,))
+    return jnp.stack([c_u, c_u, c_t], axis=-1).reshape(-1)
 
 
 def make_dynamics_args(lattice: Lattice, supports: Supports, geom: BlockGeometry, mat: Material,

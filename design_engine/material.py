@@ -92,6 +92,13 @@ class Material(eqx.Module):
         density: areal density, g/mm^2.
         damping_u: translational damping c_u = c_v, g/ms.
         damping_theta: rotational damping c_theta, g*mm^2/ms.
+
+    A model's material holds one value of each. A sample that differs from its model (the
+    simulated rig's truth, `hardware_sim.specimen.imperfect`) may hold one value per bond
+    ([n_bonds] arrays, in bond order) for the stiffnesses and one per block ([n_blocks]) for
+    the damping: the laws broadcast them over the bonds (`energy.ligament_law`,
+    `energy.contact_law`) and `dynamics.dof_damping` over the blocks. Only the simulation
+    takes such a material; the design, the statics and the calibration take scalars.
     """
 
     k_stretch: float

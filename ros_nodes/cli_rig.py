@@ -27,19 +27,31 @@ class _Given(argparse.Action):
 
 
 def plan_flags(p: argparse.ArgumentParser, plan_cls) -> None:
-    """One flag per plan field, from its metadata (default, description, choices)."""
-    for f in dataclasses.fields(plan_cls):
-        if f.name in NO_FLAG:
-            continue
-        default = getattr(plan_cls(), f.name)
-        p.add_argument(plan_flag(f.name), dest=f.name, type=type(default), default=default,
+    """One flag per plan field, from its metadata (default, description, choices); a nested
+    config (the specimen's imperfections) gives one flag per field of it, named
+    `--<field>-<its field>` (`--specimen-friction-hz`)."""
+    for name, f, default in _plan_fields(plan_cls):
+        p.add_argument(plan_flag(name), dest=name, type=type(default), default=default,
                        action=_Given, choices=f.metadata.get("choices"),
                        help=f.metadata.get("description"))
 
 
+def _plan_fields(cls, prefix: str = ""):
+    """(dotted name, field, default) of every flag-bearing field of a plan class."""
+    defaults = cls()
+    for f in dataclasses.fields(cls):
+        if f.name in NO_FLAG:
+            continue
+        default = getattr(defaults, f.name)
+        if dataclasses.is_dataclass(default):
+            yield from _plan_fields(type(default), f"{prefix}{f.name}.")
+        else:
+            yield prefix + f.name, f, default
+
+
 def plan_flag(name: str) -> str:
-    """The command-line flag of plan field `name`."""
-    return "--" + FLAG_NAMES.get(name, name).replace("_", "-")
+    """The command-line flag of plan field `name` (dotted for a nested config's field)."""
+    return "--" + FLAG_NAMES.get(name, name).replace("_", "-").replace(".", "-")
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -76,8 +88,7 @@ def _plan(args):
     empty is refused (empty is the plan's "not given", e.g. no design file)."""
     from ros_nodes.logic.sequence import ExperimentPlan
 
-    values = {f.name: getattr(args, f.name)
-              for f in dataclasses.fields(ExperimentPlan) if f.name not in NO_FLAG}
+    values = {name: getattr(args, name) for name, _, _ in _plan_fields(ExperimentPlan)}
     given = getattr(args, "given", set())
     for name in sorted(given):
         if isinstance(values[name], str) and not values[name].strip():
@@ -98,6 +109,13 @@ def _plan(args):
 
         read_material_file(values["material"])  # MaterialFileError (a ValueError) names the key
         values["material"] = str(Path(values["material"]).resolve())
+    nested = {}
+    for name in [n for n in values if "." in n]:
+        outer, inner = name.split(".", 1)
+        nested.setdefault(outer, {})[inner] = values.pop(name)
+    defaults = ExperimentPlan()
+    for outer, kw in nested.items():
+        values[outer] = type(getattr(defaults, outer))(**kw)
     return ExperimentPlan(**values)
 
 
@@ -162,7 +180,7 @@ def write_calibration(plan, out: Path) -> Path:
     from hardware_sim.specimen import SpecimenConfig, build
 
     polygons = build(SpecimenConfig(scene=plan.scene, nx=plan.nx, ny=plan.ny,
-                                    design_path=plan.design)).polygons_m
+                                    design_path=plan.design)).nominal_polygons_m
     origin = centred_origin(polygons, plan.width, plan.height, plan.m_per_px)
     path = out / CALIBRATION_NAME
     path.write_text(json.dumps({"fps": plan.fps, "m_per_px": plan.m_per_px,

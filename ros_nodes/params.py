@@ -16,6 +16,7 @@ from typing import Any
 import yaml
 
 from hardware_sim.shaker import ShakerConfig
+from hardware_sim.specimen import Imperfections
 from hardware_sim.stage import StageConfig
 from metarig.fields import param
 from ros_nodes.topics import IMAGE, RECORDED
@@ -97,6 +98,7 @@ class CameraNodeConfig:
     material_path: str = param("", "sim: material file (metarig-material/1) of the sample "
                                "(empty: the default material)")
     perturb: float = param(0.0, "sim: relative spread of the specimen's true stiffnesses", 0.0, 0.5)
+    specimen: Imperfections = param(Imperfections, "sim: how the sample differs from its model")
     noise_std: float = param(0.01, "sim: read noise, fraction of full scale", 0.0, 0.5)
     lighting_gradient: float = param(0.15, "sim: left-right lighting gradient", 0.0, 0.9)
     exposure_samples: int = param(3, "sim: sub-exposures for motion blur", 1, 16)

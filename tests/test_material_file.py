@@ -214,10 +214,13 @@ def test_design_material_flag_is_accepted(tmp_path):
 
 def test_rig_specimen_and_comparison_use_the_material_file(tmp_path):
     from comparison.experiment import scene_of_design
-    from hardware_sim.specimen import SpecimenConfig, build
+    from hardware_sim.specimen import NOMINAL, SpecimenConfig, build
 
     path = _stiffer(tmp_path / "s.toml")
-    cfg = SpecimenConfig(scene="focusing-24x16", nx=6, ny=4, material_path=str(path))
+    # the material file's way to the truth and to the comparison: a specimen without the
+    # imperfections of a fabricated sample, whose material is the file's (scalars) exactly
+    cfg = SpecimenConfig(scene="focusing-24x16", nx=6, ny=4, material_path=str(path),
+                         imperfections=NOMINAL)
     s = build(cfg)
     assert s.scene.material.k_shear == 2 * 1.19
     assert _same(s.scene.material, with_material(build(dataclasses.replace(

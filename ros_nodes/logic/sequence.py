@@ -13,6 +13,7 @@ from dataclasses import asdict, dataclass
 from enum import Enum
 from pathlib import Path
 
+from hardware_sim.specimen import Imperfections
 from metarig.fields import param
 from ros_nodes import topics
 
@@ -58,6 +59,8 @@ class ExperimentPlan:
     height: int = param(480, "frame height, px", 8, 8192)
     m_per_px: float = param(6.0e-4, "image scale, m/px", 1e-7, 1.0)
     perturb: float = param(0.0, "relative spread of the specimen's true parameters", 0.0, 0.5)
+    specimen: Imperfections = param(Imperfections, "how the simulated sample differs from its "
+                                    "model (the rig's truth only)")
     seed: int = param(0, "seed of all simulated noise", 0, 2**31 - 1)
     clock_step_s: float = param(0.001, "simulated clock step, s", 1e-5, 0.1)
     real_time_factor: float = param(0.5, "simulated seconds per wall second (0: as fast as "
@@ -103,6 +106,7 @@ def node_parameters(plan: ExperimentPlan, out_dir: Path) -> dict[str, dict]:
                    "nx": plan.nx, "ny": plan.ny, "design_path": plan.design,
                    "material_path": plan.material,
                    "perturb": plan.perturb, "seed": plan.seed,
+                   **{f"specimen.{k}": v for k, v in asdict(plan.specimen).items()},
                    "rate_factor": 0.0},
         "recorder": {**common, "path": str(out_dir / RECORDING_NAME)},
     }

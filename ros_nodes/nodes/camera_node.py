@@ -129,7 +129,8 @@ class CameraNode(Node):
             self._specimen = build(SpecimenConfig(scene=cfg.scene, nx=cfg.nx, ny=cfg.ny,
                                                   design_path=cfg.design_path,
                                                   material_path=cfg.material_path,
-                                                  perturb=cfg.perturb, seed=cfg.seed))
+                                                  perturb=cfg.perturb, seed=cfg.seed,
+                                                  imperfections=cfg.specimen))
             self._design.publish(String(data=self._specimen.design_json()))
         except Exception as e:  # noqa: BLE001 - reported on the status topic, node stays up
             self._status("error", f"cannot build the specimen: {e}")
@@ -292,8 +293,8 @@ class CameraNode(Node):
         cfg = self._params.config
         return cam.CameraConfig(width_px=cfg.width, height_px=cfg.height, fps=cfg.fps,
                                 m_per_px=cfg.m_per_px, supersample=cfg.supersample,
-                                origin_px=centred_origin(self._specimen.polygons_m, cfg.width,
-                                                         cfg.height, cfg.m_per_px),
+                                origin_px=centred_origin(self._specimen.nominal_polygons_m,
+                                                         cfg.width, cfg.height, cfg.m_per_px),
                                 exposure_samples=cfg.exposure_samples, noise_std=cfg.noise_std,
                                 lighting_gradient=cfg.lighting_gradient, seed=cfg.seed)
 

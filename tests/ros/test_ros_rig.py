@@ -24,8 +24,11 @@ def sigint_ignored():
         yield
     finally:
         signal.signal(signal.SIGINT, old)
+# the pipeline against its ground truth and the nominal model: a sample without the
+# imperfections of a fabricated one (`--specimen-level 0`; the demo test runs the default,
+# imperfect specimen end to end)
 SMALL = ["--nx", "10", "--ny", "8", "--width", "200", "--height", "160", "--m-per-px", "8e-4",
-         "--record-s", "0.04", "--settle-s", "0.01", "--fps", "1000"]
+         "--record-s", "0.04", "--settle-s", "0.01", "--fps", "1000", "--specimen-level", "0"]
 
 
 def _read(path: Path) -> dict[str, list]:

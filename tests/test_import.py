@@ -95,6 +95,7 @@ def test_png_route_holds_the_experiment(exp, png_run):
     assert np.allclose(c["shaker"][:, 1], exp.signal_u_m[keep], rtol=1e-12, atol=1e-15)
     ref = json.loads((RUN / "design.json").read_text())["polygons_m"]
     assert np.allclose(c["design"]["polygons_m"], ref, atol=1e-9)
+    assert c["design"]["specimen_imperfections"]["level"] == 0  # a real sample, not simulated
     run = json.loads((png_run / "run.json").read_text())
     assert run["import"]["timing"]["fps_from"] == "flag"
     assert json.loads((png_run / "calibration.json").read_text())["fps"] == exp.fps

@@ -137,7 +137,7 @@ def design_document(scene: str | None, nx: int | None, ny: int | None, design: s
     Raises:
         ImportRefused: no scene, a design file that does not fit, an unreadable material file.
     """
-    from hardware_sim.specimen import SpecimenConfig, build
+    from hardware_sim.specimen import NOMINAL, SpecimenConfig, build
 
     if design:
         try:
@@ -149,7 +149,9 @@ def design_document(scene: str | None, nx: int | None, ny: int | None, design: s
     if not scene:
         raise ImportRefused("say which rig scene the sample is in with --scene (e.g. "
                             "focusing-24x16); a design file from `metarig rig` names it")
-    cfg = SpecimenConfig(scene=scene, design_path=str(Path(design).resolve()) if design else "",
+    # a real sample: the simulated specimen's fabrication imperfections do not apply
+    cfg = SpecimenConfig(scene=scene, imperfections=NOMINAL,
+                         design_path=str(Path(design).resolve()) if design else "",
                          material_path=str(Path(material).resolve()) if material else "",
                          **({"nx": nx} if nx else {}), **({"ny": ny} if ny else {}))
     try:

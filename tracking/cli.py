@@ -1,4 +1,5 @@
-"""`metarig track`: DIC-track every unit in a folder of images, a video or an MCAP recording.
+"""`metarig track`: DIC-track every unit in a folder of images, a video, a camera file (Photron
+MRAW with its CIH/CIHX, Phantom CINE, multi-page TIFF) or an MCAP recording.
 
 A thin command line over `tracking.batch` (see there for the parallel layout).
 
@@ -39,8 +40,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="metarig track", description=track_main.__doc__,
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("source", help="folder of *.png frames (name order), a video file or an "
-                   ".mcap recording with sensor_msgs/Image messages")
+    p.add_argument("source", help="folder of *.png frames (name order), a video file, a camera "
+                   "file (.cihx/.cih/.mraw, .cine, multi-page .tif) or an .mcap recording with "
+                   "sensor_msgs/Image messages")
     p.add_argument("--units", required=True, help="JSON file with 'polygons_m' (plain units "
                    "file or a design file)")
     p.add_argument("--calibration", required=True, help="calibration JSON (fps, m_per_px, "

@@ -16,7 +16,8 @@ Every fit minimises sum r^2 over parameters theta = log(value / start) (positive
 Levenberg-Marquardt with the residual Jacobian from `jax.jacfwd` through the model (the
 equilibrium by the implicit function theorem, the ODE by forward-mode through diffrax).
 Standard errors: cov(theta) = s^2 (J^T J)^-1, s^2 = RSS / (n - p), mapped to the values by the
-delta method (stderr = value * sd(theta)). A direction the data do not see has a tiny
+delta method (stderr = value * sd(theta)); the pulse fit adds the model error, the misfit that
+the tracking noise does not explain (`model_error`). A direction the data do not see has a tiny
 eigenvalue of J^T J and so a huge standard error; the fit stays near its start there.
 
 Internal units inside (mm, ms, g); every value leaving this module is SI, with the names of the
@@ -276,7 +277,7 @@ def run_fit(residual, names: list, log_params: list, start_si: dict, units: dict
                sigma=math.sqrt(s2) * scale, n=int(r.size), dof=dof, iterations=iters,
                converged=ok, correlation=corr, residual_unit=residual_unit,
                wall_s=time.perf_counter() - t0,
-               extra={"p": p, "r": r, "stderr_gauss_newton": stderr_gn})
+               extra={"p": p, "r": r, "J": J, "stderr_gauss_newton": stderr_gn})
 
 
 def start_damping_ratio(start: Material, lattice: Lattice) -> float:
@@ -861,6 +862,61 @@ def window_frames(frame_t_s, input_t_s, input_u_m, fractions=WINDOWS, min_frames
     return out
 
 
+def noise_from_second_differences(r, use) -> float:
+    """Standard deviation of the white (frame-to-frame) part of residuals r [n_t, n_units, 2]
+    (used where `use` [n_t, n_units]): sqrt(mean((r[k+1] - 2 r[k] + r[k-1])^2) / 6) over the
+    frames used with both neighbours. Tracking noise is white, 6 sigma^2 in every second
+    difference; a model's misfit is smooth at the frame rate and adds next to nothing there."""
+    r = np.asarray(r, np.float64)
+    ok = use[2:] & use[1:-1] & use[:-2]
+    d2 = (r[2:] - 2.0 * r[1:-1] + r[:-2])[ok]
+    return float(np.sqrt(np.mean(d2**2) / 6.0)) if d2.size else 0.0
+
+
+# misfit beyond noise counts as model error only above this many standard deviations of the
+# residual sum of squares that noise alone gives (chi^2 with dof degrees of freedom)
+MISFIT_SIGNIFICANCE = 3.0
+
+
+def model_error(fit: Fit, r, use, data) -> dict:
+    """The part of a fit's residual that noise does not explain, and what it makes of the
+    fitted values: the model error.
+
+    Args:
+        fit: the fit (its `extra["J"]`, the residual Jacobian over log values at the optimum).
+        r: [n_t, n_units, 2] residual at the optimum (internal units), 0 where not used.
+        use: [n_t, n_units] the residuals used.
+        data: [n_t, n_units, 2] the fitted data (same units), for the relative size.
+
+    The noise sigma is estimated from the residual's second differences in time
+    (`noise_from_second_differences`); the misfit is what the residual sum of squares holds
+    beyond dof sigma^2, once it exceeds noise by `MISFIT_SIGNIFICANCE` standard deviations of
+    chi^2 (0 otherwise: a model that explains the data to its noise has no model error). Each
+    fitted value then gets a model standard error: the change of log(value) alone that moves
+    the response by the whole misfit, |misfit| / |dr/dlog value|; a parameter the response
+    barely depends on gets a large one. The returned `stderr_model` (SI) is combined with the
+    statistical one in quadrature by `fit_pulse`. Right for a model that is wrong: the fitted
+    constants are then effective ones, which compensate for what the model lacks by as much
+    as the misfit lets them, and their stated errors must say so.
+    """
+    n = int(np.sum(use)) * 2
+    sigma = noise_from_second_differences(r, use)
+    rss = float(np.sum(np.asarray(r)[use] ** 2))
+    dof = max(fit.dof, 1)
+    excess = rss - dof * sigma**2
+    misfit = math.sqrt(max(excess, 0.0)) if excess > MISFIT_SIGNIFICANCE * sigma**2 * math.sqrt(
+        2.0 * dof) else 0.0
+    col = np.linalg.norm(np.asarray(fit.extra["J"]), axis=0)
+    signal = float(np.sqrt(np.mean(np.asarray(data)[use] ** 2)))
+    sd_model = {name: float(fit.values[name]) * misfit / max(float(col[i]), 1e-300)
+                for i, name in enumerate(fit.names)}
+    scale = 1e-3  # residuals in mm -> m
+    return {"noise_m": sigma * scale, "misfit_rms_m": misfit / math.sqrt(max(n, 1)) * scale,
+            "relative": misfit / math.sqrt(max(n, 1)) / max(signal, 1e-300),
+            "reduced_chi2": rss / dof / sigma**2 if sigma > 0 else None,
+            "stderr_model": sd_model}
+
+
 def pose_weights(sigma, use: np.ndarray) -> np.ndarray | None:
     """Weights [n_t, n_units, 2] of the u, v residuals from the poses' standard errors sigma
     [n_t, n_units, 3] (m): the median over the used poses divided by each one's own; None
@@ -909,6 +965,10 @@ def fit_pulse(scene, frame_t_s, tracked_q, valid, input_t_s, input_u_m, stage_t_
     measured input's errors reach every unit at once; the plain Gauss-Newton errors
     (`extra["stderr_gauss_newton"]`) then claim a precision the data do not hold (on the
     simulated rig's DIC tracks, actual errors 10-20 of them against at most 2 of these).
+    The stated `stderr` adds in quadrature the model error (`model_error`: the misfit beyond
+    the tracking noise, as a change of each value; 0 where the model explains the data to
+    their noise); `extra["stderr_statistical"]` keeps the cluster-robust part and
+    `extra["model_error"]` the misfit's figures.
     """
     from design_engine.fixed_step import is_fixed_step
     from design_engine.run import measured_loading
@@ -992,6 +1052,13 @@ def fit_pulse(scene, frame_t_s, tracked_q, valid, input_t_s, input_u_m, stage_t_
     out.wall_s = time.perf_counter() - t0
     out.extra["windows"] = frames
     out.extra["weighted_by_pose_sigma"] = weighted
+    # the model error: the misfit beyond the noise, and the stderr it adds (in quadrature)
+    resid = np.where(use[..., None], (np.asarray(sol.q)[..., :2] - np.asarray(data))
+                     * np.asarray(weight), 0.0)
+    me = model_error(out, resid, use, np.asarray(data) * np.asarray(weight))
+    out.extra["stderr_statistical"] = dict(out.stderr)
+    out.stderr = {n: math.hypot(out.stderr[n], me["stderr_model"][n]) for n in names}
+    out.extra["model_error"] = me
     if "damping_ratio" in names:
         out.extra["derived"] = derived_damping(out, material(jnp.asarray(out.extra["p"])))
     out.extra["config"] = f"{type(config.solver).__name__}, contact {config.use_contact}"

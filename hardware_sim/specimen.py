@@ -44,7 +44,7 @@ class Imperfections:
     thickness_error: float = param(-0.03, "ligament thickness error common to the print, "
                                    "relative: k_bend x (1 + e)^3, k_stretch and k_shear x (1 + e)",
                                    -0.5, 0.5)
-    friction_hz: float = param(4.0, "viscous friction with the base plate per unit mass, 1/s: "
+    friction_hz: float = param(2.0, "viscous friction with the base plate per unit mass, 1/s: "
                                "force -rate m v, torque -rate J omega on every unit", 0.0, 1000.0)
 
 
@@ -156,6 +156,15 @@ class Specimen:
     @property
     def n_units(self) -> int:
         return int(self.polygons_m.shape[0])
+
+    def effective_si(self) -> dict[str, float]:
+        """The sample's effective material, SI (`Material.to_si` names): each true field's mean
+        over the bonds (stiffnesses) or the units (damping, friction included). What a
+        calibration of the nominal model against this sample should find, to within what the
+        scatter's realisation and the geometry make of it (the model error)."""
+        m = self.scene.material
+        fields = ("k_stretch", "k_shear", "k_bend", "k_contact", "damping_u", "damping_theta")
+        return m.replaced(**{n: float(np.mean(np.asarray(getattr(m, n)))) for n in fields}).to_si()
 
     def centroids_m(self) -> np.ndarray:
         """[n_units, 2] reference area centroids, m."""

@@ -11,7 +11,8 @@ SOURCE (kind auto-detected, or `--kind`):
   positions through the engine under the measured input.
 
 Writes `DIR/calibration.json` (`{"parameters": {name: {"value", "stderr", "unit"}}, "residual":
-rms SI, "source": ...}`, SI, engine material names), `DIR/material.toml` (metarig-material/1)
+rms SI, "source": ...}`, SI, engine material names; a pulse fit's stderr includes its
+`model_error`, the misfit beyond the tracking noise), `DIR/material.toml` (metarig-material/1)
 and `DIR/calibration.png` (data against the fitted model). Bad inputs: one line, exit code 2.
 """
 
@@ -163,7 +164,9 @@ def calibrate_pulse(files, fit, material_path=None, poses_source="auto", calibra
     return out, {"n_frames": poses.n_t, "n_units": poses.n_units,
                  "weighted_by_pose_sigma": out.extra["weighted_by_pose_sigma"],
                  "solver": out.extra["config"], "windows_frames": out.extra["windows"],
-                 "min_void_margin_rad": out.extra["min_void_margin"]}
+                 "min_void_margin_rad": out.extra["min_void_margin"],
+                 "model_error": out.extra["model_error"],
+                 "stderr_statistical": out.extra["stderr_statistical"]}
 
 
 # --- outputs ----------------------------------------------------------------------------------

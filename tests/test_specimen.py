@@ -1,41 +1,25 @@
 """The simulated rig's specimen is not its model: each imperfection of a fabricated sample, its
 size, its switch, and the way its settings reach the rig (`hardware_sim.specimen`).
 
-The scene is the 8x6 focusing lattice under a 2 mm, 30 Hz pulse (the size of
-test_comparison_experiment's), with a fixed asymmetric design: the periodic lattice is mirror
-symmetric and its response sits on a bifurcation (an imperfection of 1e-4 in one stiffness
-already moves its velocities by 4 %), so that it would measure the tipping, not the size of an
-imperfection.
+The scene is the 8x6 focusing lattice under a 2 mm, 30 Hz pulse with a fixed asymmetric design
+(`discrepant.asymmetric_design`: the periodic lattice's symmetric response tips over at any
+imperfection).
 """
 
 import dataclasses
 import json
-import math
 
 import numpy as np
 import pytest
+from discrepant import asymmetric_design, raised_cosine
 
 from hardware_sim import specimen as sp
 from hardware_sim.rig import MotionRecord, capture_times, specimen_motion
 
 OFF = {"tolerance_m": 0.0, "ligament_scatter": 0.0, "damping_scatter": 0.0,
        "thickness_error": 0.0, "friction_hz": 0.0}
-T_IN = np.arange(0.0, 0.08, 1e-4)
-U_IN = 1e-3 * (1 - np.cos(2 * np.pi * 30 * np.clip(T_IN - 0.005, 0, 1 / 30)))  # A = 2 mm
+T_IN, U_IN = raised_cosine(2e-3, 0.08)
 TIMES = capture_times(0.001, 0.07, 1000.0)
-
-
-def asymmetric_design(path):
-    """The 8x6 periodic design (25 deg) with every design coordinate moved by N(0, 0.5 mm),
-    seed 7, on file."""
-    import design_engine as de
-    from design_engine.design_io import save_design
-    from design_engine.lattice import periodic_design
-
-    lat = de.build_scene("focusing-24x16", nx=8, ny=6).lattice
-    x = np.asarray(periodic_design(lat, math.radians(25.0)))
-    x = x + np.random.default_rng(7).normal(0.0, 0.5, x.size)
-    return save_design(path, lat, x)
 
 
 @pytest.fixture(scope="module")

@@ -34,6 +34,8 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     "compare": ("ros_nodes.cli_compare", "compare_main",
                 "compare a recorded experiment with the simulation of its measured input"),
     "calibrate": ("ros_nodes.cli_calibrate", "calibrate_main", "fit material constants to a recorded test"),
+    "loop": ("ros_nodes.cli_loop", "loop_main",
+             "design, test on the rig, calibrate, redesign from what was measured (rounds)"),
 }
 
 

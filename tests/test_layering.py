@@ -110,7 +110,7 @@ def test_layering(pkg):
 # command modules: parse arguments, call the libraries, print; imported by the dispatcher only
 COMMANDS = ("design_engine.cli", "design_engine.design_cli", "design_engine.robustness_cli",
             "ros_nodes.cli_rig", "ros_nodes.cli_compare", "ros_nodes.cli_calibrate",
-            "ros_nodes.cli_demo", "ros_nodes.cli_import", "devices.cli",
+            "ros_nodes.cli_demo", "ros_nodes.cli_import", "ros_nodes.cli_loop", "devices.cli",
             "tracking.camera_calibrate_cli")
 # modules that build or read ROS messages through `ros_nodes.convert` (which imports the message
 # packages): the nodes, and the offline writer of a comparison's messages into a recording

@@ -1,0 +1,582 @@
+"""The loop closed: design, test on the rig, calibrate, redesign from what the rig measured.
+
+`run_loop` runs rounds into `DIR/round-1/`, `DIR/round-2/`, ... Each round's steps, each in
+its own folder (or file), in order:
+
+    material.toml  the round's model material (round 1: `--material` or the default; round k:
+                   round k-1's model updated with what its calibration determined)
+    design/        `metarig design TASK --material material.toml` (or the given `--design`)
+    rig/           `metarig rig --design design/design.json ...`: the run folder (recording,
+                   tracked poses, comparison with the design document's nominal model)
+    objective/     `objective.json`: the task's objective measured (from the tracked poses)
+                   and predicted (the round's model on the measured input), `target_ke.npz`
+    calibrate/     `metarig calibrate rig/ --material material.toml`: calibration.json,
+                   material.toml
+
+Each step is a `metarig` command in its own process (its progress goes to this terminal), so the
+loop runs exactly what a user would type. A step is finished when its folder holds `step.json`
+(written last: the command, its wall time); a folder without it is the remains of an
+interrupted step and is redone (`metarig design` resumes from its checkpoint), so Ctrl-C loses
+no finished step and a second invocation recomputes nothing that is finished.
+
+The rig is the same in every round: the same flags, so the same simulated specimen statistics,
+print-wide errors and seed (the specimen's per-ligament draws follow the seed: the same seed
+draws the same scatter per ligament index). A calibrated parameter that its calibration calls
+undetermined is not carried into the next model (its value says nothing).
+
+Units: SI at every interface; the objective is the task's (the mean over the window's samples of
+the target's kinetic energy, J, weighted and summed over the task's terms).
+"""
+
+import json
+import logging
+import math
+import shutil
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger("metarig.loop")
+
+STEP_DONE = "step.json"
+SUMMARY_NAME = "loop.json"
+RRD_NAME = "loop.rrd"
+MATERIAL_NAME = "material.toml"
+DESIGN, RIG, OBJECTIVE, CALIBRATE = "design", "rig", "objective", "calibrate"
+# rig flags the loop sets itself (from the task and the round)
+LOOP_RIG_FLAGS = ("--design", "--out", "--scene", "--material", "--no-compare", "--nx", "--ny",
+                  "--strain", "--amplitude", "--frequency", "--waveform")
+FRAME_PX = (480, 360)  # default frame of the simulated camera (the demo's)
+FRAME_FILL = 1.2  # the frame spans this much more than the undeformed sample
+RECORD_MARGIN_S = 0.01  # capture beyond the task's window
+PRE_TRIGGER_S = 0.005  # the rig's default recording before the pulse
+
+
+class LoopError(RuntimeError):
+    """A step of the loop failed or its inputs are unusable (one line, naming the step)."""
+
+
+@dataclass(frozen=True, slots=True)
+class LoopPlan:
+    """What `metarig loop` runs.
+
+    Attributes:
+        task: task preset name or task file.
+        out: the loop's folder.
+        rounds: design-test-calibrate rounds.
+        design: design file of round 1 (None: optimise one).
+        material: the nominal material file of round 1's model (None: the default).
+        size: lattice size (nx, ny), or None for the task's.
+        max_evals: the design budget of each round (None: the task's).
+        rig_args: further `metarig rig` flags (the specimen's: `--perturb`, `--seed`,
+            `--specimen-*`; the camera's), the same in every round.
+        fit: parameters the calibration fits (None: `metarig calibrate`'s default).
+        workers: tracker processes (None: all cores).
+    """
+
+    task: str
+    out: Path
+    rounds: int = 2
+    design: Path | None = None
+    material: Path | None = None
+    size: tuple[int, int] | None = None
+    max_evals: int | None = None
+    rig_args: tuple[str, ...] = field(default=())
+    fit: str | None = None
+    workers: int | None = None
+
+
+# --- the task on the rig ----------------------------------------------------------------------
+
+
+def load_plan_task(plan: LoopPlan):
+    """The task of the plan, checked for what the rig can test (one scene, kinetic-energy
+    objective terms, a pulse or burst input)."""
+    from design_engine.task import TaskError, load_task
+
+    try:
+        task = load_task(plan.task, size=plan.size, max_evals=plan.max_evals,
+                         material=plan.material)
+    except (TaskError, OSError, ValueError) as exc:
+        raise LoopError(f"task {plan.task}: {str(exc).splitlines()[0]}") from None
+    if len(task.scenes) != 1:
+        raise LoopError(f"task {task.name} has {len(task.scenes)} scenes; the rig tests one")
+    if any(t.quantity != "kinetic_energy" for t in task.terms):
+        raise LoopError(f"task {task.name}: the loop measures kinetic-energy objectives only")
+    scene = next(iter(task.scenes.values()))
+    if scene.loading.waveform not in ("pulse", "burst"):
+        raise LoopError(f"task {task.name}: the rig's shaker fires a pulse or a burst, not a "
+                        f"{scene.loading.waveform} input")
+    return task
+
+
+def _given(args, flag: str) -> bool:
+    return any(a == flag or a.startswith(flag + "=") for a in args)
+
+
+def rig_arguments(task, rig_args) -> list[str]:
+    """The `metarig rig` flags of the task's scene: scene preset, strain, amplitude (m),
+    frequency (Hz), waveform, a capture covering the objective's window; a frame that holds the
+    sample unless `rig_args` sets one; then `rig_args`.
+
+    Raises:
+        LoopError: `rig_args` sets a flag that the loop sets itself.
+    """
+    clash = [f for f in LOOP_RIG_FLAGS if _given(rig_args, f)]
+    if clash:
+        raise LoopError(f"the loop sets {', '.join(clash)} of the rig itself (from the task "
+                        "and the round); leave them out")
+    scene = next(iter(task.scenes.values()))
+    ld = scene.loading
+    pre = PRE_TRIGGER_S
+    end_ms = scene.window_start + scene.window  # the window's end on the solver clock, ms
+    record_s = math.ceil((pre + end_ms / 1e3 + RECORD_MARGIN_S) * 1e3) / 1e3
+    out = ["--scene", scene.name, "--strain", repr(float(ld.strain)),
+           "--amplitude", repr(float(ld.amplitude) / 1e3),
+           "--frequency", repr(float(ld.frequency) * 1e3), "--waveform", ld.waveform]
+    if not _given(rig_args, "--record-s"):
+        out += ["--record-s", repr(record_s)]
+    if not any(_given(rig_args, f) for f in ("--width", "--height", "--m-per-px")):
+        nx, ny = task.lattice.shape
+        pitch_m = task.lattice.spacing / 1e3
+        m_per_px = FRAME_FILL * max(nx * pitch_m / FRAME_PX[0], ny * pitch_m / FRAME_PX[1])
+        out += ["--width", str(FRAME_PX[0]), "--height", str(FRAME_PX[1]),
+                "--m-per-px", f"{math.ceil(m_per_px * 1e6) / 1e6:.6g}"]
+    return out + list(rig_args)
+
+
+# --- the objective, measured and predicted ------------------------------------------------------
+
+
+def objective_of_run(run_dir: Path, task, material: Path | None) -> tuple[dict, dict]:
+    """The task's objective on a rig run: measured (the tracked poses' velocities) and predicted
+    (the model, the run's nominal design with `material`, on the measured input), both through
+    the comparison's differentiating filter of the frames (`comparison.metrics.frame_rates`),
+    on the task's window and samples; and `predicted_full_band_J`, the model's objective from
+    its own rates (what the design engine optimises): motion faster than the camera resolves
+    is in it and not in the other two.
+
+    The window is placed on the measured pulse onset as the task's scene places it on its
+    pulse start; before the onset the sample is at rest (kinetic energy 0). Target units lost
+    by the tracker are left out of both (and counted).
+
+    Returns:
+        (the `objective.json` document, arrays for the Rerun recording: t_s [n_t] since the
+        onset, target_ke_measured_J / target_ke_predicted_J [n_t], polygons_m [n, nv, 2]).
+
+    Raises:
+        LoopError: the run cannot be read or compared, or its capture ends before the window.
+    """
+    from design_engine.material_file import MaterialFileError, with_material
+    from ros_nodes.logic import comparison_run as run
+    from ros_nodes.logic.comparison_run import CompareError
+    from ros_nodes.logic.recording import RecordingError, read_recording
+    from ros_nodes.recorded_run import measured_poses, recorded_design
+
+    try:
+        rec = read_recording(run_dir)
+        scene, polygons = run.design_scene(recorded_design(rec, run_dir), where=str(rec.path))
+        if material is not None:
+            scene = with_material(scene, material)
+        tracked = measured_poses(rec, "dic", polygons, None, 1, False)
+        run.check_poses(scene, tracked.poses, where=str(rec.path))
+        ec = run.simulate_and_compare(scene, tracked.poses, tracked.t0_s, rec.shaker_t_s,
+                                      rec.shaker_u_m, rec.stage_t_s, rec.stage_closing_m,
+                                      rec.closing_speed_m_s, rec.stage_hold_s,
+                                      where=str(rec.path))
+    except (RecordingError, CompareError, MaterialFileError) as exc:
+        raise LoopError(f"objective of {run_dir}: {exc}") from None
+    c = ec.comparison
+    task_scene = next(iter(task.scenes.values()))
+    ld = task_scene.loading
+    t_task = (task_scene.sample_times - ld.pulse_start - ld.delay) / 1e3  # s since the pulse
+    if t_task[-1] > c.t[-1] + 1e-9:
+        raise LoopError(f"objective of {run_dir}: the capture ends {c.t[-1] * 1e3:.1f} ms after "
+                        f"the pulse onset, before the task's window ({t_task[-1] * 1e3:.1f} ms); "
+                        "give the rig a longer --record-s")
+    from comparison.metrics import kinetic_energy
+
+    keep = ec.measured.t >= c.metrics["onset_s"] - 1e-9  # the comparison's window
+    ke_full = kinetic_energy(ec.simulated_abs.qdot[keep], scene.unit_masses_kg(),
+                             scene.unit_inertias_kgm2())  # the engine's own rates, unfiltered
+    terms, lost = {}, set()
+    ke = {"measured": np.zeros_like(c.t), "predicted": np.zeros_like(c.t)}
+    measured = predicted = full_band = 0.0
+    for term in task.terms:
+        ids = np.asarray(task.targets[term.target])
+        used = ids[c.used[ids]]
+        lost.update(int(i) for i in ids[~c.used[ids]])
+        row = {"target": term.target, "weight": term.weight, "ids": [int(i) for i in ids],
+               "units_tracked": int(used.size)}
+        for side, field_ in (("measured", c.ke_exp), ("predicted", c.ke_sim)):
+            series = field_[:, used].sum(axis=1)
+            ke[side] += term.weight * series
+            row[f"{side}_J"] = float(np.mean(np.interp(t_task, c.t, series, left=0.0)))
+        row["predicted_full_band_J"] = float(np.mean(np.interp(
+            t_task, c.t, ke_full[:, used].sum(axis=1), left=0.0)))
+        terms[term.name] = row
+        measured += term.weight * row["measured_J"]
+        predicted += term.weight * row["predicted_J"]
+        full_band += term.weight * row["predicted_full_band_J"]
+    m = c.metrics
+    doc = {
+        "task": task.name, "goal": task.goal, "measured_J": measured, "predicted_J": predicted,
+        "measured_over_predicted": measured / predicted if predicted else float("nan"),
+        "predicted_full_band_J": full_band,
+        "unit": "J (mean kinetic energy of the target over the task's window, weighted sum of "
+                "the terms)",
+        "terms": terms, "target_units_lost": sorted(lost),
+        "window_s": [float(t_task[0]), float(t_task[-1])], "samples": int(t_task.size),
+        "model_material": str(material) if material is not None else "default",
+        "comparison": {k: m[k] for k in ("velocity_nrmse", "energy_map_correlation",
+                                         "target_peak_ke_rel_err", "lost_units") if k in m},
+        "onset_s": float(m["onset_s"]), "run": str(run_dir),
+    }
+    arrays = {"t_s": np.asarray(c.t, np.float64), "target_ke_measured_J": ke["measured"],
+              "target_ke_predicted_J": ke["predicted"], "polygons_m": np.asarray(polygons)}
+    return doc, arrays
+
+
+# --- materials between rounds -----------------------------------------------------------------
+
+
+def carried_material(model: Path | None, calibration: dict) -> tuple[dict, dict, list[str]]:
+    """(values, stderrs, names dropped) of the next round's model: `model`'s explicit values
+    (none: the defaults) updated with the calibrated parameters and the values derived from
+    them, except those the calibration calls undetermined (and what derives from them)."""
+    from design_engine.material_file import SI_UNITS, read_material_file
+
+    values, errors = read_material_file(model) if model is not None else ({}, {})
+    values, errors = dict(values), dict(errors)
+    undetermined = set(calibration.get("undetermined", []))
+    derived = calibration.get("derived", {})
+    dropped = sorted(undetermined)
+    for name, p in calibration.get("parameters", {}).items():
+        if name in undetermined or name not in SI_UNITS:
+            continue
+        if name == "damping_ratio":  # the calibration gives the coefficients it derives
+            continue
+        values[name], errors[name] = float(p["value"]), float(p["stderr"])
+    if "damping_ratio" not in undetermined:
+        for name, p in derived.items():
+            if name in SI_UNITS:
+                values[name], errors[name] = float(p["value"]), float(p["stderr"])
+    else:
+        dropped += sorted(n for n in derived if n in SI_UNITS)
+    return values, errors, dropped
+
+
+# --- steps ------------------------------------------------------------------------------------
+
+
+def _finished(folder: Path) -> dict | None:
+    f = folder / STEP_DONE
+    if not f.is_file():
+        return None
+    try:
+        return json.loads(f.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def _mark(folder: Path, argv: list[str] | None, wall_s: float, **extra) -> dict:
+    doc = {"command": None if argv is None else ["metarig", *argv], "wall_s": round(wall_s, 2),
+           **extra}
+    tmp = folder / (STEP_DONE + ".tmp")
+    tmp.write_text(json.dumps(doc, indent=2))
+    tmp.replace(folder / STEP_DONE)
+    return doc
+
+
+def _metarig(name: str, argv: list[str]) -> None:
+    """`metarig ARGV` in its own process (the command a user would type; its progress and
+    messages go to this terminal)."""
+    code = subprocess.run([sys.executable, "-m", "metarig", *argv]).returncode
+    if code == 130:
+        raise KeyboardInterrupt
+    if code != 0:
+        raise LoopError(f"{name} failed (exit code {code}); see its messages above")
+
+
+class _Round:
+    """The steps of one round (see the module docstring)."""
+
+    def __init__(self, plan: LoopPlan, task, k: int, rig_argv: list[str]):
+        self.plan, self.task, self.k, self.rig_argv = plan, task, k, rig_argv
+        self.dir = plan.out / f"round-{k}"
+        self.timings: dict[str, float] = {}
+        self.skipped: list[str] = []
+
+    def _step(self, name: str, folder: Path, work) -> dict:
+        done = _finished(folder)
+        label = f"round {self.k}/{self.plan.rounds}: {name}"
+        if done is not None:
+            log.info("[loop] %s: done already (%s)", label, folder)
+            self.skipped.append(name)
+            return done
+        log.info("[loop] %s ...", label)
+        t0 = time.perf_counter()
+        argv, extra = work(folder)
+        wall = time.perf_counter() - t0
+        self.timings[name] = round(wall, 1)
+        log.info("[loop] %s: done in %.1f s", label, wall)
+        return _mark(folder, argv, wall, **extra)
+
+    def model_material(self) -> Path | None:
+        """The round's model material file (written once), or None for the default."""
+        path = self.dir / MATERIAL_NAME
+        if self.k == 1:
+            if self.plan.material is None:
+                return None
+            if not path.exists():
+                self.dir.mkdir(parents=True, exist_ok=True)
+                shutil.copyfile(self.plan.material, path)
+            return path
+        if path.exists():
+            return path
+        prev = self.plan.out / f"round-{self.k - 1}"
+        cal = json.loads((prev / CALIBRATE / "calibration.json").read_text())
+        before = prev / MATERIAL_NAME
+        values, errors, dropped = carried_material(before if before.exists() else None, cal)
+        from design_engine.material_file import save_material
+
+        self.dir.mkdir(parents=True, exist_ok=True)
+        note = (f"not carried (undetermined by the calibration): {', '.join(dropped)}"
+                if dropped else "")
+        save_material(path, values, errors,
+                      f"metarig loop: round {self.k - 1}'s model updated by its calibration "
+                      f"({prev / CALIBRATE / 'calibration.json'})", note)
+        return path
+
+    def design(self, material: Path | None) -> Path:
+        folder = self.dir / DESIGN
+
+        def work(folder):
+            if self.k == 1 and self.plan.design is not None:
+                shutil.rmtree(folder, ignore_errors=True)
+                folder.mkdir(parents=True)
+                shutil.copyfile(self.plan.design, folder / "design.json")
+                return None, {"given": str(self.plan.design)}
+            argv = ["design", self.plan.task, "--out", str(folder), "--quiet"]
+            if self.plan.size is not None:
+                argv += ["--size", f"{self.plan.size[0]}x{self.plan.size[1]}"]
+            if self.plan.max_evals is not None:
+                argv += ["--max-evals", str(self.plan.max_evals)]
+            if material is not None:
+                argv += ["--material", str(material)]
+            if (folder / "run.json").exists():
+                argv.append("--resume")  # an interrupted design continues from its checkpoint
+            _metarig("design", argv)
+            if not (folder / "design.json").exists():
+                raise LoopError(f"round {self.k}: the design found no feasible design")
+            return argv, {}
+
+        self._step("design", folder, work)
+        return folder / "design.json"
+
+    def rig(self, design: Path) -> Path:
+        folder = self.dir / RIG
+
+        def work(folder):
+            shutil.rmtree(folder, ignore_errors=True)  # the remains of an interrupted run
+            argv = ["rig", "--design", str(design), *self.rig_argv, "--out", str(folder)]
+            if self.plan.workers is not None:
+                argv += ["--workers", str(self.plan.workers)]
+            _metarig("rig", argv)
+            return argv, {}
+
+        self._step("rig (experiment, tracking, comparison)", folder, work)
+        return folder
+
+    def objective(self, run_dir: Path, material: Path | None) -> dict:
+        folder = self.dir / OBJECTIVE
+
+        def work(folder):
+            folder.mkdir(parents=True, exist_ok=True)
+            doc, arrays = objective_of_run(run_dir, self.task, material)
+            np.savez(folder / "target_ke.npz", **arrays)
+            (folder / "objective.json").write_text(json.dumps(doc, indent=2))
+            return None, {}
+
+        self._step("objective (measured and predicted)", folder, work)
+        return json.loads((folder / "objective.json").read_text())
+
+    def calibrate(self, run_dir: Path, material: Path | None) -> dict:
+        folder = self.dir / CALIBRATE
+
+        def work(folder):
+            shutil.rmtree(folder, ignore_errors=True)
+            argv = ["calibrate", str(run_dir), "--out", str(folder), "--quiet"]
+            if material is not None:
+                argv += ["--material", str(material)]
+            if self.plan.fit is not None:
+                argv += ["--fit", self.plan.fit]
+            if self.plan.workers is not None:
+                argv += ["--workers", str(self.plan.workers)]
+            _metarig("calibrate", argv)
+            return argv, {}
+
+        self._step("calibrate", folder, work)
+        return json.loads((folder / "calibration.json").read_text())
+
+    def run(self) -> dict:
+        """Every step of the round (finished ones skipped); returns its summary."""
+        material = self.model_material()
+        design = self.design(material)
+        run_dir = self.rig(design)
+        objective = self.objective(run_dir, material)
+        calibration = self.calibrate(run_dir, material)
+        return round_summary(self.dir, self.k, design, material, objective, calibration,
+                             self.timings, self.skipped)
+
+
+def round_summary(folder: Path, k: int, design: Path, material: Path | None, objective: dict,
+                  calibration: dict, timings: dict, skipped: list[str]) -> dict:
+    """One round's entry of `loop.json`."""
+    from design_engine.material_file import load_material_file
+
+    doc = json.loads(design.read_text())
+    values, errors = load_material_file(material) if material is not None else (None, None)
+    return {
+        "round": k, "folder": str(folder), "design": str(design),
+        "design_objective_J": doc.get("objective"),
+        "model_material": {"file": str(material) if material else "default",
+                           "values": values, "stderr": errors},
+        "predicted_objective_J": objective["predicted_J"],
+        "measured_objective_J": objective["measured_J"],
+        "measured_over_predicted": objective["measured_over_predicted"],
+        "predicted_full_band_objective_J": objective["predicted_full_band_J"],
+        "target_units_lost": objective["target_units_lost"],
+        "comparison": objective["comparison"],
+        "calibrated_material": {
+            "file": str(folder / CALIBRATE / MATERIAL_NAME),
+            "parameters": calibration.get("parameters", {}),
+            "derived": calibration.get("derived", {}),
+            "undetermined": calibration.get("undetermined", []),
+            "model_error": calibration.get("model_error"),
+            "residual": calibration.get("residual"), "residual_unit": calibration.get(
+                "residual_unit")},
+        "timings_s": timings, "steps_done_before": skipped,
+    }
+
+
+def run_loop(plan: LoopPlan) -> dict:
+    """Run (or resume) every round of `plan`, then write `loop.json` and `loop.rrd`; returns
+    the `loop.json` document.
+
+    Raises:
+        LoopError: a step failed or an input is unusable (one line).
+    """
+    if plan.rounds < 1:
+        raise LoopError("--rounds must be 1 or more")
+    for what, path in (("--design", plan.design), ("--material", plan.material)):
+        if path is not None and not Path(path).is_file():
+            raise LoopError(f"{what} {path}: no such file")
+    if plan.material is not None:
+        from design_engine.material_file import MaterialFileError, read_material_file
+
+        try:
+            read_material_file(plan.material)
+        except MaterialFileError as exc:
+            raise LoopError(str(exc)) from None
+    task = load_plan_task(plan)
+    rig_argv = rig_arguments(task, plan.rig_args)
+    plan.out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    rounds = []
+    for k in range(1, plan.rounds + 1):
+        r = _Round(plan, task, k, rig_argv).run()
+        rounds.append(r)
+        log.info("[loop] round %d: objective measured %.4g J, predicted %.4g J (x%.3f)", k,
+                 r["measured_objective_J"], r["predicted_objective_J"],
+                 r["measured_over_predicted"])
+    doc = {
+        "task": task.name, "goal": task.goal, "out": str(plan.out), "rounds": rounds,
+        "rig_arguments": rig_argv, "max_evals": plan.max_evals,
+        "lattice": list(task.lattice.shape),
+        "objective_unit": "J (mean kinetic energy of the target over the task's window)",
+        "wall_s_this_invocation": round(time.perf_counter() - t0, 1),
+    }
+    (plan.out / SUMMARY_NAME).write_text(json.dumps(doc, indent=2))
+    write_loop_rrd(plan.out / RRD_NAME, plan.out, rounds)
+    return doc
+
+
+# --- the Rerun recording of the rounds ---------------------------------------------------------
+
+TIMELINE = "t"  # time since the pulse onset
+APPLICATION_ID = "metarig_loop"
+ROUND_ENTITY = "round-{k}"
+MM_PER_M = 1e3
+MEASURED_RGBA, PREDICTED_RGBA = (214, 39, 40, 255), (31, 119, 180, 255)
+OUTLINE_RGBA, TARGET_RGBA = (90, 90, 90, 255), (255, 0, 255, 255)
+
+
+def write_loop_rrd(path: Path, out: Path, rounds: list[dict]) -> Path:
+    """`loop.rrd`: per round side by side, its design (unit outlines, target units magenta)
+    over the target's kinetic energy measured and predicted on the rounds' shared time axis
+    (since the pulse onset); below them the objectives of every round as a table. Written to a
+    temporary file and renamed, so `path` is whole or absent."""
+    import rerun as rr
+    import rerun.blueprint as rrb
+
+    data, columns = {}, []
+    for r in rounds:
+        k = r["round"]
+        data[k] = (np.load(out / f"round-{k}" / OBJECTIVE / "target_ke.npz"),
+                   json.loads((out / f"round-{k}" / OBJECTIVE / "objective.json").read_text()))
+        root = ROUND_ENTITY.format(k=k)
+        columns.append(rrb.Vertical(
+            rrb.Spatial2DView(origin=f"{root}/design", name=f"round {k}: design"),
+            rrb.TimeSeriesView(origin=f"{root}/target_ke",
+                               name=f"round {k}: target kinetic energy [J]"),
+        ))
+    blueprint = rrb.Blueprint(
+        rrb.Vertical(rrb.Horizontal(*columns),
+                     rrb.TextDocumentView(origin="summary", name="rounds"), row_shares=[4, 1]),
+        rrb.BlueprintPanel(state="collapsed"), rrb.SelectionPanel(state="collapsed"),
+        rrb.TimePanel(timeline=TIMELINE, state="collapsed"), collapse_panels=False)
+    tmp = path.with_name(f".{path.name}.part")
+    rec = rr.RecordingStream(APPLICATION_ID)
+    rec.save(tmp, default_blueprint=blueprint)
+    try:
+        rec.log("summary", rr.TextDocument(loop_markdown(rounds),
+                                           media_type=rr.MediaType.MARKDOWN), static=True)
+        for k, (arrays, objective) in data.items():
+            root = ROUND_ENTITY.format(k=k)
+            poly = arrays["polygons_m"] * np.array([MM_PER_M, -MM_PER_M])  # Rerun: y down
+            strips = np.concatenate([poly, poly[:, :1]], axis=1).astype(np.float32)
+            colours = np.tile(np.array([OUTLINE_RGBA], np.uint8), (len(strips), 1))
+            for term in objective["terms"].values():
+                colours[np.asarray(term["ids"], np.int64)] = TARGET_RGBA
+            rec.log(f"{root}/design", rr.LineStrips2D(strips, colors=colours), static=True)
+            t = np.asarray(arrays["t_s"], np.float64)
+            for side, rgba in (("measured", MEASURED_RGBA), ("predicted", PREDICTED_RGBA)):
+                entity = f"{root}/target_ke/{side}"
+                rec.log(entity, rr.SeriesLines(names=side, colors=[rgba]), static=True)
+                rr.send_columns(entity, indexes=[rr.TimeColumn(TIMELINE, duration=t)],
+                                columns=rr.Scalars.columns(
+                                    scalars=np.asarray(arrays[f"target_ke_{side}_J"])),
+                                recording=rec)
+    finally:
+        rec.disconnect()  # flushes and writes the footer
+    tmp.replace(path)
+    return path
+
+
+def loop_markdown(rounds: list[dict]) -> str:
+    """The rounds' objectives as a markdown table."""
+    lines = ["| round | design objective (J) | predicted (J) | measured (J) | measured / "
+             "predicted |", "|---|---|---|---|---|"]
+    for r in rounds:
+        d = r["design_objective_J"]
+        lines.append(f"| {r['round']} | {d:.4g} | {r['predicted_objective_J']:.4g} | "
+                     f"{r['measured_objective_J']:.4g} | {r['measured_over_predicted']:.3f} |"
+                     if d is not None else
+                     f"| {r['round']} | - | {r['predicted_objective_J']:.4g} | "
+                     f"{r['measured_objective_J']:.4g} | {r['measured_over_predicted']:.3f} |")
+    return "\n".join(lines)

@@ -1,0 +1,163 @@
+"""`metarig loop`: the plan's rig flags, the material carried between rounds, one-line refusals,
+and (slow) one small round end to end on the simulated rig, then resumed."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from design_engine.material_file import read_material_file, save_material
+from ros_nodes.logic.closed_loop import (LoopError, LoopPlan, carried_material, load_plan_task,
+                                         rig_arguments)
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _metarig(*argv, timeout=900):
+    return subprocess.run([sys.executable, "-m", "metarig", *argv], cwd=ROOT,
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def _flag(args, name):
+    return args[args.index(name) + 1]
+
+
+def test_rig_arguments_follow_the_task():
+    task = load_plan_task(LoopPlan(task="focusing-demo", out=Path("unused")))
+    args = rig_arguments(task, ("--perturb", "0.2", "--seed", "5"))
+    scene = next(iter(task.scenes.values()))
+    assert _flag(args, "--scene") == "focusing-24x16"
+    assert float(_flag(args, "--amplitude")) == pytest.approx(0.002)  # the task's 2 mm pulse
+    assert float(_flag(args, "--frequency")) == pytest.approx(30.0)
+    # the capture covers the pre-trigger and the task's whole window after the pulse start
+    window_end_s = (scene.window_start + scene.window) / 1e3
+    assert float(_flag(args, "--record-s")) >= 0.005 + window_end_s
+    # the frame holds the undeformed 8x6 sample (15 mm pitch)
+    m_per_px = float(_flag(args, "--m-per-px"))
+    assert 480 * m_per_px >= 8 * 0.015 and 360 * m_per_px >= 6 * 0.015
+    assert args[-4:] == ["--perturb", "0.2", "--seed", "5"]
+    own = rig_arguments(task, ("--m-per-px", "5e-4"))
+    assert own.count("--m-per-px") == 1 and "--width" not in own
+
+
+@pytest.mark.parametrize("flag", ["--design", "--scene", "--material", "--amplitude"])
+def test_rig_arguments_refuse_what_the_loop_sets(flag):
+    task = load_plan_task(LoopPlan(task="focusing-demo", out=Path("unused")))
+    with pytest.raises(LoopError, match=flag):
+        rig_arguments(task, (flag, "x"))
+
+
+def test_task_the_rig_cannot_measure_is_refused():
+    with pytest.raises(LoopError, match="kinetic-energy"):
+        load_plan_task(LoopPlan(task="spin-ccw", out=Path("unused")))
+
+
+def _calibration(undetermined):
+    return {"parameters": {"k_shear": {"value": 1000.0, "stderr": 20.0, "unit": "N/m"},
+                           "k_bend": {"value": 1e-4, "stderr": 5e-3, "unit": "N m/rad"},
+                           "damping_ratio": {"value": 0.03, "stderr": 0.002, "unit": "1"}},
+            "derived": {"damping_u": {"value": 0.04, "stderr": 0.003, "unit": "N s/m"},
+                        "damping_theta": {"value": 5e-7, "stderr": 4e-8, "unit": "N m s"}},
+            "undetermined": undetermined}
+
+
+def test_carried_material_keeps_only_what_the_calibration_determined(tmp_path):
+    model = save_material(tmp_path / "m.toml", {"k_bend": 1.2e-3, "k_stretch": 1.1e5},
+                          {"k_bend": 1e-4})
+    values, errors, dropped = carried_material(model, _calibration(["k_bend"]))
+    assert values["k_shear"] == 1000.0 and errors["k_shear"] == 20.0  # determined: carried
+    assert values["k_bend"] == 1.2e-3 and errors["k_bend"] == 1e-4  # undetermined: the model's
+    assert values["k_stretch"] == 1.1e5  # not fitted: the model's
+    assert values["damping_u"] == 0.04 and values["damping_theta"] == 5e-7
+    assert "damping_ratio" not in values  # the coefficients it gives are carried instead
+    assert dropped == ["k_bend"]
+    save_material(tmp_path / "next.toml", values, errors)  # a valid material file
+    assert read_material_file(tmp_path / "next.toml")[0] == values
+
+
+def test_carried_material_drops_damping_derived_from_an_undetermined_ratio():
+    values, _, dropped = carried_material(None, _calibration(["damping_ratio"]))
+    assert set(values) == {"k_shear", "k_bend"}
+    assert set(dropped) == {"damping_ratio", "damping_u", "damping_theta"}
+
+
+@pytest.mark.parametrize("argv, text", [
+    (["no-such-task"], "task no-such-task"),
+    (["focusing-demo", "--design", "missing.json"], "--design missing.json: no such file"),
+    (["focusing-demo", "--", "--scene", "focusing-24x16"], "--scene"),
+])
+def test_bad_inputs_get_one_line(tmp_path, argv, text):
+    r = _metarig("loop", *argv[:1], "--out", str(tmp_path / "loop"), *argv[1:], timeout=120)
+    assert r.returncode == 2
+    assert text in r.stderr and "Traceback" not in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "loop" / "round-1").exists()
+
+
+STEP_FILES = {
+    "design": ["design.json", "history.json", "run.json", "step.json"],
+    "rig": ["recording.mcap", "run.json", "summary.json", "comparison.rrd", "tracks.npz",
+            "simulated.npz", "design.json", "calibration.json", "step.json"],
+    "objective": ["objective.json", "target_ke.npz", "step.json"],
+    "calibrate": ["calibration.json", "material.toml", "calibration.png", "step.json"],
+}
+
+
+@pytest.mark.slow  # one round: a 2-evaluation design, a rig run, tracking, a calibration (~5 min)
+def test_one_round_end_to_end_then_resumed(tmp_path):
+    out = tmp_path / "loop"
+    argv = ["loop", "focusing-demo", "--out", str(out), "--rounds", "1", "--max-evals", "2",
+            "--workers", "2", "--", "--perturb", "0.2", "--seed", "576"]
+    r = _metarig(*argv)
+    assert r.returncode == 0, r.stderr[-2000:]
+    round_dir = out / "round-1"
+    for step, names in STEP_FILES.items():
+        missing = [n for n in names if not (round_dir / step / n).is_file()]
+        assert not missing, f"{step}: {missing}"
+    assert (out / "loop.rrd").stat().st_size > 1000
+    doc = json.loads((out / "loop.json").read_text())
+    (rnd,) = doc["rounds"]
+    assert rnd["design"] == str(round_dir / "design" / "design.json")
+    for key in ("predicted_objective_J", "measured_objective_J"):
+        assert np.isfinite(rnd[key]) and rnd[key] > 0
+    # the sample differs from the model, but not by orders of magnitude
+    assert 0.2 < rnd["measured_objective_J"] / rnd["predicted_objective_J"] < 5
+    objective = json.loads((round_dir / "objective" / "objective.json").read_text())
+    ke = np.load(round_dir / "objective" / "target_ke.npz")
+    assert ke["t_s"].shape == ke["target_ke_measured_J"].shape
+    # the objective is the mean over the task's window, within the recorded target energy
+    assert 0 < objective["measured_J"] <= ke["target_ke_measured_J"].max()
+    cal = rnd["calibrated_material"]
+    assert cal["parameters"] and all("stderr" in p for p in cal["parameters"].values())
+    assert "[loop] round 1/1: calibrate: done in" in r.stderr
+
+    stamps = {p: p.stat().st_mtime_ns for p in round_dir.rglob("*") if p.is_file()}
+    again = _metarig(*argv)
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert again.stderr.count("done already") == 4
+    assert "done in" not in again.stderr  # no step ran
+    assert {p: p.stat().st_mtime_ns for p in round_dir.rglob("*") if p.is_file()} == stamps
+    again_doc = json.loads((out / "loop.json").read_text())
+    assert again_doc["rounds"][0]["measured_objective_J"] == rnd["measured_objective_J"]
+
+
+def test_an_interrupted_step_is_redone_not_trusted(tmp_path):
+    """A step folder without its `step.json` (an interrupted step) is not taken as done: the
+    loop recomputes it (here the objective of a run folder that holds no recording fails,
+    which shows that it was attempted)."""
+    out = tmp_path / "loop"
+    round_dir = out / "round-1"
+    (round_dir / "design").mkdir(parents=True)
+    (round_dir / "design" / "design.json").write_text("{}")
+    (round_dir / "design" / "step.json").write_text(json.dumps({"command": None}))
+    (round_dir / "rig").mkdir()
+    (round_dir / "rig" / "step.json").write_text(json.dumps({"command": None}))
+    (round_dir / "objective").mkdir()  # interrupted: no step.json
+    r = _metarig("loop", "focusing-demo", "--out", str(out), "--rounds", "1", timeout=300)
+    assert r.returncode == 2
+    assert "design: done already" in r.stderr and "rig (experiment" in r.stderr
+    assert "objective (measured and predicted) ..." in r.stderr
+    assert "objective of" in r.stderr.strip().splitlines()[-1]

@@ -161,3 +161,49 @@ def test_an_interrupted_step_is_redone_not_trusted(tmp_path):
     assert "design: done already" in r.stderr and "rig (experiment" in r.stderr
     assert "objective (measured and predicted) ..." in r.stderr
     assert "objective of" in r.stderr.strip().splitlines()[-1]
+
+
+def test_loop_rrd_shows_the_rounds_side_by_side(tmp_path):
+    """`loop.rrd`: per round its design and its measured and predicted target energy, a view
+    of each per round, and the table of the rounds."""
+    from rerun.chunk import RrdReader
+
+    from ros_nodes.logic.closed_loop import OBJECTIVE, write_loop_rrd
+
+    rng = np.random.default_rng(0)
+    square = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float64) * 0.01
+    rounds = []
+    for k, n_t in ((1, 30), (2, 40)):
+        folder = tmp_path / f"round-{k}" / OBJECTIVE
+        folder.mkdir(parents=True)
+        polygons = square[None] + 0.015 * np.arange(6)[:, None, None] * [1, 0]
+        np.savez(folder / "target_ke.npz", t_s=np.arange(n_t) * 1e-3,
+                 target_ke_measured_J=rng.random(n_t), target_ke_predicted_J=rng.random(n_t),
+                 polygons_m=polygons)
+        (folder / "objective.json").write_text(json.dumps({"terms": {"t": {"ids": [4, 5]}}}))
+        rounds.append({"round": k, "design_objective_J": 2e-6 * k, "predicted_objective_J": 1e-6,
+                       "measured_objective_J": 1.1e-6 * k, "measured_over_predicted": 1.1 * k})
+    path = write_loop_rrd(tmp_path / "loop.rrd", tmp_path, rounds)
+    reader = RrdReader(path)
+    (recording,) = reader.recordings()
+    chunks = reader.stream(store=recording).to_chunks()
+    rows = {}
+    for ch in chunks:
+        if not ch.is_static:
+            rows[ch.entity_path] = rows.get(ch.entity_path, 0) + ch.num_rows
+    for k, n_t in ((1, 30), (2, 40)):
+        for side in ("measured", "predicted"):
+            assert rows[f"/round-{k}/target_ke/{side}"] == n_t
+    entities = {ch.entity_path for ch in chunks}
+    assert {"/round-1/design", "/round-2/design", "/summary"} <= entities
+    (design,) = [ch for ch in chunks if ch.entity_path == "/round-2/design"]
+    colours = design.to_record_batch().column("LineStrips2D:colors").to_pylist()[0]
+    assert len(colours) == 6 and colours[4] == colours[5] != colours[0]  # the target marked
+    views = set()
+    for b in reader.blueprints():
+        for ch in reader.stream(store=b).to_chunks():
+            if ch.entity_path.startswith("/view/") and ch.entity_path.count("/") == 2:
+                views.add(ch.to_record_batch().column(
+                    "ViewBlueprint:space_origin").to_pylist()[-1][0])
+    assert {"round-1/design", "round-2/design", "round-2/target_ke", "summary"} <= views
+    assert not list(tmp_path.glob(".loop.rrd*"))  # the temporary file was renamed

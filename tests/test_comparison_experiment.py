@@ -109,13 +109,14 @@ def _film_and_track(specimen, scene, seed: int, folder):
 
     traj = exposure_motion(specimen, FILMED_TIMES, MotionRecord(T_IN, U_FILMED), None, FPS)
     mpp, w, h = 4e-4, 340, 260
-    origin = centred_origin(specimen.polygons_m, w, h, mpp)
+    origin = centred_origin(specimen.nominal_polygons_m, w, h, mpp)
     ccfg = cam.CameraConfig(width_px=w, height_px=h, fps=FPS, m_per_px=mpp, origin_px=origin,
                             noise_std=0.01, seed=seed)
     for k, (_, frame, _) in enumerate(film(specimen, ccfg, traj, np.random.default_rng(seed))):
         cv2.imwrite(str(folder / f"{k:04d}.png"), frame)
     calib = Calibration(fps=FPS, m_per_px=mpp, origin_px=origin, y_up=True)
-    tracked, bad = track_source(open_source(folder), specimen.polygons_m, calib, DICConfig())
+    tracked, bad = track_source(open_source(folder), specimen.nominal_polygons_m, calib,
+                                DICConfig())
     assert not bad.any() and not tracked.lost.any()
     times = traj.t[1::3]  # the frames' stamps: the middle of their exposures
     tracked = Trajectory.from_positions(times - times[0], tracked.q, tracked.quality,

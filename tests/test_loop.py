@@ -50,6 +50,30 @@ def test_rig_arguments_refuse_what_the_loop_sets(flag):
         rig_arguments(task, (flag, "x"))
 
 
+def test_rig_capture_covers_a_longer_pre_trigger():
+    task = load_plan_task(LoopPlan(task="focusing-demo", out=Path("unused")))
+    short = float(_flag(rig_arguments(task, ()), "--record-s"))
+    longer = float(_flag(rig_arguments(task, ("--pre-trigger-s", "0.05")), "--record-s"))
+    assert longer == pytest.approx(short + 0.045, abs=1.5e-3)
+
+
+def test_a_design_of_another_lattice_is_refused(tmp_path):
+    from design_engine.design_io import save_design
+    from design_engine.lattice import periodic_design, quads
+    from ros_nodes.logic.closed_loop import check_design_fits
+
+    task = load_plan_task(LoopPlan(task="focusing-demo", out=Path("unused")))
+    lattice = quads(6, 4)
+    path = save_design(tmp_path / "d.json", lattice, periodic_design(lattice, 0.4))
+    with pytest.raises(LoopError, match="6x4 design, but task focusing-demo is on a quads 8x6"):
+        check_design_fits(path, task)
+    (tmp_path / "bad.json").write_text("{")
+    with pytest.raises(LoopError, match="not a readable design file"):
+        check_design_fits(tmp_path / "bad.json", task)
+    fits = quads(8, 6)
+    check_design_fits(save_design(tmp_path / "ok.json", fits, periodic_design(fits, 0.4)), task)
+
+
 def test_task_the_rig_cannot_measure_is_refused():
     with pytest.raises(LoopError, match="kinetic-energy"):
         load_plan_task(LoopPlan(task="spin-ccw", out=Path("unused")))

@@ -118,6 +118,18 @@ def _given(args, flag: str) -> bool:
     return any(a == flag or a.startswith(flag + "=") for a in args)
 
 
+def _value(args, flag: str) -> float:
+    for i, a in enumerate(args):
+        text = a.split("=", 1)[1] if a.startswith(flag + "=") else (
+            args[i + 1] if a == flag and i + 1 < len(args) else None)
+        if text is not None:
+            try:
+                return float(text)
+            except ValueError:
+                raise LoopError(f"{flag} {text!r}: not a number") from None
+    raise LoopError(f"{flag} needs a value")
+
+
 def rig_arguments(task, rig_args) -> list[str]:
     """The `metarig rig` flags of the task's scene: scene preset, strain, amplitude (m),
     frequency (Hz), waveform, a capture covering the objective's window; a frame that holds the
@@ -133,6 +145,8 @@ def rig_arguments(task, rig_args) -> list[str]:
     scene = next(iter(task.scenes.values()))
     ld = scene.loading
     pre = PRE_TRIGGER_S
+    if _given(rig_args, "--pre-trigger-s"):
+        pre = _value(rig_args, "--pre-trigger-s")
     end_ms = scene.window_start + scene.window  # the window's end on the solver clock, ms
     record_s = math.ceil((pre + end_ms / 1e3 + RECORD_MARGIN_S) * 1e3) / 1e3
     out = ["--scene", scene.name, "--strain", repr(float(ld.strain)),
@@ -147,6 +161,23 @@ def rig_arguments(task, rig_args) -> list[str]:
         out += ["--width", str(FRAME_PX[0]), "--height", str(FRAME_PX[1]),
                 "--m-per-px", f"{math.ceil(m_per_px * 1e6) / 1e6:.6g}"]
     return out + list(rig_args)
+
+
+def check_design_fits(path: Path, task) -> None:
+    """Refuse a design file that is unreadable or not of the task's lattice."""
+    from design_engine.design_io import load_design
+
+    try:
+        lattice, _ = load_design(path)
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise LoopError(f"--design {path}: not a readable design file "
+                        f"({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})"
+                        ) from None
+    if lattice.kind != task.lattice.kind or tuple(lattice.shape) != tuple(task.lattice.shape):
+        raise LoopError(f"--design {path}: a {lattice.kind} {lattice.shape[0]}x"
+                        f"{lattice.shape[1]} design, but task {task.name} is on a "
+                        f"{task.lattice.kind} {task.lattice.shape[0]}x{task.lattice.shape[1]} "
+                        "lattice (--size sets the task's)")
 
 
 # --- the objective, measured and predicted ------------------------------------------------------
@@ -485,6 +516,8 @@ def run_loop(plan: LoopPlan) -> dict:
             raise LoopError(str(exc)) from None
     task = load_plan_task(plan)
     rig_argv = rig_arguments(task, plan.rig_args)
+    if plan.design is not None:
+        check_design_fits(plan.design, task)
     plan.out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     rounds = []

@@ -231,3 +231,17 @@ def test_loop_rrd_shows_the_rounds_side_by_side(tmp_path):
                     "ViewBlueprint:space_origin").to_pylist()[-1][0])
     assert {"round-1/design", "round-2/design", "round-2/target_ke", "summary"} <= views
     assert not list(tmp_path.glob(".loop.rrd*"))  # the temporary file was renamed
+
+
+def test_a_folder_resumes_only_with_its_own_settings(tmp_path):
+    from ros_nodes.logic.closed_loop import check_same_settings
+
+    first = LoopPlan(task="focusing-demo", out=tmp_path, max_evals=3, rig_args=("--seed", "5"))
+    check_same_settings(first)
+    check_same_settings(first)  # the same settings: resume
+    check_same_settings(LoopPlan(task="focusing-demo", out=tmp_path, max_evals=3, rounds=4,
+                                 workers=1, rig_args=("--seed", "5")))  # more rounds: fine
+    with pytest.raises(LoopError, match=r"other settings \(max_evals, rig_args: 3, \['--seed', "
+                                        r"'5'\]\)"):
+        check_same_settings(LoopPlan(task="focusing-demo", out=tmp_path, max_evals=4,
+                                     rig_args=("--seed", "6")))

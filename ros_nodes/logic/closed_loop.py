@@ -495,6 +495,41 @@ def round_summary(folder: Path, k: int, design: Path, material: Path | None, obj
     }
 
 
+PLAN_NAME = "plan.json"
+# settings that may change between invocations on one folder (more rounds; fewer tracker cores)
+FREE_SETTINGS = ("rounds", "workers", "out")
+
+
+def plan_settings(plan: LoopPlan) -> dict:
+    """The settings that decide what the steps compute (JSON-ready)."""
+    return {k: (list(v) if isinstance(v, tuple) else str(v) if isinstance(v, Path) else v)
+            for k, v in ((f, getattr(plan, f)) for f in LoopPlan.__slots__)
+            if k not in FREE_SETTINGS}
+
+
+def check_same_settings(plan: LoopPlan) -> None:
+    """Record the settings in `DIR/plan.json` on the first invocation; refuse a later one with
+    other settings (its finished steps were computed with those).
+
+    Raises:
+        LoopError: the folder was run with other settings (named).
+    """
+    path = plan.out / PLAN_NAME
+    now = plan_settings(plan)
+    if path.exists():
+        try:
+            before = json.loads(path.read_text())
+        except (OSError, ValueError):
+            raise LoopError(f"{path}: unreadable; choose another --out folder") from None
+        changed = sorted(k for k in now.keys() | before.keys() if now.get(k) != before.get(k))
+        if changed:
+            raise LoopError(f"{plan.out} was run with other settings ({', '.join(changed)}: "
+                            f"{', '.join(f'{before.get(k)!r}' for k in changed)}); its finished "
+                            "steps keep them: resume with those, or choose another --out")
+        return
+    path.write_text(json.dumps(now, indent=2))
+
+
 def run_loop(plan: LoopPlan) -> dict:
     """Run (or resume) every round of `plan`, then write `loop.json` and `loop.rrd`; returns
     the `loop.json` document.
@@ -519,6 +554,7 @@ def run_loop(plan: LoopPlan) -> dict:
     if plan.design is not None:
         check_design_fits(plan.design, task)
     plan.out.mkdir(parents=True, exist_ok=True)
+    check_same_settings(plan)
     t0 = time.perf_counter()
     rounds = []
     for k in range(1, plan.rounds + 1):

@@ -16,7 +16,8 @@ the calibrated material beside the specimen's effective truth, wall times, the m
 load, into benchmarks/results/bench_loop.json.
 
 Run: .venv/bin/python benchmarks/bench_loop.py [--max-evals 8] [--run-dir runs/bench-loop]
-(resumable: the loop's folder keeps its finished steps; --fresh starts over).
+[--fit k_shear,k_bend --out benchmarks/results/bench_loop_fit.json] (resumable: the loop's
+folder keeps its finished steps; --fresh starts over).
 """
 
 import argparse
@@ -69,6 +70,8 @@ def main(argv=None) -> int:
     p.add_argument("--rounds", type=int, default=2)
     p.add_argument("--perturb", type=float, default=0.2)
     p.add_argument("--seed", type=int, default=576)
+    p.add_argument("--fit", default=None, help="parameters the calibration fits (default: "
+                   "`metarig calibrate`'s)")
     p.add_argument("--fresh", action="store_true", help="remove the loop's folder first")
     args = p.parse_args(argv)
 
@@ -83,6 +86,7 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     cmd = [sys.executable, "-m", "metarig", "loop", TASK, "--out", str(args.run_dir),
            "--rounds", str(args.rounds), "--max-evals", str(args.max_evals),
+           *(["--fit", args.fit] if args.fit else []),
            "--", "--perturb", str(args.perturb), "--seed", str(args.seed)]
     code = subprocess.run(cmd, cwd=ROOT).returncode
     wall = time.perf_counter() - t0
@@ -111,6 +115,7 @@ def main(argv=None) -> int:
     gap = [abs(r["measured_over_predicted"] - 1.0) for r in rounds]
     res = {
         "task": TASK, "lattice": loop["lattice"], "max_evals_per_round": args.max_evals,
+        "calibration_fit": args.fit or "metarig calibrate's default",
         "specimen": {"perturb": args.perturb, "seed": args.seed, "stiffness_factors": factors,
                      "imperfections": "defaults (hardware_sim.specimen.Imperfections)"},
         "command": " ".join(["metarig", *cmd[3:]]), "rounds": rounds,

@@ -95,6 +95,7 @@ def test_carried_material_keeps_only_what_the_calibration_determined(tmp_path):
     assert values["k_shear"] == 1000.0 and errors["k_shear"] == 20.0  # determined: carried
     assert values["k_bend"] == 1.2e-3 and errors["k_bend"] == 1e-4  # undetermined: the model's
     assert values["k_stretch"] == 1.1e5  # not fitted: the model's
+    assert values["density"] == 6.18  # not in the model file: the default's
     assert values["damping_u"] == 0.04 and values["damping_theta"] == 5e-7
     assert "damping_ratio" not in values  # the coefficients it gives are carried instead
     assert dropped == ["k_bend"]
@@ -103,9 +104,22 @@ def test_carried_material_keeps_only_what_the_calibration_determined(tmp_path):
 
 
 def test_carried_material_drops_damping_derived_from_an_undetermined_ratio():
+    from design_engine.material import default_si
+
     values, _, dropped = carried_material(None, _calibration(["damping_ratio"]))
-    assert set(values) == {"k_shear", "k_bend"}
+    assert values == {**default_si(), "k_shear": 1000.0, "k_bend": 1e-4}  # the ratio: default
     assert set(dropped) == {"damping_ratio", "damping_u", "damping_theta"}
+
+
+def test_a_calibration_that_determined_nothing_leaves_a_complete_model(tmp_path):
+    from design_engine.material import default_si
+
+    model = save_material(tmp_path / "m.toml", {"k_shear": 900.0}, {"k_shear": 30.0})
+    undetermined = ["k_shear", "k_bend", "damping_ratio"]
+    values, errors, dropped = carried_material(model, _calibration(undetermined))
+    assert values == {**default_si(), "k_shear": 900.0} and errors == {"k_shear": 30.0}
+    save_material(tmp_path / "next.toml", values, errors)  # loadable: not an empty file
+    assert read_material_file(tmp_path / "next.toml")[0] == values
 
 
 @pytest.mark.parametrize("argv, text", [

@@ -276,13 +276,15 @@ def objective_of_run(run_dir: Path, task, material: Path | None) -> tuple[dict, 
 
 
 def carried_material(model: Path | None, calibration: dict) -> tuple[dict, dict, list[str]]:
-    """(values, stderrs, names dropped) of the next round's model: `model`'s explicit values
-    (none: the defaults) updated with the calibrated parameters and the values derived from
-    them, except those the calibration calls undetermined (and what derives from them)."""
+    """(values, stderrs, names dropped) of the next round's model: `model`'s values (the
+    default file's where it sets none: a complete material) updated with the calibrated
+    parameters and the values derived from them, except those the calibration calls
+    undetermined (and what derives from them)."""
+    from design_engine.material import default_si
     from design_engine.material_file import SI_UNITS, read_material_file
 
     values, errors = read_material_file(model) if model is not None else ({}, {})
-    values, errors = dict(values), dict(errors)
+    values, errors = {**default_si(), **values}, dict(errors)
     undetermined = set(calibration.get("undetermined", []))
     derived = calibration.get("derived", {})
     dropped = sorted(undetermined)
@@ -292,7 +294,9 @@ def carried_material(model: Path | None, calibration: dict) -> tuple[dict, dict,
         if name == "damping_ratio":  # the calibration gives the coefficients it derives
             continue
         values[name], errors[name] = float(p["value"]), float(p["stderr"])
-    if "damping_ratio" not in undetermined:
+    if "damping_ratio" not in undetermined and any(n in SI_UNITS for n in derived):
+        values.pop("damping_ratio", None)  # the coefficients replace the ratio they came from
+        errors.pop("damping_ratio", None)
         for name, p in derived.items():
             if name in SI_UNITS:
                 values[name], errors[name] = float(p["value"]), float(p["stderr"])

@@ -111,6 +111,8 @@ def main(argv=None) -> int:
                                                            r["design"]),
             "timings_s": r["timings_s"], "steps_done_before": r["steps_done_before"],
         })
+    steps = {str(f.relative_to(args.run_dir).parent): json.loads(f.read_text())["wall_s"]
+             for f in sorted(args.run_dir.glob("round-*/*/step.json"))}
     m = [r["measured_objective_J"] for r in rounds]
     gap = [abs(r["measured_over_predicted"] - 1.0) for r in rounds]
     res = {
@@ -121,13 +123,15 @@ def main(argv=None) -> int:
         "command": " ".join(["metarig", *cmd[3:]]), "rounds": rounds,
         "round2_measured_over_round1": m[1] / m[0] if len(m) > 1 and m[0] else None,
         "prediction_gap_per_round": gap,
-        "wall_s": wall, "machine": describe(), "load_before": load_before,
+        "steps_wall_s": steps, "steps_wall_s_total": sum(steps.values()),
+        "wall_s_this_invocation": wall, "machine": describe(), "load_before": load_before,
         "load_after": os.getloadavg(), "run_dir": str(args.run_dir),
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(res, indent=1) + "\n")
     print(json.dumps({k: res[k] for k in ("round2_measured_over_round1",
-                                          "prediction_gap_per_round", "wall_s")}, indent=1))
+                                          "prediction_gap_per_round", "steps_wall_s_total")},
+                     indent=1))
     for r in rounds:
         print(f"round {r['round']}: measured {r['measured_objective_J']:.4g} J, predicted "
               f"{r['predicted_objective_J']:.4g} J (x{r['measured_over_predicted']:.3f}), "

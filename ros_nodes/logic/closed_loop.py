@@ -343,7 +343,8 @@ class _Round:
     def __init__(self, plan: LoopPlan, task, k: int, rig_argv: list[str]):
         self.plan, self.task, self.k, self.rig_argv = plan, task, k, rig_argv
         self.dir = plan.out / f"round-{k}"
-        self.timings: dict[str, float] = {}
+        self.timings: dict[str, float] = {}  # steps run by this invocation
+        self.walls: dict[str, float | None] = {}  # every step, when it ran
         self.skipped: list[str] = []
 
     def _step(self, name: str, folder: Path, work) -> dict:
@@ -352,12 +353,13 @@ class _Round:
         if done is not None:
             log.info("[loop] %s: done already (%s)", label, folder)
             self.skipped.append(name)
+            self.walls[name] = done.get("wall_s")
             return done
         log.info("[loop] %s ...", label)
         t0 = time.perf_counter()
         argv, extra = work(folder)
         wall = time.perf_counter() - t0
-        self.timings[name] = round(wall, 1)
+        self.timings[name] = self.walls[name] = round(wall, 1)
         log.info("[loop] %s: done in %.1f s", label, wall)
         return _mark(folder, argv, wall, **extra)
 
@@ -465,8 +467,10 @@ class _Round:
         run_dir = self.rig(design)
         objective = self.objective(run_dir, material)
         calibration = self.calibrate(run_dir, material)
-        return round_summary(self.dir, self.k, design, material, objective, calibration,
-                             self.timings, self.skipped)
+        doc = round_summary(self.dir, self.k, design, material, objective, calibration,
+                            self.timings, self.skipped)
+        doc["steps_wall_s"] = self.walls
+        return doc
 
 
 def round_summary(folder: Path, k: int, design: Path, material: Path | None, objective: dict,

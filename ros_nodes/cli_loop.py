@@ -21,14 +21,13 @@ from metarig.argtypes import grid_size, positive, text
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="metarig loop", description=loop_main.__doc__,
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
         epilog="Flags after `--` go to `metarig rig` in every round, e.g. `-- --perturb 0.2 "
                "--seed 576 --specimen-thickness-error -0.05` (see `metarig rig --help`).")
     p.add_argument("task", help="task preset name or task file (.toml), as `metarig design`")
     p.add_argument("--out", type=Path, required=True, help="the loop's folder (resumed if it "
                    "holds finished steps)")
     p.add_argument("--rounds", type=positive(int), default=2, help="design-test-calibrate "
-                   "rounds")
+                   "rounds (default 2)")
     p.add_argument("--design", type=Path, default=None, help="round 1 tests this design file "
                    "(metarig-design/1) instead of optimising one")
     p.add_argument("--material", type=Path, default=None, help="nominal material file of round "

@@ -862,23 +862,40 @@ def window_frames(frame_t_s, input_t_s, input_u_m, fractions=WINDOWS, min_frames
     return out
 
 
-def noise_from_second_differences(r, use) -> float:
+DIFFERENCE = np.array([1.0, -4.0, 6.0, -4.0, 1.0])  # 4th difference: white noise x sqrt(70)
+
+
+def white_noise(r, use) -> float:
     """Standard deviation of the white (frame-to-frame) part of residuals r [n_t, n_units, 2]
-    (used where `use` [n_t, n_units]): sqrt(mean((r[k+1] - 2 r[k] + r[k-1])^2) / 6) over the
-    frames used with both neighbours. Tracking noise is white, 6 sigma^2 in every second
-    difference; a model's misfit is smooth at the frame rate and adds next to nothing there."""
+    (used where `use` [n_t, n_units]): the median absolute 4th difference in time over the
+    frames used with both pairs of neighbours, / (0.6745 sqrt(70)). Tracking noise is white, 70
+    sigma^2 in every 4th difference; a model's misfit is smooth at the frame rate (a 60 Hz
+    misfit keeps 4e-4 of its power there), and where it is not (a chaotic stretch of a few
+    units) the median passes over it."""
     r = np.asarray(r, np.float64)
-    ok = use[2:] & use[1:-1] & use[:-2]
-    d2 = (r[2:] - 2.0 * r[1:-1] + r[:-2])[ok]
-    return float(np.sqrt(np.mean(d2**2) / 6.0)) if d2.size else 0.0
+    n = r.shape[0] - 4
+    if n < 1:
+        return 0.0
+    ok = np.ones((n, r.shape[1]), bool)
+    d = np.zeros((n,) + r.shape[1:])
+    for k, c in enumerate(DIFFERENCE):
+        ok &= use[k:k + n]
+        d += c * r[k:k + n]
+    d = np.abs(d[ok])
+    return float(np.median(d)) / (0.6744897501960817 * math.sqrt(70.0)) if d.size else 0.0
 
 
 # misfit beyond noise counts as model error only above this many standard deviations of the
-# residual sum of squares that noise alone gives (chi^2 with dof degrees of freedom)
+# residual sum of squares that noise alone gives (chi^2 with dof degrees of freedom), and two
+# windows' values only when they differ by more than this many of their statistical errors
 MISFIT_SIGNIFICANCE = 3.0
+# ... and only above this fraction of the noise variance: the estimate of the noise is itself
+# good to a few per cent (the 4th-difference median on the 8x6 tests' white noise: 3 % low),
+# so a smaller misfit is not told apart from it
+NOISE_VARIANCE_UNCERTAINTY = 0.1
 
 
-def model_error(fit: Fit, r, use, data) -> dict:
+def model_error(fit: Fit, r, use, data, windows=()) -> dict:
     """The part of a fit's residual that noise does not explain, and what it makes of the
     fitted values: the model error.
 
@@ -887,34 +904,55 @@ def model_error(fit: Fit, r, use, data) -> dict:
         r: [n_t, n_units, 2] residual at the optimum (internal units), 0 where not used.
         use: [n_t, n_units] the residuals used.
         data: [n_t, n_units, 2] the fitted data (same units), for the relative size.
+        windows: the fits of the shorter windows before `fit` (`fit_pulse`'s continuation).
 
-    The noise sigma is estimated from the residual's second differences in time
-    (`noise_from_second_differences`); the misfit is what the residual sum of squares holds
-    beyond dof sigma^2, once it exceeds noise by `MISFIT_SIGNIFICANCE` standard deviations of
-    chi^2 (0 otherwise: a model that explains the data to its noise has no model error). Each
-    fitted value then gets a model standard error: the change of log(value) alone that moves
-    the response by the whole misfit, |misfit| / |dr/dlog value|; a parameter the response
-    barely depends on gets a large one. The returned `stderr_model` (SI) is combined with the
-    statistical one in quadrature by `fit_pulse`. Right for a model that is wrong: the fitted
-    constants are then effective ones, which compensate for what the model lacks by as much
-    as the misfit lets them, and their stated errors must say so.
+    Two signs of a model that is wrong, each turned into a standard error of every value:
+    - the misfit: the noise sigma is estimated from the residual (`white_noise`); what the
+      residual sum of squares holds beyond dof sigma^2, once it exceeds noise by
+      `MISFIT_SIGNIFICANCE` standard deviations of chi^2 and `NOISE_VARIANCE_UNCERTAINTY` of
+      its variance (reduced chi^2 above 1.1), is the misfit, and the value's model
+      error is the change of its log alone that moves the response by the whole misfit,
+      |misfit| / |dr/dlog value| (a parameter the response barely depends on gets a large
+      one);
+    - the windows: a right model gives the same values on the first part of the record as on
+      all of it, within their statistical errors; the largest difference between a window's
+      value and the whole record's is a model error where the misfit is significant (the
+      model is known to be wrong: its values depend on the part of the record fitted), and
+      elsewhere where it exceeds `MISFIT_SIGNIFICANCE` of their statistical errors. A chaotic
+      record, whose steep Jacobian makes the first measure small and the whole record's
+      statistical errors tiny, is caught here.
+    The larger of the two is `stderr_model` (SI), which `fit_pulse` adds to the statistical
+    error in quadrature. A model that explains the data to their noise gets none. Right for a
+    model that is wrong: the fitted constants are then effective ones, which compensate for
+    what the model lacks as far as the data let them, and their stated errors must say so.
     """
     n = int(np.sum(use)) * 2
-    sigma = noise_from_second_differences(r, use)
+    sigma = white_noise(r, use)
     rss = float(np.sum(np.asarray(r)[use] ** 2))
     dof = max(fit.dof, 1)
     excess = rss - dof * sigma**2
-    misfit = math.sqrt(max(excess, 0.0)) if excess > MISFIT_SIGNIFICANCE * sigma**2 * math.sqrt(
-        2.0 * dof) else 0.0
+    floor = sigma**2 * max(MISFIT_SIGNIFICANCE * math.sqrt(2.0 * dof),
+                           NOISE_VARIANCE_UNCERTAINTY * dof)
+    misfit = math.sqrt(excess) if excess > floor else 0.0
     col = np.linalg.norm(np.asarray(fit.extra["J"]), axis=0)
     signal = float(np.sqrt(np.mean(np.asarray(data)[use] ** 2)))
-    sd_model = {name: float(fit.values[name]) * misfit / max(float(col[i]), 1e-300)
-                for i, name in enumerate(fit.names)}
+    sd_model, drift = {}, {}
+    for i, name in enumerate(fit.names):
+        v = float(fit.values[name])
+        d = 0.0
+        for w in windows:
+            diff = abs(math.log(float(w.values[name]) / v))
+            stat = math.hypot(float(w.stderr[name]) / float(w.values[name]),
+                              float(fit.stderr[name]) / v)
+            if misfit > 0 or diff > MISFIT_SIGNIFICANCE * stat:
+                d = max(d, diff)
+        drift[name] = v * d
+        sd_model[name] = max(v * misfit / max(float(col[i]), 1e-300), drift[name])
     scale = 1e-3  # residuals in mm -> m
     return {"noise_m": sigma * scale, "misfit_rms_m": misfit / math.sqrt(max(n, 1)) * scale,
             "relative": misfit / math.sqrt(max(n, 1)) / max(signal, 1e-300),
             "reduced_chi2": rss / dof / sigma**2 if sigma > 0 else None,
-            "stderr_model": sd_model}
+            "window_drift": drift, "stderr_model": sd_model}
 
 
 def pose_weights(sigma, use: np.ndarray) -> np.ndarray | None:
@@ -966,9 +1004,10 @@ def fit_pulse(scene, frame_t_s, tracked_q, valid, input_t_s, input_u_m, stage_t_
     (`extra["stderr_gauss_newton"]`) then claim a precision the data do not hold (on the
     simulated rig's DIC tracks, actual errors 10-20 of them against at most 2 of these).
     The stated `stderr` adds in quadrature the model error (`model_error`: the misfit beyond
-    the tracking noise, as a change of each value; 0 where the model explains the data to
-    their noise); `extra["stderr_statistical"]` keeps the cluster-robust part and
-    `extra["model_error"]` the misfit's figures.
+    the tracking noise as a change of each value, or the drift of the values between the
+    growing windows, whichever is larger; 0 where the model explains the data to their
+    noise); `extra["stderr_statistical"]` keeps the cluster-robust part and
+    `extra["model_error"]` the figures.
     """
     from design_engine.fixed_step import is_fixed_step
     from design_engine.run import measured_loading
@@ -1028,11 +1067,13 @@ def fit_pulse(scene, frame_t_s, tracked_q, valid, input_t_s, input_u_m, stage_t_
 
     def continuation(cfg):
         """Fit the record in growing windows, each from the last one's result."""
-        p, iters = None, 0
+        p, iters, fits = None, 0, []
         for n in frames:
             out, simulate = fit_with(cfg, n, p)
             p, iters = out.extra["p"], iters + out.iterations
+            fits.append(out)
         out.iterations = iters
+        out.extra["window_fits"] = fits[:-1]
         return out, simulate
 
     automatic = config is None
@@ -1055,7 +1096,8 @@ def fit_pulse(scene, frame_t_s, tracked_q, valid, input_t_s, input_u_m, stage_t_
     # the model error: the misfit beyond the noise, and the stderr it adds (in quadrature)
     resid = np.where(use[..., None], (np.asarray(sol.q)[..., :2] - np.asarray(data))
                      * np.asarray(weight), 0.0)
-    me = model_error(out, resid, use, np.asarray(data) * np.asarray(weight))
+    me = model_error(out, resid, use, np.asarray(data) * np.asarray(weight),
+                     out.extra.pop("window_fits"))
     out.extra["stderr_statistical"] = dict(out.stderr)
     out.stderr = {n: math.hypot(out.stderr[n], me["stderr_model"][n]) for n in names}
     out.extra["model_error"] = me

@@ -170,7 +170,8 @@ def plot(res, path: Path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    cases = [(k, v) for k, v in res.get("comparison", {}).items()]
+    cases = [(k, v) for k, v in res.get("comparison", {}).items()
+             if isinstance(v, dict) and "levels" in v]
     cal = res.get("calibration")
     fig, axes = plt.subplots(1, 3, figsize=(14, 4))
     for name, c in cases:
@@ -225,17 +226,16 @@ def main(argv=None) -> int:
     if parts == {"none"}:
         plot(json.loads(path.read_text()), args.out / "bench_discrepancy.png")
         return 0
-    res = {"machine": describe(), "load_before": os.getloadavg()}
-    t0 = time.perf_counter()
-    if "comparison" in parts:
-        res["comparison"] = bench_comparison(args.design, args.quick)
-    if "calibration" in parts:
-        res["calibration"] = bench_calibration()
-    res["wall_s"] = time.perf_counter() - t0
-    res["load_after"] = os.getloadavg()
     from hardware_sim.specimen import Imperfections
 
-    res["defaults"] = {k: getattr(Imperfections(), k) for k in Imperfections.__slots__}
+    res = {"defaults": {k: getattr(Imperfections(), k) for k in Imperfections.__slots__}}
+    for part, run in (("comparison", lambda: bench_comparison(args.design, args.quick)),
+                      ("calibration", bench_calibration)):
+        if part in parts:
+            load, t0 = os.getloadavg(), time.perf_counter()
+            res[part] = run()
+            res[part].update(machine=describe(), load_before=load, load_after=os.getloadavg(),
+                             wall_s=time.perf_counter() - t0)
     args.out.mkdir(parents=True, exist_ok=True)
     old = json.loads(path.read_text()) if path.exists() else {}
     old.update(res)

@@ -144,7 +144,7 @@ STEP_FILES = {
 }
 
 
-@pytest.mark.slow  # one round: a 2-evaluation design, a rig run, tracking, a calibration (~5 min)
+@pytest.mark.slow  # one round: a 2-evaluation design, a rig run, tracking, a calibration (146 s)
 def test_one_round_end_to_end_then_resumed(tmp_path):
     out = tmp_path / "loop"
     argv = ["loop", "focusing-demo", "--out", str(out), "--rounds", "1", "--max-evals", "2",

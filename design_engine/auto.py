@@ -50,6 +50,9 @@ STABILITY_SAFETY = 0.6  # fraction of the Verlet stability limit 2 / omega_max
 # within 0.8 x the stability limit 2 (measured: 0.45 on the 24x16 focusing design in contact and
 # 0.95 on 24x18 at 8 % pre-compression, both within 1e-4 of J)
 CONTACT_STEP_LIMIT = 1.0
+# largest work-energy drift of a fixed-step solve, relative to the energy it moved
+# (`Solution.energy_error`), that the policy accepts (benchmarks/bench_energy_check.py)
+ENERGY_TOLERANCE = 1e-4
 
 
 @dataclass(frozen=True)
@@ -227,13 +230,20 @@ def next_config(config: SolverConfig, health: dict, scene: Scene) -> tuple[Solve
 
     - voids reached the contact cutoff without contact terms: `with_contact(config)`;
     - a fixed step with contact whose barrier frequency at the deepest void
-      (`contact_frequency`) exceeds CONTACT_STEP_LIMIT / dt: Dopri8 (`contact_config`).
+      (`contact_frequency`) exceeds CONTACT_STEP_LIMIT / dt: Dopri8 (`contact_config`);
+    - a fixed-step solve whose work-energy balance drifted by more than ENERGY_TOLERANCE of the
+      energy it moved (`Solution.energy_error`): Dopri8.
     """
     margin = float(health["void_margin"])
     if needs_contact(config, margin, scene):
         nxt = with_contact(config)
         how = ("Verlet at the same step" if is_fixed_step(nxt.solver) else "adaptive Dopri8")
         return nxt, f"a void reached the contact cutoff: re-solved with contact ({how})"
+    drift = float(health.get("energy_error", 0.0))
+    if is_fixed_step(config.solver) and not drift <= ENERGY_TOLERANCE:
+        return contact_config(), (
+            f"the fixed step's work-energy balance drifted by {drift:.1e} of the energy the "
+            f"solve moved (> {ENERGY_TOLERANCE:g}): re-solved with adaptive Dopri8")
     if config.use_contact and is_fixed_step(config.solver) and config.solver.stability_limited:
         w_c = contact_frequency(margin, scene.material, float(health["min_inertia"]),
                                 scene.model)

@@ -4,6 +4,12 @@ velocity Verlet (one force evaluation per step).
 Every scheme is a final subclass of `AbstractFixedStep`; `simulate` and the run policies use
 only that interface (`is_fixed_step` tells them from the adaptive diffrax solvers).
 
+Every scheme keeps a work-energy ledger of its own steps (`Ledger`): kinetic plus potential
+energy, minus the work the prescribed motion did, plus the work damping dissipated, is constant
+for the exact motion; its largest drift over the solve, relative to the energy the solve moved
+(`energy_error`), is an a-posteriori check that needs no frequency estimate (the policy in
+`auto.next_config` rejects a fixed-step result above `auto.ENERGY_TOLERANCE`).
+
 Velocity Verlet, kick-drift-kick: the first half kick treats damping explicitly, the second
 implicitly (closed form, C and M diagonal), which keeps the scheme second order and symplectic
 when C = 0. Explicit, so it is stable only for dt < 2 / omega_max (the highest natural
@@ -16,6 +22,7 @@ import abc
 import dataclasses
 import math
 from collections.abc import Callable
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -49,10 +56,58 @@ def step_grid(time_grid, max_dt: float) -> StepGrid:
     return StepGrid(n_pre, n_sub, n_pre + n_sub * (grid.size - 1), dt_nominal)
 
 
-# `integrate(force, inv_mass, damping, (q0, v0), ts) -> (q [n_t, n], v [n_t, n], converged)`:
-# force(q, t) -> F = -dV/dq ([n] -> [n]); inv_mass, damping: [n] diagonals; ts: [n_t] sample
-# times (ms) of the step grid; converged: bool scalar, False when the solve must be reported failed
+# `integrate(force, inv_mass, damping, (q0, v0), ts) -> (q [n_t, n], v [n_t, n], converged,
+# energy_error)`: force(q, t) -> (F, (V, P)) with F = -dV/dq ([n] -> [n]), V the potential energy
+# and P = dV/dt at fixed q (the power the prescribed motion puts in); inv_mass, damping: [n]
+# diagonals; ts: [n_t] sample times (ms) of the step grid; converged: bool scalar, False when the
+# solve must be reported failed; energy_error: the ledger's verdict (`energy_error`)
 Integrator = Callable[..., tuple]
+
+
+class Ledger(NamedTuple):
+    """Work-energy account of a fixed-step solve (scalars, outside differentiation).
+
+    Attributes:
+        e0: kinetic + potential energy at the start.
+        work: work done on the free units by the prescribed motion so far (trapezoid of P).
+        dissipated: work done against damping so far (trapezoid of v . C v).
+        power: P at the current step.
+        drift: largest |E - e0 - work + dissipated| so far.
+        moved: largest |E - e0| or |work| so far (the scale the drift is judged against).
+    """
+
+    e0: jax.Array
+    work: jax.Array
+    dissipated: jax.Array
+    power: jax.Array
+    drift: jax.Array
+    moved: jax.Array
+
+
+def ledger_start(v, mass, aux) -> Ledger:
+    """The account at the start: state velocity `v`, diagonal `mass`, `aux` = (V, P) there."""
+    potential, power = jax.lax.stop_gradient(aux)
+    v = jax.lax.stop_gradient(v)
+    zero = jnp.zeros((), v.dtype)
+    return Ledger(0.5 * jnp.dot(v, mass * v) + potential, zero, zero, power, zero, zero)
+
+
+def ledger_step(led: Ledger, dt, v, v1, mass, damping, aux1) -> Ledger:
+    """The account after a step `dt` from velocity `v` to `v1`, `aux1` = (V, P) at its end."""
+    potential, power = jax.lax.stop_gradient(aux1)
+    v, v1, dt = jax.lax.stop_gradient((v, v1, dt))
+    work = led.work + 0.5 * dt * (led.power + power)
+    dissipated = led.dissipated + 0.5 * dt * (jnp.dot(v, damping * v) + jnp.dot(v1, damping * v1))
+    change = 0.5 * jnp.dot(v1, mass * v1) + potential - led.e0
+    drift = jnp.maximum(led.drift, jnp.abs(change - work + dissipated))
+    moved = jnp.maximum(led.moved, jnp.maximum(jnp.abs(change), jnp.abs(work)))
+    return Ledger(led.e0, work, dissipated, power, drift, moved)
+
+
+def energy_error(led: Ledger):
+    """Largest drift of the work-energy balance over the solve, relative to the energy moved (0
+    when nothing moved)."""
+    return jnp.where(led.moved > 0, led.drift / jnp.where(led.moved > 0, led.moved, 1.0), 0.0)
 
 
 class AbstractFixedStep(eqx.Module):
@@ -124,8 +179,9 @@ class FixedStepVerlet(AbstractFixedStep):
     def make_integrator(self, grid: StepGrid, bond_blocks: np.ndarray, free: np.ndarray,
                         n_dof: int) -> Integrator:
         def run(force, inv_mass, damping, y0, ts):
-            qs, vs = integrate(self, force, inv_mass, damping, y0, ts, 0.0, grid.n_pre, grid.n_sub)
-            return qs, vs, jnp.asarray(True)
+            qs, vs, led = integrate(self, force, inv_mass, damping, y0, ts, 0.0, grid.n_pre,
+                                    grid.n_sub)
+            return qs, vs, jnp.asarray(True), energy_error(led)
 
         return run
 
@@ -190,7 +246,7 @@ def integrate(method: FixedStepVerlet, force, inv_mass, damping, y0, ts, t0: flo
 
     Args:
         method: the scheme settings.
-        force: `force(q, t) -> F` ([n] -> [n]), F = -dV/dq.
+        force: `force(q, t) -> (F, (V, P))` (see `Integrator`).
         inv_mass, damping: [n] diagonal inverse mass and damping.
         y0: (q0, v0), each [n].
         ts: [n_t] sample times (the first may equal t0).
@@ -198,19 +254,21 @@ def integrate(method: FixedStepVerlet, force, inv_mass, damping, y0, ts, t0: flo
         n_sub: steps between consecutive samples (static).
 
     Returns:
-        (q [n_t, n], v [n_t, n]) at the sample times.
+        (q [n_t, n], v [n_t, n]) at the sample times and the final `Ledger`.
     """
     half_c = 0.5 * inv_mass * damping
+    mass = 1.0 / inv_mass
 
     def step(carry, t, dt):
-        q, v, f = carry
+        q, v, f, led = carry
         v_half = v + 0.5 * dt * inv_mass * (f - damping * v)
         q1 = q + dt * v_half
-        f1 = force(q1, t + dt)
+        f1, aux1 = force(q1, t + dt)
         v1 = (v_half + 0.5 * dt * inv_mass * f1) / (1.0 + dt * half_c)
-        return (q1, v1, f1)
+        return (q1, v1, f1, ledger_step(led, dt, v, v1, mass, damping, aux1))
 
     q0, v0 = y0
-    carry = (q0, v0, force(q0, jnp.asarray(t0, ts.dtype)))
-    _, qs, vs = march(step, carry, ts, t0, n_pre, n_sub, method.remat)
-    return qs, vs
+    f0, aux0 = force(q0, jnp.asarray(t0, ts.dtype))
+    carry = (q0, v0, f0, ledger_start(v0, mass, aux0))
+    last, qs, vs = march(step, carry, ts, t0, n_pre, n_sub, method.remat)
+    return qs, vs, last[3]

@@ -24,7 +24,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from design_engine.fixed_step import AbstractFixedStep, Integrator, StepGrid, march
+from design_engine.fixed_step import (
+    AbstractFixedStep,
+    Integrator,
+    StepGrid,
+    energy_error,
+    ledger_start,
+    ledger_step,
+    march,
+)
 
 
 class ImplicitNewmark(AbstractFixedStep):
@@ -55,9 +63,9 @@ class ImplicitNewmark(AbstractFixedStep):
         layout = band_layout(free_dof_pairs(bond_blocks, free, n_dof), free.size)
 
         def run(force, inv_mass, damping, y0, ts):
-            qs, vs, moved = integrate(self, force, inv_mass, damping, layout, y0, ts, 0.0,
-                                      grid.n_pre, grid.n_sub, grid.dt_nominal)
-            return qs, vs, moved <= self.tol
+            qs, vs, moved, led = integrate(self, force, inv_mass, damping, layout, y0, ts, 0.0,
+                                           grid.n_pre, grid.n_sub, grid.dt_nominal)
+            return qs, vs, moved <= self.tol, energy_error(led)
 
         return run
 
@@ -203,7 +211,7 @@ def integrate(method: ImplicitNewmark, force, inv_mass, damping, layout: BandLay
 
     Args:
         method: the scheme settings.
-        force: `force(q, t) -> F` ([n] -> [n]), F = -dV/dq.
+        force: `force(q, t) -> (F, (V, P))` (see `fixed_step.Integrator`).
         inv_mass, damping: [n] diagonal inverse mass and damping.
         layout: band layout of the stiffness over the n DOFs.
         y0: (q0, v0), each [n].
@@ -211,7 +219,9 @@ def integrate(method: ImplicitNewmark, force, inv_mass, damping, layout: BandLay
         dt_nominal: step the iteration matrix is built for, ms (the largest step).
 
     Returns:
-        (q [n_t, n], v [n_t, n], largest last correction of q over all steps).
+        (q [n_t, n], v [n_t, n], largest last correction of q over all steps, the final
+        `fixed_step.Ledger`; its energy and power are those of the last chord iteration's force
+        evaluation, within the accepted correction of the step's end).
     """
     q0, v0 = y0
     t_start = jnp.asarray(t0, ts.dtype)
@@ -219,30 +229,35 @@ def integrate(method: ImplicitNewmark, force, inv_mass, damping, layout: BandLay
     h = jnp.asarray(dt_nominal, ts.dtype)
 
     def hvp(v):
-        return -jax.jvp(lambda q: force(q, t_start), (q0,), (v,))[1]
+        return -jax.jvp(lambda q: force(q, t_start)[0], (q0,), (v,))[1]
 
     k_band = jax.lax.stop_gradient(banded_stiffness(hvp, layout, ts.dtype))
     s_factors = factor(layout, 0.25 * h * h * k_band,
                        jax.lax.stop_gradient(mass + 0.5 * h * damping))
 
     def step(carry, t, dt):
-        q, v, a, worst = carry
+        q, v, a, worst, led = carry
         q_base = q + dt * v + 0.25 * dt * dt * a
         v_base = v + 0.5 * dt * a
 
         def chord(a1, _):
             q1 = q_base + 0.25 * dt * dt * a1
             v1 = v_base + 0.5 * dt * a1
-            residual = mass * a1 + damping * v1 - force(q1, t + dt)
+            f1, aux1 = force(q1, t + dt)
+            residual = mass * a1 + damping * v1 - f1
             delta = solve(layout, s_factors, residual)
-            return a1 - delta, jnp.max(jnp.abs(delta))
+            return a1 - delta, (jnp.max(jnp.abs(delta)), aux1)
 
-        a1, corrections = jax.lax.scan(chord, a, None, length=method.iterations)
+        a1, (corrections, aux) = jax.lax.scan(chord, a, None, length=method.iterations)
         moved = 0.25 * dt * dt * corrections[-1]
         worst = jnp.maximum(worst, jax.lax.stop_gradient(moved))
-        return (q_base + 0.25 * dt * dt * a1, v_base + 0.5 * dt * a1, a1, worst)
+        v1 = v_base + 0.5 * dt * a1
+        led = ledger_step(led, dt, v, v1, mass, damping,
+                          jax.tree_util.tree_map(lambda x: x[-1], aux))
+        return (q_base + 0.25 * dt * dt * a1, v1, a1, worst, led)
 
-    a0 = inv_mass * (force(q0, t_start) - damping * v0)
-    carry = (q0, v0, a0, jnp.zeros((), ts.dtype))
+    f0, aux0 = force(q0, t_start)
+    a0 = inv_mass * (f0 - damping * v0)
+    carry = (q0, v0, a0, jnp.zeros((), ts.dtype), ledger_start(v0, mass, aux0))
     last, qs, vs = march(step, carry, ts, t0, n_pre, n_sub, method.remat)
-    return qs, vs, last[3]
+    return qs, vs, last[3], last[4]

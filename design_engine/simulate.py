@@ -73,6 +73,9 @@ class Solution(eqx.Module):
             rad; negative means a unit passed through the contact barrier (a failed step).
         static_residual: max |dE/dq_f| of the static pre-compression the solve started from
             (N, N mm; 0 without one); above `statics` tolerance the start was no equilibrium.
+        energy_error: a fixed-step solve's work-energy drift relative to the energy it moved
+            (`fixed_step.energy_error`; 0 for an adaptive solve, whose controller bounds its
+            own error).
     """
 
     ts: Float[Array, " n_t"]
@@ -87,6 +90,7 @@ class Solution(eqx.Module):
     num_rejected: Int[Array, ""]
     min_void_margin: Float[Array, ""]
     static_residual: Float[Array, ""]
+    energy_error: Float[Array, ""]
 
 
 # result code of a fixed-step solve reported not converged (diffrax's meaning)
@@ -150,18 +154,23 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
         ys = sol.ys
         stats = (jnp.asarray(sol.result._value, jnp.int32), sol.stats["num_steps"],
                  sol.stats["num_accepted_steps"], sol.stats["num_rejected_steps"])
-        return ys[:, :n_free], ys[:, n_free:] / VELOCITY_SCALE, stats
+        return ys[:, :n_free], ys[:, n_free:] / VELOCITY_SCALE, stats, jnp.zeros((), ys.dtype)
 
     def solve_fixed(args, y0, ts):
         def force(qf, t):
-            return -jax.grad(lambda z: energy_fn(full(z, t, args.loading), args.bonds,
-                                                 args.material))(qf)
+            # one pass gives the force on the free units, the energy and, from the reactions
+            # of the prescribed units, the power their motion puts in (the ledger's inputs)
+            potential, grad = jax.value_and_grad(
+                lambda q: energy_fn(q, args.bonds, args.material))(full(qf, t, args.loading))
+            grad = grad.reshape(-1)
+            power = jnp.dot(grad[constrained], prescribed(t, args.loading)[1])
+            return -grad[free], (potential, power)
 
         q0, v0 = y0[:n_free], y0[n_free:] / VELOCITY_SCALE
         n = jnp.asarray(grid.n_steps)
-        qs, vs, converged = integrate(force, args.inv_mass, args.damping, (q0, v0), ts)
+        qs, vs, converged, drift = integrate(force, args.inv_mass, args.damping, (q0, v0), ts)
         result = jnp.where(converged, 0, NOT_CONVERGED).astype(jnp.int32)
-        return qs, vs, (result, n, n, jnp.asarray(0))
+        return qs, vs, (result, n, n, jnp.asarray(0)), drift
 
     dtype = jnp.dtype(config.dtype)
 
@@ -198,8 +207,8 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
             y0 = jnp.zeros(2 * n_free, dtype=ts.dtype)
         else:  # (q_f [n_free] mm/rad, qdot_f [n_free] mm/ms, rad/ms)
             y0 = jnp.concatenate([initial[0], VELOCITY_SCALE * initial[1]])
-        qf, vf, (result, steps, accepted, rejected) = (solve_fixed if fixed else solve_adaptive)(
-            args, y0, ts)
+        qf, vf, (result, steps, accepted, rejected), drift = (
+            solve_fixed if fixed else solve_adaptive)(args, y0, ts)
         q = jax.vmap(lambda qq, t: full(qq, t, loading))(qf, ts)
         qc_dot = jax.vmap(lambda t: prescribed(t, loading)[1])(ts)
         v_all = jnp.zeros((ts.shape[0], 3 * nb), vf.dtype)
@@ -218,6 +227,7 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
             num_rejected=rejected,
             min_void_margin=jax.lax.stop_gradient(jnp.min(voids) - material.contact_min),
             static_residual=jax.lax.stop_gradient(residual),
+            energy_error=jax.lax.stop_gradient(drift),
         )
 
     return simulate
@@ -226,15 +236,15 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
 def solve_health(sol: Solution, xp=jnp) -> dict:
     """Scalars that judge a solve (`health_failure`), cheap to return from a jitted or vmapped
     call: result code, steps, whether the state stayed finite, the largest displacement (mm) and
-    rotation (rad), the void margin (rad), the static start's residual (N, N mm) and the
-    smallest rotary inertia (g mm^2). `xp=np` computes them on the host for a solution already
+    rotation (rad), the void margin (rad), the static start's residual (N, N mm), the smallest
+    rotary inertia (g mm^2) and the fixed step's work-energy drift (relative). `xp=np` computes them on the host for a solution already
     out of a jitted call (no op-by-op dispatch)."""
     q, qdot = xp.asarray(sol.q), xp.asarray(sol.qdot)
     return {"result": sol.result, "num_steps": sol.num_steps,
             "finite": xp.all(xp.isfinite(q)) & xp.all(xp.isfinite(qdot)),
             "max_disp": xp.max(xp.abs(q[..., :2])), "max_rot": xp.max(xp.abs(q[..., 2])),
             "void_margin": sol.min_void_margin, "static_residual": sol.static_residual,
-            "min_inertia": xp.min(xp.asarray(sol.inertia))}
+            "min_inertia": xp.min(xp.asarray(sol.inertia)), "energy_error": sol.energy_error}
 
 
 def health_failure(health: dict, config: SolverConfig) -> str | None:

@@ -14,14 +14,18 @@ The default policy, read off the work-precision and speed-up charts (README, `me
 - a solve whose voids reached the cutoff is repeated with contact at the same step in float64
   (from the first solve when the static equilibrium already reaches it), and that result stands
   while the barrier's own frequency at the deepest void, omega_c (`contact_frequency`), keeps
-  dt x omega_c <= CONTACT_STEP_LIMIT (`next_config`); past it, or if any fixed-step solve
-  fails, adaptive Dopri8 at the reference tolerances with contact. An optimiser's next
-  evaluation starts where the last one ended while that was in contact (`start_config`);
+  dt x omega_c <= CONTACT_STEP_LIMIT and the solve's work-energy drift stays within
+  ENERGY_TOLERANCE (`next_config`); past either, the solve is repeated once at REFINE x the step
+  when that is predicted to pass, else with adaptive Dopri8 at the reference tolerances with
+  contact, as is any failed fixed-step solve. An optimiser's next evaluation starts where the
+  last one ended while that was in contact, with the fixed step if that was Dopri8
+  (`start_config`);
 - the dynamic pre-compression ramp (`precompression="ramp"`, the reference's protocol):
   adaptive Dopri8 at the reference tolerances with contact (the ramp lasts 40-320 ms).
 `full_model=True` forces the reference configuration (Dopri5, spec tolerances).
 """
 
+import dataclasses
 from dataclasses import dataclass
 
 import diffrax
@@ -53,6 +57,12 @@ CONTACT_STEP_LIMIT = 1.0
 # largest work-energy drift of a fixed-step solve, relative to the energy it moved
 # (`Solution.energy_error`), that the policy accepts (benchmarks/bench_energy_check.py)
 ENERGY_TOLERANCE = 1e-4
+# a fixed-step solve that these checks reject is re-solved once at REFINE x its step when that
+# is predicted to pass (Verlet is second order: the drift falls by REFINE^2, to at most half
+# the tolerance; dt x omega_c by REFINE, to at most the limit), else with Dopri8.
+# Hypersensitive solves drift far more (8.7e-4 and up on the chart) and go to Dopri8 directly:
+# a step small enough to hide their drift would still miss J by up to 100 x the drift
+REFINE = 0.5
 
 
 @dataclass(frozen=True)
@@ -229,30 +239,48 @@ def next_config(config: SolverConfig, health: dict, scene: Scene) -> tuple[Solve
     solve again with and why, or None when the result stands.
 
     - voids reached the contact cutoff without contact terms: `with_contact(config)`;
-    - a fixed step with contact whose barrier frequency at the deepest void
-      (`contact_frequency`) exceeds CONTACT_STEP_LIMIT / dt: Dopri8 (`contact_config`);
-    - a fixed-step solve whose work-energy balance drifted by more than ENERGY_TOLERANCE of the
-      energy it moved (`Solution.energy_error`): Dopri8.
+    - an explicit fixed-step solve whose work-energy balance drifted by more than
+      ENERGY_TOLERANCE of the energy it moved (`Solution.energy_error`), or, with contact, whose
+      barrier frequency at the deepest void (`contact_frequency`) exceeds CONTACT_STEP_LIMIT /
+      dt: re-solved once at REFINE x the step (`refined`) when that is predicted to pass (the
+      drift to half the tolerance), else (and for a refined step rejected again) with Dopri8
+      (`contact_config`).
     """
     margin = float(health["void_margin"])
     if needs_contact(config, margin, scene):
         nxt = with_contact(config)
         how = ("Verlet at the same step" if is_fixed_step(nxt.solver) else "adaptive Dopri8")
         return nxt, f"a void reached the contact cutoff: re-solved with contact ({how})"
+    solver = config.solver
+    if not (is_fixed_step(solver) and solver.stability_limited):
+        return None
     drift = float(health.get("energy_error", 0.0))
-    if is_fixed_step(config.solver) and not drift <= ENERGY_TOLERANCE:
-        return contact_config(), (
-            f"the fixed step's work-energy balance drifted by {drift:.1e} of the energy the "
-            f"solve moved (> {ENERGY_TOLERANCE:g}): re-solved with adaptive Dopri8")
-    if config.use_contact and is_fixed_step(config.solver) and config.solver.stability_limited:
-        w_c = contact_frequency(margin, scene.material, float(health["min_inertia"]),
-                                scene.model)
-        ratio = config.solver.max_dt * w_c
-        if ratio > CONTACT_STEP_LIMIT:
-            return contact_config(), (
-                f"the contact barrier stiffened past the fixed step (dt x omega_c = {ratio:.2f} > "
-                f"{CONTACT_STEP_LIMIT:g}): re-solved with adaptive Dopri8")
-    return None
+    ratio = 0.0
+    if config.use_contact:
+        ratio = solver.max_dt * contact_frequency(margin, scene.material,
+                                                  float(health["min_inertia"]), scene.model)
+    faults = []
+    if not drift <= ENERGY_TOLERANCE:
+        faults.append(f"the work-energy balance drifted by {drift:.1e} of the energy the solve "
+                      f"moved (> {ENERGY_TOLERANCE:g})")
+    if ratio > CONTACT_STEP_LIMIT:
+        faults.append(f"the contact barrier stiffened past the step (dt x omega_c = {ratio:.2f} "
+                      f"> {CONTACT_STEP_LIMIT:g})")
+    if not faults:
+        return None
+    what = "; ".join(faults)
+    if (not getattr(solver, "refined", False) and drift * REFINE**2 <= 0.5 * ENERGY_TOLERANCE
+            and ratio * REFINE <= CONTACT_STEP_LIMIT):
+        nxt = refined(config)
+        return nxt, (f"{what}: re-solved once at {REFINE:g} x the step "
+                     f"({nxt.solver.max_dt * 1e3:.1f} us)")
+    return contact_config(), f"{what}: re-solved with adaptive Dopri8"
+
+
+def refined(config: SolverConfig) -> SolverConfig:
+    """The same fixed-step configuration at REFINE x its step, marked refined."""
+    solver = dataclasses.replace(config.solver, max_dt=config.solver.max_dt * REFINE, refined=True)
+    return dataclasses.replace(config, solver=solver)
 
 
 def start_config(choice: SolverConfig, last: SolverConfig | None, health: dict | None,
@@ -260,12 +288,19 @@ def start_config(choice: SolverConfig, last: SolverConfig | None, health: dict |
     """The configuration an optimiser's next evaluation starts with: the one the previous
     evaluation ended with (`last`, with its `solve_health`) while its voids still reached the
     contact cutoff, since the next design, a small step away, most likely needs it too (it
-    saves the no-contact solve that `next_config` would reject); else the choice. Either way
-    `next_config` still judges the result, so this changes the cost, not the answer."""
+    saves the no-contact solve that `next_config` would reject); else the choice. When the
+    previous evaluation ended with Dopri8 after a rejected fixed step, the fixed step with
+    contact gets its chance again (`with_contact(choice)`): it costs 1/15-1/25 of Dopri8 and a
+    design a step away may be accepted at it. Either way `next_config` still judges the result,
+    so this changes the cost, not the answer."""
     if last is None or health is None or last == choice or not last.use_contact:
         return choice
     span = float(scene.material.contact_cutoff - scene.material.contact_min)
-    return last if float(health["void_margin"]) < span else choice
+    if float(health["void_margin"]) >= span:
+        return choice
+    if is_fixed_step(choice.solver) and not is_fixed_step(last.solver):
+        return with_contact(choice)
+    return last
 
 
 def fallback_config() -> tuple[SolverConfig, str]:

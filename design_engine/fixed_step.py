@@ -166,10 +166,13 @@ class FixedStepVerlet(AbstractFixedStep):
         max_dt: largest step, ms. Stability needs max_dt < 2 / omega_max (omega in rad/ms).
         remat: recompute the steps between two samples in the backward pass instead of storing
             them (less memory, one more forward pass).
+        refined: the step is a refinement the policy took after a rejected solve
+            (`auto.next_config`), which it does not refine again.
     """
 
     max_dt: float = eqx.field(static=True, default=0.05)
     remat: bool = eqx.field(static=True, default=False)
+    refined: bool = eqx.field(static=True, default=False)
     stability_limited = True
 
     def __check_init__(self):
@@ -189,7 +192,7 @@ class FixedStepVerlet(AbstractFixedStep):
         return num_steps + 1
 
     def summary(self) -> dict:
-        return {"max_dt_s": self.max_dt * 1e-3}
+        return {"max_dt_s": self.max_dt * 1e-3, **({"refined": True} if self.refined else {})}
 
     def unstable_hint(self) -> str:
         return (" (the fixed step is above the stability limit 2/omega_max, or contact stiffened "

@@ -12,10 +12,10 @@ energy over the same samples; the rest includes the clamped units (zero) and the
 
 Solver policy, per point (as `run.simulate_scene` with the automatic choice): the batch runs with
 `run.default_choice(scene)`; a point that `auto.next_config` sends on (voids reached the contact
-cutoff, or the barrier outgrew the fixed step) is re-run, batched with the other such points,
-with the configuration it names, and a point whose solve failed (result code, non-finite or
-diverged state) with `auto.fallback_config()`. A point that fails with every configuration is NaN in the map and listed with its
-reason. `robustness_chunk` evaluates a list of points from plain data (design vector, lattice
+cutoff, the barrier outgrew the fixed step or the work-energy balance drifted) is re-run,
+batched with the other such points, with the configuration it names, and a point whose solve
+failed (result code, non-finite or diverged state) with `auto.fallback_config()`. A point that
+fails with every configuration is NaN in the map and listed with its reason. `robustness_chunk` evaluates a list of points from plain data (design vector, lattice
 description) so that chunks can be sent to other processes (Dask workers).
 
 Units: the public functions take and return SI (Hz, m, J, s); internally mm, ms, mJ.

@@ -274,8 +274,9 @@ def make_objective(scene: Scene, config: SolverConfig | None = None, weights=Non
     holds the solver result code, step count and void margin, so that failures can be reported
     after the jitted call (see `checked`). With a given `config` both functions are jitted as
     they are. `config=None` uses the automatic per-scene choice and repeats an evaluation with
-    the configuration `auto.next_config` names (contact once a void reached the cutoff, Dopri8
-    once the barrier outgrew the fixed step; each compiled on first need), so the result always
+    the configuration `auto.next_config` names (contact once a void reached the cutoff; half
+    the step or Dopri8 once the barrier outgrew the fixed step or the work-energy balance
+    drifted; each compiled on first need), so the result always
     equals the full model's; on a reported failure, retry with `auto.fallback_config()`. Each
     call starts where the previous one ended while that was in contact (`auto.start_config`).
     """

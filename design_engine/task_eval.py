@@ -14,8 +14,9 @@ that an optimisation needs:
   into contact sets the frequency), adaptive Dopri8 from then on; a solve that still goes
   non-finite is caught and redone with the fallback configuration;
 - a design whose voids reach the contact cutoff is re-solved as `auto.next_config` says (with
-  contact at the same step, or with Dopri8 once the barrier outgrows it), and a failed solve is
-  retried with the fallback; if that fails too the evaluation raises `EvaluationFailed`;
+  contact at the same step; once at half the step, or with Dopri8, when the barrier outgrows it
+  or the work-energy balance drifts), and a failed solve is retried with the fallback; if that
+  fails too the evaluation raises `EvaluationFailed`;
 - every adaptive solve has the task's step budget (`budget.max_solve_steps`): one that uses it
   up raises `EvaluationFailed` at once, with no fallback (a slower solver would grind on the same
   near-singular contact), so the optimiser records a failed design and steps back instead of

@@ -123,10 +123,14 @@ def test_contact_left_out_only_while_it_is_exactly_zero_and_a_fast_solve_that_dr
                                                              rel=0.05)
 
 
-def test_a_barrier_stiffer_than_the_fixed_step_moves_on_to_dopri8():
+def test_a_rejected_fixed_step_is_refined_once_when_that_can_pass_else_dopri8():
     """`next_config` keeps a Verlet-with-contact result while the barrier's frequency at the
-    deepest void is below CONTACT_STEP_LIMIT / dt and replaces it by Dopri8 beyond."""
-    from design_engine.auto import CONTACT_STEP_LIMIT, contact_frequency, next_config
+    deepest void is below CONTACT_STEP_LIMIT / dt and the work-energy drift below
+    ENERGY_TOLERANCE. Past either it re-solves once at REFINE x the step when that is predicted
+    to pass (dt x omega_c <= the limit, drift <= half the tolerance, Verlet being second order),
+    else, and for a refined step rejected again, with Dopri8."""
+    from design_engine.auto import (CONTACT_STEP_LIMIT, ENERGY_TOLERANCE, REFINE,
+                                    contact_frequency, next_config, refined)
 
     scene = build_scene("focusing-24x16", nx=8, ny=6, bias_angle_deg=44.0)
     mat = scene.material
@@ -135,18 +139,43 @@ def test_a_barrier_stiffer_than_the_fixed_step_moves_on_to_dopri8():
     dt = 0.02
     verlet = SolverConfig(solver=FixedStepVerlet(max_dt=dt))
 
-    def health(depth):
-        return {"void_margin": span * (1.0 - depth), "min_inertia": inertia}
+    def ratio(depth):
+        return dt * contact_frequency(span * (1.0 - depth), mat, inertia)
 
-    shallow = health(0.1)
-    assert dt * contact_frequency(shallow["void_margin"], mat, inertia) < CONTACT_STEP_LIMIT
-    assert next_config(verlet, shallow, scene) is None
-    deep = health(0.999)
-    assert dt * contact_frequency(deep["void_margin"], mat, inertia) > CONTACT_STEP_LIMIT
-    cfg, why = next_config(verlet, deep, scene)
-    assert cfg == contact_config() and "stiffened past the fixed step" in why
+    def depth_at(target):  # the barrier's frequency grows monotonically with the depth
+        lo, hi = 0.0, 1.0 - 1e-12
+        for _ in range(200):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if ratio(mid) < target else (lo, mid)
+        return lo
+
+    def health(target=0.0, drift=0.0):
+        depth = 0.1 if target == 0.0 else depth_at(target)
+        return {"void_margin": span * (1.0 - depth), "min_inertia": inertia,
+                "energy_error": drift}
+
+    assert ratio(0.1) < CONTACT_STEP_LIMIT
+    assert next_config(verlet, health(), scene) is None
+    assert next_config(verlet, health(drift=0.9 * ENERGY_TOLERANCE), scene) is None
+    # a barrier a little past the step: half the step
+    cfg, why = next_config(verlet, health(1.5 * CONTACT_STEP_LIMIT), scene)
+    assert cfg == refined(verlet) and cfg.solver.max_dt == pytest.approx(REFINE * dt)
+    assert cfg.solver.refined and cfg.use_contact and "stiffened past the step" in why
+    assert "0.5 x the step" in why
+    # far past it, or past it again at the refined step (1.5 x the limit there): Dopri8
+    for config, target in ((verlet, 2.5 * CONTACT_STEP_LIMIT),
+                           (cfg, 1.5 * CONTACT_STEP_LIMIT / REFINE)):
+        nxt, why = next_config(config, health(target), scene)
+        assert nxt == contact_config() and "Dopri8" in why
+    # a drift a little over the tolerance: half the step; far over it, or again: Dopri8
+    nxt, why = next_config(verlet, health(drift=1.5 * ENERGY_TOLERANCE), scene)
+    assert nxt == refined(verlet) and "work-energy balance drifted" in why
+    for config, drift in ((verlet, 3 * ENERGY_TOLERANCE), (cfg, 1.5 * ENERGY_TOLERANCE)):
+        nxt, why = next_config(config, health(drift=drift), scene)
+        assert nxt == contact_config() and "Dopri8" in why
     # without contact terms any void past the cutoff asks for contact first
-    cfg, why = next_config(SolverConfig(solver=verlet.solver, use_contact=False), deep, scene)
+    cfg, why = next_config(SolverConfig(solver=verlet.solver, use_contact=False),
+                           health(2.5 * CONTACT_STEP_LIMIT), scene)
     assert cfg.use_contact and isinstance(cfg.solver, FixedStepVerlet)
     # the frequency grows without bound toward the asymptote and is the rest value at the cutoff
     assert contact_frequency(span, mat, inertia) == pytest.approx(
@@ -172,7 +201,7 @@ def test_precompressed_scenes_step_from_the_static_state_and_the_ramp_uses_dopri
 def test_an_evaluation_starts_where_the_last_one_in_contact_ended():
     """`start_config` keeps the contact configuration only while the voids still reached the
     cutoff; the choice otherwise."""
-    from design_engine.auto import start_config
+    from design_engine.auto import start_config, with_contact
 
     scene = build_scene("focusing-24x16", nx=8, ny=6, bias_angle_deg=44.0)
     span = float(scene.material.contact_cutoff - scene.material.contact_min)
@@ -182,6 +211,9 @@ def test_an_evaluation_starts_where_the_last_one_in_contact_ended():
     assert start_config(choice, contact, {"void_margin": 0.5 * span}, scene) == contact
     assert start_config(choice, contact, {"void_margin": 2.0 * span}, scene) == choice
     assert start_config(choice, choice, {"void_margin": 0.5 * span}, scene) == choice
+    # after Dopri8 the fixed step with contact gets its chance again (next_config judges it)
+    assert start_config(choice, contact_config(), {"void_margin": 0.5 * span}, scene) == \
+        with_contact(choice)
 
 
 @pytest.fixture(scope="module")
@@ -251,6 +283,10 @@ def _contact_step_sweep(scene, factors):
             assert re.search("diverged|non-finite|barrier", row["error"]), row
         elif row["verdict"] == "accepted":
             assert row["J_rel_err"] < 5e-3, row
+        elif row["verdict"] == "refined":  # the refined re-solve is judged the same way
+            ref_row = row["refined"]
+            assert not ref_row["ok"] or ref_row["verdict"] == "Dopri8" or \
+                ref_row["J_rel_err"] < 5e-3, row
         else:
             assert row["verdict"] == "Dopri8", row
     return rows

@@ -1,0 +1,237 @@
+"""The 60-evaluation focusing run (24x16) before and after a policy change, side by side, with an
+accuracy re-check of the accepted solves.
+
+Runs `metarig design focusing --max-evals N` twice in one benchmark, one after the other on the
+same machine: "before" from a checkout of `--before REF` (a git worktree under OUT; default
+f3dda59, the policy that handed a fixed step outgrown by the contact barrier to Dopri8 and kept
+Dopri8 while the designs stayed in contact) and "after" from this checkout. Then a sample of the
+"after" run's evaluations is re-checked: each design re-evaluated with the configuration that
+counted for it and with Dopri8 at rtol 1e-10 / atol 1e-8 (contact, float64): relative error of
+J and cosine of the gradients.
+
+Run folders OUT/before and OUT/after resume (`metarig design --resume`; a resumed run's wall time
+is the sum of its evaluations' `wall_s`, stated as such); OUT/bench_focusing_run.json is written
+after every part and OUT/bench_focusing_run.png (best feasible J against wall time, and where
+each evaluation's time went) at the end.
+
+    .venv/bin/python benchmarks/bench_focusing_run.py --out runs/bench-focusing-run
+    .venv/bin/python benchmarks/bench_focusing_run.py --evals 20 --recheck 3 --out /tmp/bfr
+"""
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+from machine import describe
+
+HERE = Path(__file__).resolve().parent
+REPO = HERE.parent
+TASK = "focusing"
+BEFORE_REF = "f3dda59"
+RECHECK_RTOL, RECHECK_ATOL = 1e-10, 1e-8
+
+
+def source_tree(out: Path, ref: str) -> Path:
+    """A worktree of `ref` under `out` (created once)."""
+    tree = out / f"src-{ref}"
+    if not (tree / "design_engine").is_dir():
+        subprocess.run(["git", "-C", str(REPO), "worktree", "add", "--detach", "--force",
+                        str(tree), ref], check=True, capture_output=True)
+    return tree
+
+
+def run_design(src: Path, folder: Path, evals: int) -> dict:
+    """`metarig design TASK` from the sources in `src` into `folder` (resumed if it exists)."""
+    history = folder / "history.json"
+    done = _evaluations(history)
+    if len(done) >= evals:
+        return {"resumed": True, "ran_s": 0.0}
+    cmd = [sys.executable, "-c", "import sys; from metarig.cli import main; sys.exit(main())",
+           "design", TASK, "--max-evals", str(evals), "--out", str(folder), "--no-plots"]
+    if history.exists():
+        cmd.append("--resume")
+    env = dict(os.environ, PYTHONPATH=str(src))
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, cwd=src, env=env)
+    if proc.returncode != 0:
+        raise SystemExit(f"metarig design failed in {src} (exit {proc.returncode})")
+    return {"resumed": bool(done), "ran_s": time.perf_counter() - t0}
+
+
+def _evaluations(history: Path) -> list[dict]:
+    return json.loads(history.read_text())["evaluations"] if history.exists() else []
+
+
+def _kind(config: dict) -> str:
+    name = config["solver"]
+    if name == "FixedStepVerlet":
+        name = "Verlet" + (" refined" if config.get("refined") else "")
+        name += " contact" if config["use_contact"] else " no contact"
+    return name
+
+
+def summarise(folder: Path, ran: dict) -> dict:
+    """Best feasible objective, wall time and which configuration counted, from the history."""
+    evals = _evaluations(folder / "history.json")
+    feasible = [e["objective"] for e in evals if e["feasible"] and not e["failed"]]
+    walls = np.array([e["wall_s"] for e in evals])
+    kinds = [_kind(e["solver"]["pulse"]["config"]) for e in evals if not e["failed"]]
+    events = [ev for e in evals if e["event"] for ev in e["event"].split("; pulse: ")]
+    return {
+        "evaluations": len(evals), "failed": sum(e["failed"] for e in evals),
+        "best_feasible_J": max(feasible) if feasible else None,
+        "wall_s": ran["ran_s"] if not ran["resumed"] else None,
+        "sum_eval_wall_s": float(walls.sum()), "median_eval_s": float(np.median(walls)),
+        "max_eval_s": float(walls.max()), "counted": dict(Counter(kinds)),
+        "seconds_by_kind": {k: float(sum(e["wall_s"] for e in evals if not e["failed"]
+                                         and _kind(e["solver"]["pulse"]["config"]) == k))
+                            for k in set(kinds)},
+        "refined": sum("re-solved once at" in ev for ev in events),
+        "to_dopri8": sum("Dopri8" in ev for ev in events),
+        "curve": [[float(walls[: i + 1].sum()), e["objective"], bool(e["feasible"])]
+                  for i, e in enumerate(evals)],
+        "kinds": [_kind(e["solver"]["pulse"]["config"]) if not e["failed"] else "failed"
+                  for e in evals],
+        "walls": walls.tolist(),
+    }
+
+
+def _config(summary: dict):
+    import diffrax
+
+    from design_engine.fixed_step import FixedStepVerlet
+    from design_engine.simulate import SolverConfig
+
+    if summary["solver"] == "FixedStepVerlet":
+        solver = FixedStepVerlet(max_dt=summary["max_dt_s"] * 1e3,
+                                 refined=bool(summary.get("refined", False)))
+        return SolverConfig(solver=solver, use_contact=summary["use_contact"],
+                            dtype=summary["dtype"])
+    return SolverConfig(solver=getattr(diffrax, summary["solver"])(), rtol=summary["rtol"],
+                        atol=summary["atol"], use_contact=summary["use_contact"],
+                        dtype=summary["dtype"])
+
+
+def recheck(folder: Path, evals: int, count: int, rows: list[dict], save) -> list[dict]:
+    """Re-evaluate `count` evaluations of the run in `folder`, evenly spread, with the
+    configuration that counted and with tight Dopri8; rows already in `rows` are kept."""
+    import diffrax
+
+    from design_engine.simulate import SolverConfig
+    from design_engine.task import load_task
+    from design_engine.task_eval import TaskEvaluator
+
+    history = _evaluations(folder / "history.json")
+    xs = np.load(folder / "checkpoint.npz")["x"]
+    ok = [e for e in history if not e["failed"]]
+    picks = [ok[int(round(i))] for i in np.linspace(0, len(ok) - 1, count)] if ok else []
+    task = load_task(TASK, max_evals=evals)
+    tight = SolverConfig(solver=diffrax.Dopri8(), rtol=RECHECK_RTOL, atol=RECHECK_ATOL,
+                         max_steps=400_000)
+    seen = {r["eval"] for r in rows}
+    for e in picks:
+        if e["eval"] in seen:
+            continue
+        x = task.embed(xs[e["eval"] - 1])
+        t0 = time.perf_counter()
+        used = TaskEvaluator(task, _config(e["solver"]["pulse"]["config"])).evaluate(x)
+        t1 = time.perf_counter()
+        ref = TaskEvaluator(task, tight).evaluate(x)
+        t2 = time.perf_counter()
+        cos = float(np.dot(used.grad, ref.grad)
+                    / (np.linalg.norm(used.grad) * np.linalg.norm(ref.grad)))
+        rows.append({"eval": e["eval"], "config": _kind(e["solver"]["pulse"]["config"]),
+                     "J": used.value, "J_reference": ref.value,
+                     "J_rel_err": abs(used.value - ref.value) / abs(ref.value),
+                     "grad_cosine": cos, "config_s": t1 - t0, "reference_s": t2 - t1})
+        print(f"  evaluation {e['eval']} ({rows[-1]['config']}): J error "
+              f"{rows[-1]['J_rel_err']:.2e}, gradient cosine {cos:.6f}", flush=True)
+        save()
+    return rows
+
+
+def plot(report: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4.2))
+    colors = {"Dopri8": "C3", "failed": "k"}
+    for k, (label, res) in enumerate(report["runs"].items()):
+        curve = np.array([[c[0], c[1] if c[2] else np.nan] for c in res["curve"]])
+        best = np.fmax.accumulate(np.nan_to_num(curve[:, 1], nan=-np.inf))
+        a.plot(curve[:, 0] / 60, best * 1e3, "-", color=f"C{k}",
+               label=f"{label}: {res['sum_eval_wall_s'] / 60:.1f} min")
+        x0 = np.arange(len(res["walls"])) + (0.4 * k - 0.2)
+        for kind in sorted(set(res["kinds"])):
+            sel = [i for i, kk in enumerate(res["kinds"]) if kk == kind]
+            b.bar(x0[sel], np.array(res["walls"])[sel], width=0.4,
+                  color=colors.get(kind, f"C{4 + sorted(set(res['kinds'])).index(kind)}"),
+                  edgecolor=f"C{k}", linewidth=0.8, label=f"{label}: {kind}")
+    a.set_xlabel("wall time, min (sum of evaluations)")
+    a.set_ylabel("best feasible J / N_t, mJ")
+    a.legend(fontsize=8)
+    a.set_title(f"{TASK} 24x16, {report['evals']} evaluations", fontsize=9)
+    b.set_xlabel("evaluation")
+    b.set_ylabel("wall time, s")
+    b.legend(fontsize=6)
+    b.set_title("what each evaluation cost and which solve counted", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--out", type=Path, default=Path("runs/bench-focusing-run"))
+    p.add_argument("--evals", type=int, default=60)
+    p.add_argument("--before", default=BEFORE_REF, help="git ref of the 'before' policy")
+    p.add_argument("--recheck", type=int, default=6, help="evaluations of the 'after' run "
+                   "re-checked against tight Dopri8 (0: none)")
+    p.add_argument("--only", choices=("before", "after"), help="run one side only")
+    args = p.parse_args(argv)
+    out = args.out.resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "bench_focusing_run.json"
+    report = json.loads(path.read_text()) if path.exists() else {}
+    report.update(evals=args.evals, before_ref=args.before, machine=describe())
+    report.setdefault("runs", {})
+
+    def save():
+        path.write_text(json.dumps(report, indent=1))
+
+    sides = {"before": lambda: source_tree(out, args.before), "after": lambda: REPO}
+    for label, src in sides.items():
+        if args.only and label != args.only:
+            continue
+        print(f"{label}: metarig design {TASK} --max-evals {args.evals}", flush=True)
+        load0 = os.getloadavg()[0]
+        ran = run_design(src(), out / label, args.evals)
+        res = summarise(out / label, ran)
+        if ran["resumed"] and label in report["runs"]:
+            res["wall_s"] = report["runs"][label].get("wall_s")
+        report["runs"][label] = res | {"load_start": load0, "load_end": os.getloadavg()[0]}
+        save()
+    if args.recheck and (out / "after" / "history.json").exists():
+        print(f"re-check: {args.recheck} evaluations of 'after' against Dopri8 rtol "
+              f"{RECHECK_RTOL:g}", flush=True)
+        report["recheck"] = recheck(out / "after", args.evals, args.recheck,
+                                    report.get("recheck", []), save)
+        save()
+    plot(report, out / "bench_focusing_run.png")
+    for label, res in report["runs"].items():
+        print(f"{label}: best feasible {res['best_feasible_J']}, {res['sum_eval_wall_s']:.0f} s "
+              f"over {res['evaluations']} evaluations, counted {res['counted']}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,4 +1,5 @@
-"""`metarig rig` (run an experiment on the simulated rig) and `metarig recover FILE`."""
+"""`metarig rig` (run an experiment on the simulated rig, or on the devices of a lab file) and
+`metarig recover FILE`."""
 
 import argparse
 import dataclasses
@@ -59,14 +60,17 @@ def _parser() -> argparse.ArgumentParser:
 
     p = argparse.ArgumentParser(
         prog="metarig rig", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
-        description="Run one experiment on the simulated rig: pre-compress, settle, record, fire "
-                    "the pulse, record, stop; writes a run folder with one MCAP recording.")
+        description="Run one experiment on the simulated rig (or on the devices of a lab file: "
+                    "--hardware lab --lab FILE): pre-compress, settle, record, fire the pulse, "
+                    "record, stop; writes a run folder with one MCAP recording.")
     p.add_argument("--out", type=Path, default=Path("runs/rig"), help="run folder")
     p.add_argument("--processes", action="store_true",
                    help="one process per node (default: all nodes in this process)")
-    p.add_argument("--hardware", choices=("sim", "real"), default="sim",
-                   help="simulated rig, or real devices (the experiment sequence on real "
-                        "devices is not built yet; the device nodes take a lab file)")
+    p.add_argument("--hardware", choices=("sim", "lab"), default="sim",
+                   help="the simulated rig, or the devices of the lab file --lab on the system "
+                        "clock (checked first as `metarig devices --lab` does; records only)")
+    p.add_argument("--lab", type=Path, default=None, metavar="LAB.toml",
+                   help="lab file (TOML) naming the devices, with --hardware lab")
     p.add_argument("--params", type=Path, default=None,
                    help="ROS 2 YAML parameter file applied to the nodes (node_name: "
                         "ros__parameters: ...)")
@@ -119,13 +123,14 @@ def _plan(args):
     return ExperimentPlan(**values)
 
 
-def _node_params(plan, out: Path, params_file: Path | None,
-                 compression: str = "none") -> dict[str, dict]:
+def _node_params(plan, out: Path, params_file: Path | None, compression: str = "none",
+                 lab_file: Path | None = None, frame_rate_hz: float = 0.0) -> dict[str, dict]:
     from ros_nodes import params as P
-    from ros_nodes.logic.sequence import node_parameters
+    from ros_nodes.logic.sequence import lab_node_parameters, node_parameters
     from ros_nodes.registry import NODES
 
-    node_params = node_parameters(plan, out)
+    node_params = node_parameters(plan, out) if lab_file is None else \
+        lab_node_parameters(plan, out, lab_file, frame_rate_hz)
     node_params["recorder"]["compression"] = compression
     for name in node_params:
         cls = NODES[name].config()
@@ -141,12 +146,8 @@ def rig_main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s",
                         datefmt="%H:%M:%S")
-    if args.hardware == "real":
-        print("metarig rig: the experiment sequence on real devices is not built yet (the "
-              "shaker and stage nodes take a lab file: see 'Connecting your lab' in the README; "
-              "`metarig devices --lab FILE` checks one); use the simulated rig (--hardware sim)",
-              file=sys.stderr)
-        return 2
+    if args.hardware == "lab" or args.lab is not None:
+        return lab_main(args)
     from ros_nodes.params import ConfigError
 
     try:
@@ -168,6 +169,65 @@ def rig_main(argv: list[str] | None = None) -> int:
     if code != 0 or args.no_compare:
         return code
     return compare_run(args.out, args.workers)
+
+
+def lab_main(args) -> int:
+    """`metarig rig --hardware lab --lab FILE`: the lab file and the plan checked, the file's
+    [ros] applied, every device checked (nothing moves), then the experiment on the devices on
+    the system clock (`ros_nodes.lab_run`). Records only: a lab recording is compared with
+    `metarig compare DIR --calibration FILE` (the lab camera's calibration)."""
+    from devices.lab import LabFileError
+    from ros_nodes.lab_run import LabRunError, apply_ros, check_plan, lab_for_rig, \
+        nominal_design_json, preflight, refuse_sim_flags
+    from ros_nodes.params import ConfigError
+
+    given = getattr(args, "given", set())
+    try:
+        if args.hardware != "lab":
+            raise LabRunError("--lab is for --hardware lab")
+        if args.lab is None:
+            raise LabRunError("--hardware lab needs --lab LAB.toml (the lab file; `metarig "
+                              "devices --lab FILE` checks one)")
+        if args.live_dic:
+            raise LabRunError("--live-dic: only for the simulated rig (its camera's "
+                              "calibration is known); track a lab recording with `metarig "
+                              "compare DIR --calibration FILE`")
+        refuse_sim_flags(given, plan_flag)
+        lab = lab_for_rig(args.lab)
+        plan = _plan(args)
+        rate = plan.fps if "fps" in given else 0.0
+        plan = dataclasses.replace(plan, fps=rate or lab.camera.settings.frame_rate_hz)
+        check_plan(plan, lab, rate)
+        lab_file = args.lab.resolve()
+        node_params = _node_params(plan, args.out.resolve(), args.params, args.compression,
+                                   lab_file, rate)
+    except (ValueError, ConfigError, LabFileError) as e:  # LabRunError is a ValueError
+        print(f"metarig rig: {e}", file=sys.stderr)
+        return 2
+    env = apply_ros(lab.ros)
+    log.info("ROS: %s", ", ".join(f"{k}={v}" for k, v in env.items()))
+    log.info("checking the devices of %s (nothing moves)", args.lab)
+    failed = preflight(lab, lambda line: log.info("%s", line))
+    if failed:
+        more = f" (and {len(failed) - 1} more above)" if len(failed) > 1 else ""
+        print(f"metarig rig: {args.lab}: {failed[0]}{more}; nothing was started",
+              file=sys.stderr)
+        return 1
+    log.info("building the sample's nominal design (%s %dx%d%s)", plan.scene, plan.nx, plan.ny,
+             f", {plan.design}" if plan.design else "")
+    design = nominal_design_json(plan)
+    args.out.mkdir(parents=True, exist_ok=True)
+    stale = args.out / "recording.mcap"
+    if stale.exists():
+        stale.unlink()
+    from ros_nodes.nodes._rig import run_rig
+
+    code = run_rig(plan, node_params, args.out.resolve(), processes=args.processes,
+                   lab={"lab_file": lab_file, "design_json": design, "ros": env})
+    if code == 0:
+        log.info("recorded on the lab devices (no comparison: compare with `metarig compare "
+                 "%s --calibration FILE`, the camera's calibration)", args.out)
+    return code
 
 
 CALIBRATION_NAME = "calibration.json"

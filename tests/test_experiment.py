@@ -4,7 +4,7 @@ import math
 
 import pytest
 
-from ros_nodes.logic.experiment import Experiment, RigError
+from ros_nodes.logic.experiment import DEVICE_TOPICS, Experiment, RigError
 from ros_nodes.logic.sequence import IMAGE_TOPIC, ExperimentPlan, Phase
 
 STEP_S = 0.001  # simulated clock step of the fake rig, s
@@ -15,8 +15,9 @@ class FakeRig:
     clock runs; the stage holds `eta_s` after a set-point, the camera films at `plan.fps`."""
 
     def __init__(self, plan: ExperimentPlan, *, eta_s=0.08, refuse_strain="", fault="",
-                 design=True, lose_frames=0):
+                 design=True, lose_frames=0, problems=()):
         self.plan, self.eta_s, self.refuse_strain, self.fault = plan, eta_s, refuse_strain, fault
+        self.problems = problems
         self.wall, self.sim, self.limit, self.running = 0.0, 0.0, math.inf, False
         self.calls: list[tuple] = []
         self._design = {"polygons_m": []} if design else None
@@ -58,6 +59,9 @@ class FakeRig:
 
     def service_ready(self, name):
         return True
+
+    def device_problems(self):
+        return list(self.problems)
 
     def design(self):
         return self._design
@@ -102,6 +106,7 @@ class FakeRig:
         n = self.plan.expected_frames(self._t_cam)
         self._camera = {"state": "done", "frames": n}
         self._recorder["counts"] = {IMAGE_TOPIC: n - self.lose_frames}
+        self._recorder["last_stamp_s"] = {t: self.sim for t in DEVICE_TOPICS}
 
     def recorder_start(self):
         self.calls.append(("recorder_start",))
@@ -183,6 +188,25 @@ def test_every_wait_has_a_deadline():
     assert rig.names() == []  # nothing was commanded
 
 
+def test_a_device_not_ready_stops_the_run_before_anything_moves():
+    rig = FakeRig(PLAN, problems=["stage: the node is unconfigured, not active (its log says "
+                                  "why)", "camera: cannot open the lab camera: no such serial"])
+    with pytest.raises(RigError, match=r"^stage: the node is unconfigured.*; camera: cannot"):
+        Experiment(PLAN, rig).run()
+    assert rig.names() == []  # no snapshot, no recording, no motion
+
+
+def test_a_long_wait_says_what_it_waits_for(caplog):
+    import logging
+
+    rig = FakeRig(PLAN, eta_s=0.5)  # 0.5 s of rig time: 2.5 s of wall time here
+    with caplog.at_level(logging.INFO, logger="metarig.rig"):
+        Experiment(PLAN, rig).run()
+    notes = [r.getMessage() for r in caplog.records if r.getMessage().startswith("waiting")]
+    assert notes == ["waiting 2 s for the stages to reach the strain (stage moving, camera idle "
+                     "0 frames, 0 messages recorded)"]
+
+
 def test_frames_missing_from_the_recording_are_reported_not_fatal(caplog):
     rig = FakeRig(PLAN, lose_frames=3)
     timings = Experiment(PLAN, rig).run()
@@ -206,3 +230,18 @@ def test_frames_a_real_camera_lost_go_into_the_timings():
 def test_phase_values_are_the_published_names():
     assert [p.value for p in Phase][:6] == ["starting", "precompress", "settle", "record",
                                             "pulse", "develop"]
+
+
+def test_device_motion_still_on_its_way_is_waited_for_then_reported(caplog):
+    rig = FakeRig(PLAN)
+    camera_stop = rig.camera_stop
+
+    def late_stop():  # the shaker's samples reach the recorder only up to 0.1 s before the end
+        camera_stop()
+        rig._recorder["last_stamp_s"][DEVICE_TOPICS[0]] = rig.sim - 0.1
+
+    rig.camera_stop = late_stop
+    w0 = rig.wall
+    timings = Experiment(PLAN, rig).run()
+    assert "timed out waiting for the recorder to hold the shaker and stage motion" in caplog.text
+    assert timings["frames"] == 41 and rig.wall - w0 > 30.0  # waited its 30 s, then went on

@@ -5,17 +5,27 @@ the recording holds the stage closing from rest), pre-compresses, settles, start
 fires the pulse, records for `record_s` and waits for the developed frames; `Experiment.finish()`
 brings the rig to rest and closes the recording whatever happened. The rig is reached only
 through a `RigPort`: `ros_nodes.nodes.sequencer_node.SequencerNode` implements it over ROS
-services and topics, tests implement it with a fake rig. Every wait has a wall-time deadline.
+services and topics, tests implement it with a fake rig. Every wait has a wall-time deadline,
+and a wait that lasts says so every `PROGRESS_S` (what it waits for, for how long, and what
+the rig reports meanwhile: the stage's state, the camera's frames). Nothing moves before every
+device node has reported ready (`RigPort.device_problems`).
 """
 
 import logging
+import math
 from collections.abc import Callable
 from typing import Protocol
 
+from ros_nodes import topics
 from ros_nodes.logic.sequence import IMAGE_TOPIC, ExperimentPlan, Phase
 
 log = logging.getLogger("metarig.rig")
 POLL_S = 0.005  # how often a wait re-checks its condition, s (wall)
+PROGRESS_S = 2.0  # a wait longer than this logs a progress line this often, s (wall)
+# the measured device motion must reach the end of the capture (the comparison's input); a
+# device samples at its own rate, so its last sample may be up to a period earlier
+DEVICE_TOPICS = (topics.SHAKER_JOINTS.name, topics.STAGE_JOINTS.name)
+DEVICE_SLACK_S = 0.05
 
 
 class RigError(RuntimeError):
@@ -53,6 +63,10 @@ class RigPort(Protocol):
     def service_ready(self, name: str) -> bool:
         """Whether service `name` is available."""
 
+    def device_problems(self) -> list[str]:
+        """Why a device cannot be used (a device node not active, a camera in error), one
+        line each; empty when every device is ready."""
+
     def design(self) -> dict | None:
         """The specimen's design (`/rig/design`) once the camera has built it."""
 
@@ -67,7 +81,8 @@ class RigPort(Protocol):
         (None: not known)."""
 
     def recorder(self) -> dict:
-        """The recorder's last status (`recording`, `matched`, `counts`; {} before the first)."""
+        """The recorder's last status (`recording`, `matched`, `counts`, `last_stamp_s` per
+        topic; {} before the first)."""
 
     def set_strain(self, strain: float) -> tuple[bool, str]: ...
 
@@ -104,22 +119,43 @@ class Experiment:
         t = self.port.sim_time()
         self.events.append((p.value, t))
         self.port.announce(p)
-        log.info("phase %-11s t_sim = %.4f s", p.value, t)
+        # rig time from the first phase: 0 on the simulated clock, the run's start on the
+        # system clock (run.json keeps the absolute times)
+        log.info("phase %-11s t = %.4f s", p.value, t - self.events[0][1])
 
     def until(self, predicate: Callable[[], object], what: str,
               timeout_s: float | None = None) -> None:
-        """Wait until `predicate()` is true; `RigError` after `timeout_s` (plan default)."""
+        """Wait until `predicate()` is true; `RigError` after `timeout_s` (plan default); a
+        progress line every `PROGRESS_S` while it waits."""
         port = self.port
-        deadline = port.now() + (timeout_s or self.plan.timeout_s)
+        start = port.now()
+        deadline = start + (timeout_s or self.plan.timeout_s)
+        next_note = start + PROGRESS_S
         while not predicate():
-            if port.now() > deadline:
+            now = port.now()
+            if now > deadline:
                 raise RigError(f"timed out waiting for {what}")
+            if now >= next_note:
+                log.info("waiting %.0f s for %s (%s)", now - start, what, self._progress())
+                next_note = now + PROGRESS_S
             port.sleep(POLL_S)
 
+    def _progress(self) -> str:
+        """What the rig reports now: stage state, camera state and frames, recorded messages."""
+        port = self.port
+        cam, rec = port.camera(), port.recorder()
+        parts = [f"stage {port.stage_state() or '?'}",
+                 f"camera {cam.get('state', '?')} {cam.get('frames', 0)} frames"]
+        if rec.get("recording"):
+            parts.append(f"{sum(rec.get('counts', {}).values())} messages recorded")
+        return ", ".join(parts)
+
     def run_clock_until(self, t_s: float) -> None:
-        """Run simulated time up to exactly `t_s` (rounded to the clock step), then hold it."""
+        """Run simulated time up to exactly `t_s` (rounded to the clock step), then hold it;
+        on the system clock, wait until it has passed `t_s`."""
         self.port.start_clock(t_s)
-        self.until(self.port.clock_reached, f"simulated time {t_s:.4f} s")
+        self.until(self.port.clock_reached,
+                   f"rig time {t_s - (self.events[0][1] if self.events else 0.0):.4f} s")
         self.port.pause_clock()
 
     # the procedure ----------------------------------------------------------------------------
@@ -135,6 +171,9 @@ class Experiment:
             raise RigError(f"camera: {port.camera().get('message')}")
         for name in port.service_names():
             self.until(lambda n=name: port.service_ready(n), f"service {name}", 60.0)
+        problems = port.device_problems()
+        if problems:  # before anything moves
+            raise RigError("; ".join(problems))
         # the unloaded sample: the tracker finds every unit of the pre-compressed first frame
         # against it, so that poses are from the unloaded design (as the simulation's)
         ok, why = port.camera_snapshot()
@@ -186,6 +225,7 @@ class Experiment:
 
         w = port.now()
         self.phase(Phase.DEVELOP)
+        t_end = port.sim_time()
         port.camera_stop()
         self.until(lambda: port.camera().get("state") in ("done", "error"), "the camera footage")
         cam = port.camera()
@@ -197,11 +237,21 @@ class Experiment:
                        f"the recorder to write {n} frames", 30.0)
         except RigError as e:
             log.warning("%s; finishing with what arrived (the report counts the loss)", e)
+        try:  # a busy host delivers the device samples late: they are still on their way
+            self.until(lambda: self._devices_recorded(t_end - DEVICE_SLACK_S),
+                       "the recorder to hold the shaker and stage motion to the end of the "
+                       "capture", 30.0)
+        except RigError as e:
+            log.warning("%s; finishing with what arrived", e)
         timings["develop_publish"] = port.now() - w
         timings["frames"] = n
         if "lost" in cam:  # a real camera: frames its own frame counter says never came
             timings["camera_lost"] = int(cam["lost"])
         return timings
+
+    def _devices_recorded(self, t_s: float) -> bool:
+        last = self.port.recorder().get("last_stamp_s", {})
+        return all(last.get(t, -math.inf) >= t_s for t in DEVICE_TOPICS)
 
     def finish(self, completed: bool, recorder_timeout_s: float = 30.0) -> dict | None:
         """Stop the devices, finish the recording; returns the recorder's report (or None)."""

@@ -4,7 +4,8 @@ A run: take the reference image of the unloaded sample, start recording, pre-com
 at the stage rate, settle, start the camera, fire the pulse after `pre_trigger_s`, capture for
 `record_s`, stop the devices, finish the
 recording, write the run folder. `ExperimentPlan` holds the numbers; `node_parameters` turns a
-plan into the parameters of every node; `Phase` names the steps (published on `/rig/phase`).
+plan into the parameters of every node on the simulated rig, `lab_node_parameters` on the
+devices of a lab file (system clock); `Phase` names the steps (published on `/rig/phase`).
 """
 
 import json
@@ -112,8 +113,33 @@ def node_parameters(plan: ExperimentPlan, out_dir: Path) -> dict[str, dict]:
     }
 
 
+# plan fields that only the simulated rig uses (its camera renderer, specimen and clock); a lab
+# run refuses them (`metarig rig --hardware lab`)
+SIM_ONLY = ("width", "height", "perturb", "specimen", "seed", "real_time_factor")
+# a Zaber reading is two serial round trips: the stage node samples the lab stages this often
+LAB_STAGE_RATE_HZ = 50.0
+# nothing paces the nodes on the system clock: a shaker node at 1 kHz beside the camera stream
+# fell behind by seconds and lost samples here (2 cores, load 3); at 500 Hz it lost none. A
+# function generator's joint states are its commanded motion (the waveform itself is on
+# /shaker/command at command_rate_hz).
+LAB_SHAKER_RATE_HZ = 500.0
+
+
+def lab_node_parameters(plan: ExperimentPlan, out_dir: Path, lab_file: Path,
+                        frame_rate_hz: float = 0.0) -> dict[str, dict]:
+    """Parameters of every node for a run of `plan` on the devices of `lab_file`, on the system
+    clock. frame_rate_hz: the camera's rate (0: the lab file's)."""
+    lab = {"use_sim_time": False, "hardware": "lab", "lab_file": str(lab_file)}
+    return {
+        "shaker": {**lab, "rate_hz": LAB_SHAKER_RATE_HZ},
+        "stage": {**lab, "rate_hz": LAB_STAGE_RATE_HZ},
+        "camera": {**lab, "frame_rate_hz": frame_rate_hz, "m_per_px": plan.m_per_px},
+        "recorder": {"use_sim_time": False, "path": str(out_dir / RECORDING_NAME)},
+    }
+
+
 def summary(plan: ExperimentPlan, params: dict, report: dict | None, timings: dict,
-            events: list[tuple[str, float]], status: str) -> dict:
+            events: list[tuple[str, float]], status: str, clock: str = "simulated") -> dict:
     """The machine-readable run summary (`run.json`).
 
     `frames` compares the frames the camera published (`timings["frames"]`) with those in the
@@ -123,8 +149,11 @@ def summary(plan: ExperimentPlan, params: dict, report: dict | None, timings: di
     node's clock lagged the sequencer's at the camera's start or stop: recorded, not hidden);
     and from a real camera (`timings["camera_lost"]`), `lost_at_camera`: frames the camera's
     frame counter says it took but never delivered (they were never published either).
+    `clock` is the rig time of `phases` ("simulated", from 0; "system": the host's clock, s
+    since the epoch); on the system clock a free-running camera is started by a call, not at a
+    held time, so no `expected` count is given.
     """
-    out = {"status": status, "plan": plan.as_dict(), "node_parameters": params,
+    out = {"status": status, "clock": clock, "plan": plan.as_dict(), "node_parameters": params,
            "recording": report, "timings_s": timings,
            "phases": [{"phase": p, "sim_time_s": t} for p, t in events]}
     if "frames" in timings and report is not None:
@@ -135,7 +164,7 @@ def summary(plan: ExperimentPlan, params: dict, report: dict | None, timings: di
         if "camera_lost" in timings:
             out["frames"]["lost_at_camera"] = int(timings["camera_lost"])
         t_rec = next((t for ph, t in events if ph == Phase.RECORD.value), None)
-        if t_rec is not None:
+        if t_rec is not None and clock == "simulated":
             out["frames"]["expected"] = plan.expected_frames(t_rec)
     return out
 

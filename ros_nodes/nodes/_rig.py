@@ -25,14 +25,24 @@ from ros_nodes.nodes.sequencer_node import SequencerNode
 log = logging.getLogger("metarig.rig")
 
 
-def run_rig(plan, node_params: dict[str, dict], out: Path, processes: bool = False) -> int:
+def run_rig(plan, node_params: dict[str, dict], out: Path, processes: bool = False,
+            lab: dict | None = None) -> int:
     """Run `plan` on the nodes of `node_params` (name -> parameters); writes `out`/run.json.
 
+    lab: None for the simulated rig (simulated clock); for lab devices on the system clock,
+        `{"lab_file": path, "design_json": the sample's nominal design, "ros": the ROS
+        environment applied}` (the sequencer publishes the design; run.json keeps `lab_file`
+        and `ros`).
     Returns the exit code: 0 completed, 130 interrupted (Ctrl-C/SIGTERM), 1 failed.
     """
     wall0 = time.monotonic()
     stop_on_signals()
     config = {"plan": plan.as_dict(), "node_parameters": node_params}
+    clock = "simulated" if lab is None else "system"
+    seq_kw = {} if lab is None else {"simulated_clock": False,
+                                     "design_json": lab["design_json"]}
+    if lab is not None:
+        config["lab_file"] = str(lab["lab_file"])
     group, rig, ctx, ex, seq, exp = None, None, None, None, None, None
     status, report, timings, code = "failed", None, {}, 1
     try:
@@ -45,7 +55,7 @@ def run_rig(plan, node_params: dict[str, dict], out: Path, processes: bool = Fal
                 ctx = Context()
                 rclpy.init(context=ctx)
                 seq = SequencerNode(plan, config, context=ctx, parameter_overrides=[
-                    rclpy.parameter.Parameter("use_sim_time", value=False)])
+                    rclpy.parameter.Parameter("use_sim_time", value=False)], **seq_kw)
                 exp = Experiment(plan, seq)
                 ex = MultiThreadedExecutor(num_threads=2, context=ctx)
                 ex.add_node(seq)
@@ -54,7 +64,7 @@ def run_rig(plan, node_params: dict[str, dict], out: Path, processes: bool = Fal
         else:
             with deferred_stop():
                 rig = InProcessRig(node_params)
-                seq = SequencerNode(plan, config, context=rig.context)
+                seq = SequencerNode(plan, config, context=rig.context, **seq_kw)
                 exp = Experiment(plan, seq)
                 rig.add(seq)
                 rig.start()
@@ -88,7 +98,9 @@ def run_rig(plan, node_params: dict[str, dict], out: Path, processes: bool = Fal
             if ctx is not None:
                 rclpy.try_shutdown(context=ctx)
     timings["total_wall"] = time.monotonic() - wall0
-    data = summary(plan, node_params, report, timings, exp.events if exp else [], status)
+    data = summary(plan, node_params, report, timings, exp.events if exp else [], status, clock)
+    if lab is not None:
+        data["lab_file"], data["ros"] = str(lab["lab_file"]), lab.get("ros", {})
     path = write_summary(out, data)
     if report is not None:
         lost = report.get("dropped", 0)

@@ -4,6 +4,7 @@ camera (pylon or GenICam, through the camera port).
 Interfaces (node name `camera`):
 - services `~/start` / `~/stop` (std_srvs/Trigger): replay sources stream from start; the
   simulated camera captures between start and stop and then downloads the footage (see below).
+- topic `/rig/stop` (std_msgs/Empty): a lab camera's stream stops (as `~/stop`).
 - service `~/snapshot` (std_srvs/Trigger): one frame now on `/camera/reference_image` (latched),
   the tracker's reference; the sequencer takes it before the stages close (simulated: the
   specimen at rest, refused once the stages have moved).
@@ -44,7 +45,7 @@ from rclpy.qos import QoSProfile
 from rclpy.serialization import serialize_message
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo, Image, JointState
-from std_msgs.msg import String
+from std_msgs.msg import Empty, String
 from std_srvs.srv import Trigger
 
 from ros_nodes import convert
@@ -52,7 +53,7 @@ from ros_nodes import topics as T
 from ros_nodes.hardware import camera_device, camera_settings, lab_camera
 from ros_nodes.logic.camera_stream import CameraStream, FrameStamper, one_line
 from ros_nodes.logic.cdr import ImageEncoder, restamp
-from ros_nodes.nodes._common import CLOCK, LATCHED, STREAM, qos_profile, run_node
+from ros_nodes.nodes._common import CLOCK, COMMAND, LATCHED, STREAM, qos_profile, run_node
 from ros_nodes.nodes._params import TypedParams
 from ros_nodes.params import CameraNodeConfig
 from tracking.frame_sources import SourceError, open_replay
@@ -99,6 +100,7 @@ class CameraNode(Node):
             self._open_lab()
         if self._lab:
             self.create_timer(0.5, self._lab_tick)
+            self.create_subscription(Empty, T.RIG_STOP.name, self._on_rig_stop, COMMAND)
             if self._camera is None:
                 self._status("error", self._lab_error)
             else:
@@ -398,6 +400,11 @@ class CameraNode(Node):
                                      "(camera frame counter)")
         res.success, res.message = True, self._state
         return res
+
+    def _on_rig_stop(self, _msg) -> None:
+        if self._stream is not None and self._stream.running:
+            self.get_logger().info("rig stop: the camera stops streaming")
+            self._lab_stop(Trigger.Response())
 
     def _lab_snapshot(self, res):
         if self._camera is None:

@@ -5,7 +5,8 @@ Interfaces (node name `recorder`):
   the stop response carries the loss report (JSON) in `message`; `autostart` records at once.
 - `~/report` (std_msgs/String, latched): the report of the last finished recording (JSON).
 - `~/status` (std_msgs/String, 5 Hz): whether recording, whether every subscription has matched
-  its publishers (`matched`), and messages written per topic (JSON).
+  its publishers (`matched`), messages written per topic (`counts`) and the newest stamp
+  written per topic (`last_stamp_s`, s) (JSON).
 Topics in `topics` are subscribed as they appear (types discovered from the graph), with the
 publishers' reliability and durability (latched topics stay latched). The strings on
 `/rig/design` and `/rig/config` are also stored as MCAP metadata records. Ctrl-C or SIGTERM
@@ -111,6 +112,12 @@ class RecorderNode(Node):
         rec = self._rec
         return {} if rec is None else {t: s.count for t, s in list(rec.stats.items())}
 
+    def last_stamps(self) -> dict[str, float]:
+        """The newest stamp written per topic, s."""
+        rec = self._rec
+        return {} if rec is None else {t: s.last_stamp_ns * 1e-9 for t, s in
+                                       list(rec.stats.items()) if s.last_stamp_ns is not None}
+
     # callbacks ------------------------------------------------------------------------------
     def matched(self) -> bool:
         """True when every recorded topic's subscription has matched all its publishers (until
@@ -121,7 +128,7 @@ class RecorderNode(Node):
     def _status(self) -> None:
         self._status_pub.publish(String(data=json.dumps(
             {"recording": self._rec is not None, "matched": self.matched(),
-             "counts": self.message_counts()})))
+             "counts": self.message_counts(), "last_stamp_s": self.last_stamps()})))
 
     def _discover(self) -> None:
         wanted = set(self._params.config.topics)

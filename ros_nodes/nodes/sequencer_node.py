@@ -1,10 +1,13 @@
-"""Experiment sequencer node: owns simulated time; the rclpy port of `logic.experiment`.
+"""Experiment sequencer node: owns the rig's time; the rclpy port of `logic.experiment`.
 
-Node name `sequencer`. Publishes `/clock` (simulated time, `clock_step_s` steps at
-`real_time_factor`), `/rig/phase` and `/rig/config` (latched strings), `/rig/stop` (on abort).
-Calls the stage, shaker, camera and recorder services; keeps their last status. The procedure
-itself is `ros_nodes.logic.experiment.Experiment`, which `metarig rig` runs against this node
-(`RigPort`) with the executor spinning elsewhere.
+Node name `sequencer`. On the simulated rig it publishes `/clock` (simulated time,
+`clock_step_s` steps at `real_time_factor`); on lab devices (`simulated_clock=False`) the rig
+runs on the system clock, which nobody can hold: the sequencer only waits for it, publishes no
+`/clock`, and publishes the sample's nominal design on `/rig/design` itself (no simulated
+camera builds it). Also `/rig/phase` and `/rig/config` (latched strings), `/rig/stop` (on
+abort). Calls the stage, shaker, camera and recorder services; keeps their last status. The
+procedure itself is `ros_nodes.logic.experiment.Experiment`, which `metarig rig` runs against
+this node (`RigPort`) with the executor spinning elsewhere.
 """
 
 import json
@@ -13,6 +16,7 @@ import threading
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray
+from lifecycle_msgs.srv import GetState
 from metarig_msgs.srv import FirePulse, SetStrain
 from rcl_interfaces.srv import SetParameters
 from rclpy.duration import Duration
@@ -41,21 +45,30 @@ _SERVICES = {"set_strain": (T.STAGE_SET_STRAIN, SetStrain), "stage_stop": (T.STA
 # status topic -> key of `latest`
 _WATCHED = {T.STAGE_STATE: "stage", T.CAMERA_STATUS: "camera", T.RECORDER_STATUS: "recorder",
             T.RIG_DESIGN: "design"}
+# lifecycle nodes that must be active before anything moves
+_LIFECYCLE = ("shaker", "stage")
 
 
 class SequencerNode(Node):
     """Clock owner and `RigPort` over ROS (see module docstring)."""
 
-    def __init__(self, plan: ExperimentPlan, config: dict, **kwargs):
+    def __init__(self, plan: ExperimentPlan, config: dict, simulated_clock: bool = True,
+                 design_json: str | None = None, **kwargs):
         super().__init__(NAME, **kwargs)
         self.plan = plan
-        self._clock_pub = self.create_publisher(Clock, T.CLOCK.name, qos_profile(T.CLOCK.qos))
+        self.simulated_clock = simulated_clock
+        self._clock_pub = self.create_publisher(Clock, T.CLOCK.name, qos_profile(T.CLOCK.qos)) \
+            if simulated_clock else None
         self._phase_pub = self.create_publisher(String, T.RIG_PHASE.name,
                                                 qos_profile(T.RIG_PHASE.qos))
         self._config_pub = self.create_publisher(String, T.RIG_CONFIG.name,
                                                  qos_profile(T.RIG_CONFIG.qos))
         self._stop_pub = self.create_publisher(Empty, T.RIG_STOP.name, qos_profile(T.RIG_STOP.qos))
         self._config_pub.publish(String(data=json.dumps(config, default=str)))
+        if design_json is not None:
+            self._design_pub = self.create_publisher(String, T.RIG_DESIGN.name,
+                                                     qos_profile(T.RIG_DESIGN.qos))
+            self._design_pub.publish(String(data=design_json))
         self.sim_ns = 0
         self._published_ns = -1  # the last time published on /clock
         self._limit_ns = 2**62
@@ -72,8 +85,11 @@ class SequencerNode(Node):
                                  qos_profile(T.DIAGNOSTICS.qos))
         # the camera's own parameter service: the capture starts at the time held here
         self._cam_params = self.create_client(SetParameters, "/camera/set_parameters")
-        self._publish_clock()
-        self._clock_thread.start()
+        self._lifecycle = {name: self.create_client(GetState, f"/{name}/get_state")
+                           for name in _LIFECYCLE}
+        if simulated_clock:
+            self._publish_clock()
+            self._clock_thread.start()
 
     # clock ------------------------------------------------------------------------------------
     def _publish_clock(self) -> None:
@@ -100,11 +116,13 @@ class SequencerNode(Node):
 
     @property
     def sim_s(self) -> float:
-        return self.sim_ns * 1e-9
+        return self.sim_ns * 1e-9 if self.simulated_clock else \
+            self.get_clock().now().nanoseconds * 1e-9
 
     def close(self) -> None:
         self._quit.set()
-        self._clock_thread.join(timeout=1.0)
+        if self._clock_thread.is_alive():
+            self._clock_thread.join(timeout=1.0)
 
     # waiting helpers --------------------------------------------------------------------------
     def _keep(self, key: str):
@@ -144,6 +162,9 @@ class SequencerNode(Node):
         self._phase_pub.publish(String(data=p.value))
 
     def start_clock(self, until_s: float | None) -> None:
+        if not self.simulated_clock:  # the system clock runs anyway: only the limit to wait for
+            self._limit_ns = 2**62 if until_s is None else int(round(until_s * 1e9))
+            return
         step = int(round(self.plan.clock_step_s * 1e9))
         self._limit_ns = 2**62 if until_s is None else int(round(until_s * 1e9 / step)) * step
         self._run_clock.set()
@@ -151,7 +172,10 @@ class SequencerNode(Node):
     def clock_reached(self) -> bool:
         """The clock is held at the requested time and every node has been handed that time:
         a service call after this (the camera's stop, which ends the capture at its own clock)
-        reads the held time, not the step before it, which would drop the last frame."""
+        reads the held time, not the step before it, which would drop the last frame. On the
+        system clock: it has passed the requested time."""
+        if not self.simulated_clock:
+            return self.get_clock().now().nanoseconds >= self._limit_ns
         return (self._published_ns >= self._limit_ns
                 and self._clock_pub.wait_for_all_acked(Duration(seconds=0.5)))
 
@@ -163,6 +187,25 @@ class SequencerNode(Node):
 
     def service_ready(self, name: str) -> bool:
         return self.clients_[name].service_is_ready()
+
+    def device_problems(self) -> list[str]:
+        """The shaker and stage nodes not active (a device that did not open leaves its node
+        unconfigured; its log says why), and a camera in error, one line each."""
+        out = []
+        for name, client in self._lifecycle.items():
+            try:
+                self._until(client.service_is_ready, f"service {client.srv_name}", 30.0)
+                fut = client.call_async(GetState.Request())
+                self._until(fut.done, f"the answer of {client.srv_name}", 30.0)
+            except RigError as e:
+                out.append(f"{name}: {e}")
+                continue
+            label = fut.result().current_state.label
+            if label != "active":
+                out.append(f"{name}: the node is {label}, not active (its log says why)")
+        if self.camera().get("state") == "error":
+            out.append(f"camera: {self.camera().get('message')}")
+        return out
 
     def design(self) -> dict | None:
         return self.latest.get("design")
@@ -198,8 +241,9 @@ class SequencerNode(Node):
 
     def camera_start(self, t_start_s: float) -> bool:
         """Start the capture at simulated time `t_start_s` (the camera's own clock may lag the
-        one held here under load and would start early: one to two extra frames were seen)."""
-        if self._cam_params.service_is_ready():
+        one held here under load and would start early: one to two extra frames were seen).
+        A lab camera starts streaming when called (the system clock cannot be held)."""
+        if self.simulated_clock and self._cam_params.service_is_ready():
             req = SetParameters.Request(parameters=[
                 Parameter("capture_start_s", value=float(t_start_s)).to_parameter_msg()])
             fut = self._cam_params.call_async(req)
@@ -227,9 +271,13 @@ class SequencerNode(Node):
         return json.loads(r.message) if r.success else None
 
     def stop_devices(self) -> None:
-        """Bring the rig to rest: broadcast /rig/stop, then the stop services (best effort)."""
+        """Bring the rig to rest: broadcast /rig/stop, then the stop services (best effort); a
+        camera still streaming (a lab camera) is stopped too."""
         self._stop_pub.publish(Empty())
-        for name in ("shaker_stop", "stage_stop"):
+        names = ["shaker_stop", "stage_stop"]
+        if self.camera().get("state") == "streaming":
+            names.append("cam_stop")
+        for name in names:
             try:
                 self.call(name, Trigger.Request(), timeout_s=5.0)
             except RigError as e:

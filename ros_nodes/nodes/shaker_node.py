@@ -207,6 +207,14 @@ class ShakerNode(LifecycleNode):
                 self.get_clock().now().nanoseconds, NAME, level, message,
                 {"active": self._active, "playing": self._playing_until is not None}))
 
+    def close(self) -> None:
+        """Bring the shaker to rest and release the device (the node is going down)."""
+        self._active = False
+        if self._timer is not None:
+            self.destroy_timer(self._timer)
+            self._timer = None
+        self.on_cleanup(None)
+
 
 def main(args=None) -> int:
     return run_node(ShakerNode, args=args)

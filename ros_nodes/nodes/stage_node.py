@@ -189,6 +189,14 @@ class StageNode(LifecycleNode):
         res.message = "fault cleared" if res.success else "nothing to reset (no fault)"
         return res
 
+    def close(self) -> None:
+        """Bring the stages to rest and release the device (the node is going down)."""
+        self._active = False
+        if self._timer is not None:
+            self.destroy_timer(self._timer)
+            self._timer = None
+        self.on_cleanup(None)
+
 
 def main(args=None) -> int:
     return run_node(StageNode, args=args)

@@ -12,7 +12,8 @@ lab file on the system clock. Before a node starts, and so before anything can m
   a test frame, a dry-run waveform; nothing moves);
 - `nominal_design_json`: the sample as designed, which the sequencer publishes on
   `/rig/design` (on the simulated rig the camera publishes it).
-Each raises `LabRunError` (one line) or returns what failed.
+Each raises `LabRunError` (one line) or returns what failed. A node started on its own on a
+lab file applies the file's [ros] too (`lab_file_in_ros_args`, from `nodes._common.run_node`).
 """
 
 import dataclasses
@@ -117,3 +118,41 @@ def nominal_design_json(plan: ExperimentPlan) -> str:
     return build(SpecimenConfig(scene=plan.scene, nx=plan.nx, ny=plan.ny,
                                 design_path=plan.design, material_path=plan.material,
                                 imperfections=NOMINAL)).design_json()
+
+
+def lab_file_in_ros_args(argv: list[str]) -> str | None:
+    """The lab file a node is started on: `hardware` "lab" and `lab_file` given as ROS
+    arguments (`-p name:=value`, `--param`, or in a `--params-file`, whose node entries are all
+    read; `-p` wins), or None."""
+    files, given = [], {}
+    args = iter(argv)
+    for a in args:
+        if a in ("-p", "--param"):
+            key, _, value = next(args, "").partition(":=")
+            given[key] = value
+        elif a == "--params-file":
+            files.append(next(args, ""))
+    values = {}
+    for f in files:
+        values.update(_lab_params_in_file(f))
+    values.update(given)
+    if values.get("hardware") == "lab" and values.get("lab_file"):
+        return str(values["lab_file"])
+    return None
+
+
+def _lab_params_in_file(path: str) -> dict:
+    """`hardware` and `lab_file` of any node entry of a ROS 2 parameter file ({} if none or
+    unreadable: the node reports a bad file itself)."""
+    import yaml
+
+    try:
+        doc = yaml.safe_load(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        return {}
+    out = {}
+    for entry in (doc.values() if isinstance(doc, dict) else ()):
+        params = entry.get("ros__parameters") if isinstance(entry, dict) else None
+        if isinstance(params, dict):
+            out.update({k: params[k] for k in ("hardware", "lab_file") if k in params})
+    return out

@@ -47,6 +47,9 @@ class ShakerNodeConfig:
     hardware: str = param("sim", "device backend: the simulated shaker, or the [shaker] of "
                           "lab_file (whose limits replace device.*)", choices=HARDWARE)
     lab_file: str = param("", "lab file (TOML) naming the devices, when hardware is 'lab'")
+    allowed_callers: tuple[str, ...] = param(
+        lambda: ("/sequencer",), "nodes whose motion requests are accepted (fully qualified "
+        "names; '*': any node); refused while another node has a client on the service")
     autostart: bool = param(True, "configure and activate on start-up (the launcher drives it)")
 
     def __post_init__(self):
@@ -63,6 +66,9 @@ class StageNodeConfig:
     hardware: str = param("sim", "device backend: the simulated stages, or the [stage] of "
                           "lab_file (whose limits replace device.*)", choices=HARDWARE)
     lab_file: str = param("", "lab file (TOML) naming the devices, when hardware is 'lab'")
+    allowed_callers: tuple[str, ...] = param(
+        lambda: ("/sequencer",), "nodes whose motion requests are accepted (fully qualified "
+        "names; '*': any node); refused while another node has a client on the service")
     autostart: bool = param(True, "configure and activate on start-up (the launcher drives it)")
 
     def __post_init__(self):

@@ -1,6 +1,7 @@
 """Shared QoS profiles, the discovery range, and the uniform `main()` of every node."""
 
 import os
+import sys
 from collections.abc import Callable
 
 import rclpy
@@ -41,6 +42,23 @@ LATCHED = qos_profile(topics.LATCHED)
 STREAM = qos_profile(topics.STREAM)
 CLOCK = qos_profile(topics.CLOCK_QOS)
 
+def apply_lab_ros(argv: list[str]) -> None:
+    """A node started on a lab file (`-p hardware:=lab -p lab_file:=FILE`, or in a params
+    file) joins the ROS domain, discovery range and static peers of the file's [ros]
+    (`ros_nodes.lab_run.apply_ros`) before its context starts; a lab file that cannot be read
+    is left to the node, which reports it when it opens its device."""
+    from devices.lab import LabFileError, read_lab
+    from ros_nodes.lab_run import apply_ros, lab_file_in_ros_args
+
+    path = lab_file_in_ros_args(list(argv))
+    if path is None:
+        return
+    try:
+        apply_ros(read_lab(path).ros)
+    except LabFileError:
+        pass
+
+
 def run_node(make: Callable[..., object], args=None, threads: int = 2, **node_kwargs) -> int:
     """Init rclpy, build one node, spin it until Ctrl-C/shutdown (multi-threaded executor with
     `threads` threads; 1: the cheaper single-threaded executor)."""
@@ -49,6 +67,7 @@ def run_node(make: Callable[..., object], args=None, threads: int = 2, **node_kw
     stop_on_signals()
     # This rclpy (Jazzy 7.1) has no context-manager form of init(); try_shutdown is the `with`.
     try:
+        apply_lab_ros(sys.argv if args is None else args)
         local_discovery_by_default()
         rclpy.init(args=args)
         try:
@@ -75,8 +94,6 @@ def run_node(make: Callable[..., object], args=None, threads: int = 2, **node_kw
         pass
     except SystemExit as e:  # a configuration error raised while building the node
         if isinstance(e.code, str):
-            import sys
-
             print(e.code, file=sys.stderr)
             return 2
         raise

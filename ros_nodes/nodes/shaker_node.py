@@ -2,8 +2,9 @@
 
 Interfaces (node name `shaker`):
 - service `~/fire` (metarig_msgs/srv/FirePulse): play a waveform; refused outside the limits,
-  when the drive refuses it (a function generator: volts over max_volts, an instrument error)
-  or when the node is not active, with the reason in `message`.
+  when the drive refuses it (a function generator: volts over max_volts, an instrument error),
+  when the node is not active, or while a node not on `allowed_callers` has a client on it
+  (`logic.command_guard`), with the reason in `message`.
 - service `~/stop` (std_srvs/Trigger) and topic `/rig/stop` (std_msgs/Empty): drop the program,
   the actuator returns to rest at zero.
 - `~/command` (trajectory_msgs/JointTrajectory, latched): the accepted waveform, absolute start.
@@ -31,6 +32,7 @@ from ros_nodes import topics as T
 from ros_nodes.hardware import shaker_drive
 from ros_nodes.logic.sampling import due_samples
 from ros_nodes.nodes._common import COMMAND, LATCHED, qos_profile, run_node
+from ros_nodes.nodes._guard import motion_refusal
 from ros_nodes.nodes._params import TypedParams
 from ros_nodes.params import ShakerNodeConfig
 
@@ -136,6 +138,12 @@ class ShakerNode(LifecycleNode):
         if not self._active:
             res.accepted, res.message = False, "refused: the shaker node is not active"
             self.get_logger().warning(res.message)
+            return res
+        why = motion_refusal(self, T.SHAKER_FIRE.name, self._params.config.allowed_callers)
+        if why is not None:
+            res.accepted, res.message = False, f"refused: {why}"
+            self.get_logger().warning(res.message)
+            self._report("warn", res.message)
             return res
         if self._playing_until is not None:
             res.accepted, res.message = False, "refused: a waveform is already playing"

@@ -2,7 +2,8 @@
 
 Interfaces (node name `stage`):
 - service `~/set_strain` (metarig_msgs/srv/SetStrain): move to a strain and hold; refused
-  outside the limits, in FAULT, or when not active (reason in `message`).
+  outside the limits, in FAULT, when not active, or while a node not on `allowed_callers` has
+  a client on it (`logic.command_guard`) (reason in `message`).
 - services `~/stop` (hold where you are) and `~/reset` (clear a FAULT), std_srvs/Trigger;
   topic `/rig/stop` (std_msgs/Empty) stops too.
 - `~/joint_states` (sensor_msgs/JointState: stage_bottom, stage_top; m toward the centre).
@@ -28,6 +29,7 @@ from ros_nodes import topics as T
 from ros_nodes.hardware import stage_pair
 from ros_nodes.logic.sampling import due_samples
 from ros_nodes.nodes._common import COMMAND, LATCHED, qos_profile, run_node
+from ros_nodes.nodes._guard import motion_refusal
 from ros_nodes.nodes._params import TypedParams
 from ros_nodes.params import StageNodeConfig
 
@@ -153,8 +155,12 @@ class StageNode(LifecycleNode):
             self.get_logger().error(f"FAULT: {s.fault}")
 
     def _on_set_strain(self, req, res):
+        why = None if not self._active else motion_refusal(
+            self, T.STAGE_SET_STRAIN.name, self._params.config.allowed_callers)
         if not self._active:
             res.accepted, res.message = False, "refused: the stage node is not active"
+        elif why is not None:
+            res.accepted, res.message = False, f"refused: {why}"
         elif self._stages.status.mode == StageMode.FAULT:
             res.accepted = False
             res.message = f"refused: stages in FAULT ({self._stages.status.fault})"

@@ -67,7 +67,8 @@ def test_installed_shaker_node_runs_like_ros2_run(workspace, ros_node, start_nod
     probe = subprocess.run([str(exe.with_name("metarig")), "--help"], env=env, capture_output=True,
                            text=True, timeout=120)
     assert probe.returncode == 0 and "simulate" in probe.stdout, probe.stderr
-    proc = start_node([exe], "-p", "device.max_amplitude_m:=0.008", env=env)
+    proc = start_node([exe], "-p", "device.max_amplitude_m:=0.008", "-p",
+                      "allowed_callers:=[/test_client]", env=env)
     node, ex = ros_node
     try:
         fire = node.create_client(FirePulse, "/shaker/fire")

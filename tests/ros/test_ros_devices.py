@@ -20,7 +20,9 @@ def test_shaker_refuses_out_of_limits_then_plays_a_pulse_and_stops(ros_node, sta
     # a deep reader queue: a node that stalls under load catches up in a burst of samples
     deep = qos_profile(T.SHAKER_JOINTS.qos, depth=5000)
     params = tmp_path / "shaker.yaml"
-    params.write_text("shaker:\n  ros__parameters:\n    device:\n      max_amplitude_m: 0.008\n")
+    # the test's client node may command motion (by default only the sequencer)
+    params.write_text("shaker:\n  ros__parameters:\n    allowed_callers: [/test_client]\n"
+                      "    device:\n      max_amplitude_m: 0.008\n")
     proc = start_node("metarig-shaker", "--params-file", str(params))
     node, ex = ros_node
     try:
@@ -77,7 +79,7 @@ def test_stage_moves_holds_refuses_and_validates_parameters(ros_node, start_node
     from ros_nodes import topics as T
     from ros_nodes.nodes._common import LATCHED, qos_profile
 
-    proc = start_node("metarig-stage")
+    proc = start_node("metarig-stage", "-p", "allowed_callers:=[/test_client]")
     node, ex = ros_node
     try:
         states, modes = [], []

@@ -18,7 +18,8 @@ FG = EXAMPLE.read_text().split("\n[stage]")[0]    # the format line and the [sha
 def _node(cls, ros_context, executor, lab, **params):
     from rclpy.parameter import Parameter
 
-    overrides = [Parameter("hardware", value="lab"), Parameter("lab_file", value=str(lab))]
+    overrides = [Parameter("hardware", value="lab"), Parameter("lab_file", value=str(lab)),
+                 Parameter("allowed_callers", value=["/test_client"])]  # the test's client
     overrides += [Parameter(k, value=v) for k, v in params.items()]
     node = cls(context=ros_context, parameter_overrides=overrides)
     executor.add_node(node)

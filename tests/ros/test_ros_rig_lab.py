@@ -52,6 +52,8 @@ sample_height_m = {HEIGHT_M}
 max_strain = 0.05
 microstep_m = {MICROSTEP_M}
 closing_speed_m_s = 0.01
+reply_timeout_s = 2.0          # the emulator's thread shares this busy 2-core machine
+eta_margin_s = 2.0
 bottom_device = 1
 top_device = 2
 {CAMERA}[ros]

@@ -125,11 +125,16 @@ class CameraSection:
 
 @dataclass(frozen=True, slots=True)
 class RosSection:
-    """[ros]: the DDS domain and how far discovery reaches (default: this machine only)."""
+    """[ros]: the DDS domain and how far discovery reaches (default: this machine only).
+
+    given: whether the file has a [ros] section; without one, whoever applies the file keeps
+        the environment's ROS settings (`ROS_DOMAIN_ID`, ...), discovery on this machine.
+    """
 
     domain_id: int = 0
     discovery: str = "localhost"
     static_peers: tuple[str, ...] = ()
+    given: bool = dataclasses.field(default=False, compare=False)
 
 
 @dataclass(frozen=True, slots=True)
@@ -382,7 +387,7 @@ def _ros(w: _Where, t: dict) -> RosSection:
     peers = t.get("static_peers", [])
     if not isinstance(peers, list) or not all(isinstance(p, str) and p for p in peers):
         raise w.error("static_peers", f"expected a list of host names, got {peers!r}")
-    return RosSection(domain, discovery, tuple(peers))
+    return RosSection(domain, discovery, tuple(peers), given=True)
 
 
 def parse_lab(doc: dict, path: Path) -> Lab:
@@ -402,7 +407,7 @@ def parse_lab(doc: dict, path: Path) -> Lab:
                shaker=_shaker(_Where(path, "shaker"), sections["shaker"], base),
                stage=_stage(_Where(path, "stage"), sections["stage"]),
                camera=_camera(_Where(path, "camera"), sections["camera"], base),
-               ros=_ros(_Where(path, "ros"), sections["ros"]))
+               ros=_ros(_Where(path, "ros"), sections["ros"]) if "ros" in doc else RosSection())
 
 
 def read_lab(path: str | Path) -> Lab:

@@ -206,6 +206,10 @@ def check_lab(lab: Lab) -> list[Check]:
         else:
             out += run()
     r = lab.ros
+    if not r.given:
+        out.append(Check("ros", "discovery", True, "no [ros] section: the environment's domain "
+                         "and discovery range (this machine only unless it opens them)"))
+        return out
     reach = {"localhost": "this machine only", "subnet": "the whole subnet: any participant "
              "on this domain may call the rig's services", "off": "no automatic discovery"}
     out.append(Check("ros", "discovery", True,

@@ -88,12 +88,16 @@ ROS_VARIABLES = ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_STATIC_P
 def apply_ros(ros: RosSection) -> dict[str, str]:
     """Put this process (and the processes it starts) where the lab file's [ros] says: its
     domain, discovery range and static peers replace the environment's (no peers in the
-    file: none from the environment either). Call before any rclpy context starts."""
-    env = ros_environment(ros)
-    for name in ROS_VARIABLES:
-        os.environ.pop(name, None)
-    os.environ.update(env)
-    return env
+    file: none from the environment either). A file without [ros] keeps the environment's,
+    with discovery on this machine unless the environment opens it. Call before any rclpy
+    context starts. Returns the ROS variables in force."""
+    if ros.given:
+        for name in ROS_VARIABLES:
+            os.environ.pop(name, None)
+        os.environ.update(ros_environment(ros))
+    elif not os.environ.get(ROS_VARIABLES[1]):
+        os.environ[ROS_VARIABLES[1]] = "LOCALHOST"
+    return {name: os.environ[name] for name in ROS_VARIABLES if os.environ.get(name)}
 
 
 def preflight(lab: Lab, report) -> list[str]:

@@ -27,9 +27,26 @@ def test_the_ros_section_replaces_the_environment(monkeypatch):
     monkeypatch.setenv("ROS_DOMAIN_ID", "5")
     monkeypatch.setenv("ROS_STATIC_PEERS", "somewhere")
     monkeypatch.delenv("ROS_AUTOMATIC_DISCOVERY_RANGE", raising=False)
-    env = apply_ros(RosSection(42, "subnet", ()))
+    env = apply_ros(RosSection(42, "subnet", (), given=True))
     assert env == {"ROS_DOMAIN_ID": "42", "ROS_AUTOMATIC_DISCOVERY_RANGE": "SUBNET"}
     assert os.environ["ROS_DOMAIN_ID"] == "42" and "ROS_STATIC_PEERS" not in os.environ
-    apply_ros(RosSection(7, "localhost", ("rig-pc",)))
+    apply_ros(RosSection(7, "localhost", ("rig-pc",), given=True))
     assert os.environ["ROS_STATIC_PEERS"] == "rig-pc"
     assert os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
+
+
+def test_a_lab_file_without_a_ros_section_keeps_the_environment(monkeypatch, tmp_path):
+    from devices.lab import read_lab
+
+    lab = tmp_path / "lab.toml"
+    lab.write_text('[stage]\ndriver = "sim"\n')
+    ros = read_lab(lab).ros
+    assert not ros.given and ros == RosSection()
+    monkeypatch.setenv("ROS_DOMAIN_ID", "5")
+    monkeypatch.delenv("ROS_AUTOMATIC_DISCOVERY_RANGE", raising=False)
+    monkeypatch.delenv("ROS_STATIC_PEERS", raising=False)
+    assert apply_ros(ros) == {"ROS_DOMAIN_ID": "5", "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "SUBNET")
+    assert apply_ros(ros)["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SUBNET"
+    lab.write_text("[ros]\n")
+    assert read_lab(lab).ros.given

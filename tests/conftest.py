@@ -33,6 +33,15 @@ import pytest  # noqa: E402
 import design_engine  # noqa: E402, F401  (enables x64 and the compilation cache)
 
 
+@pytest.fixture
+def emu():
+    """Two Zaber stages (devices 1 and 2, axis 1) emulated on a pseudo-terminal."""
+    from devices.stage.zaber_emulator import ZaberEmulator
+
+    with ZaberEmulator() as e:
+        yield e
+
+
 def pytest_addoption(parser):
     parser.addoption("--runslow", action="store_true", default=False, help="also run slow tests")
 

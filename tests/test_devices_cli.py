@@ -19,14 +19,7 @@ pytest.importorskip("harvesters", reason="pip install harvesters genicam")
 from devices.camera.genicam import bundled_producer  # noqa: E402
 from devices.cli import devices_main  # noqa: E402
 from devices.lab import EXAMPLE, SHAKER_EMULATOR_YAML  # noqa: E402
-from devices.stage.zaber_emulator import ZaberEmulator  # noqa: E402
 from metarig.cli import main as metarig_main  # noqa: E402
-
-
-@pytest.fixture
-def emu():
-    with ZaberEmulator() as e:
-        yield e
 
 
 def _lab(tmp_path, emu, *edits: tuple[str, str]):

@@ -220,11 +220,12 @@ def test_frames_a_real_camera_lost_go_into_the_timings():
 
     def stop_with_loss():  # a lab camera's status counts the frames its counter says it lost
         camera_stop()
-        rig._camera["lost"] = 2
+        rig._camera.update(lost=2, received=41)
 
     rig.camera_stop = stop_with_loss
     timings = Experiment(PLAN, rig).run()
     assert timings["frames"] == 41 and timings["camera_lost"] == 2
+    assert timings["camera_received"] == 41
 
 
 def test_phase_values_are_the_published_names():

@@ -21,9 +21,10 @@ def test_trailing_frames_missing_from_the_recording_are_counted_as_lost():
 
 def test_frames_a_real_camera_lost_are_counted_beside_those_missing_from_the_file():
     # the camera's frame counter jumped by 3 (never published); the simulated camera has none
-    s = summary(ExperimentPlan(), {}, _report(97), {"frames": 98, "camera_lost": 3}, [],
-                "completed")
-    assert s["frames"] == {"published": 98, "recorded": 97, "lost": 1, "lost_at_camera": 3}
+    s = summary(ExperimentPlan(), {}, _report(97), {"frames": 98, "camera_lost": 3,
+                                                    "camera_received": 98}, [], "completed")
+    assert s["frames"] == {"published": 98, "recorded": 97, "lost": 1, "lost_at_camera": 3,
+                           "received_at_camera": 98}
     s = summary(ExperimentPlan(), {}, _report(98), {"frames": 98}, [], "completed")
     assert "lost_at_camera" not in s["frames"]
 

@@ -13,18 +13,11 @@ from devices.limits import LimitError  # noqa: E402
 from devices.stage.port import StageCommand, StageMode, StagePair  # noqa: E402
 from devices.stage.zaber import (SPEED_UNIT, StageControllerError, ZaberConfig,  # noqa: E402
                                  ZaberStages)
-from devices.stage.zaber_emulator import ZaberEmulator  # noqa: E402
 
 STEP = 1e-6            # microstep, m: round numbers below
 CFG = ZaberConfig(sample_height_m=0.2, max_strain=0.05, microstep_m=STEP,
                   closing_speed_m_s=0.02, eta_factor=1.5, eta_margin_s=0.2, reply_timeout_s=0.1,
                   bottom_zero_steps=1000, top_zero_steps=500)
-
-
-@pytest.fixture
-def emu():
-    with ZaberEmulator() as e:
-        yield e
 
 
 @pytest.fixture

@@ -247,6 +247,8 @@ class Experiment:
         timings["frames"] = n
         if "lost" in cam:  # a real camera: frames its own frame counter says never came
             timings["camera_lost"] = int(cam["lost"])
+        if "received" in cam:  # ... and those the driver delivered to the node
+            timings["camera_received"] = int(cam["received"])
         return timings
 
     def _devices_recorded(self, t_s: float) -> bool:

@@ -148,7 +148,9 @@ def summary(plan: ExperimentPlan, params: dict, report: dict | None, timings: di
     the plan's capture window from the `record` phase on, `expected` (published differs when a
     node's clock lagged the sequencer's at the camera's start or stop: recorded, not hidden);
     and from a real camera (`timings["camera_lost"]`), `lost_at_camera`: frames the camera's
-    frame counter says it took but never delivered (they were never published either).
+    frame counter says it took but never delivered (they were never published either), and
+    `received_at_camera` (`timings["camera_received"]`): those the driver delivered to the node
+    (all of them are published unless the node lost some without counting them).
     `clock` is the rig time of `phases` ("simulated", from 0; "system": the host's clock, s
     since the epoch); on the system clock a free-running camera is started by a call, not at a
     held time, so no `expected` count is given.
@@ -163,6 +165,8 @@ def summary(plan: ExperimentPlan, params: dict, report: dict | None, timings: di
                          "lost": max(0, published - recorded)}
         if "camera_lost" in timings:
             out["frames"]["lost_at_camera"] = int(timings["camera_lost"])
+        if "camera_received" in timings:
+            out["frames"]["received_at_camera"] = int(timings["camera_received"])
         t_rec = next((t for ph, t in events if ph == Phase.RECORD.value), None)
         if t_rec is not None and clock == "simulated":
             out["frames"]["expected"] = plan.expected_frames(t_rec)

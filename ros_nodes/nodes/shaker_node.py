@@ -31,7 +31,7 @@ from ros_nodes import convert
 from ros_nodes import topics as T
 from ros_nodes.hardware import shaker_drive
 from ros_nodes.logic.sampling import due_samples
-from ros_nodes.nodes._common import COMMAND, LATCHED, qos_profile, run_node
+from ros_nodes.nodes._common import COMMAND, LATCHED, qos_profile, release_device, run_node
 from ros_nodes.nodes._guard import motion_refusal
 from ros_nodes.nodes._params import TypedParams
 from ros_nodes.params import ShakerNodeConfig
@@ -218,10 +218,7 @@ class ShakerNode(LifecycleNode):
     def close(self) -> None:
         """Bring the shaker to rest and release the device (the node is going down)."""
         self._active = False
-        if self._timer is not None:
-            self.destroy_timer(self._timer)
-            self._timer = None
-        self.on_cleanup(None)
+        self._timer = release_device(self, self._timer)
 
 
 def main(args=None) -> int:

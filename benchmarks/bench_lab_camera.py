@@ -1,28 +1,24 @@
-"""Lab camera benchmark: frames/s sustained from pylon's emulated camera into the recorder, and
-whether any frame is lost without being counted.
+"""Lab camera benchmark: frames/s sustained from pylon's emulated camera into the recorder by
+`metarig rig --hardware lab`, and whether any frame is lost without being counted.
 
-For each region of interest and requested frame rate: the camera node on a lab file
-(`hardware: lab`, pylon's emulator, `PYLON_CAMEMU=1`) and the recorder node run as two
-processes on an isolated domain; this script's driver node starts the stream (`/camera/start`),
-lets it run `--seconds`, stops it (`/camera/stop`), waits until the recorder has written what
-was published and ends the recording (`/recorder/stop`). The MCAP is then read back with the
-`mcap` package. Every frame is accounted for:
-- taken by the camera = `received` + `lost` of the camera node's status (its frame counter);
-- `lost_at_camera`: counter jumps (taken, never delivered by the driver): counted, not silent;
-- published by the node, recorded in the file; `published - recorded` is what `run.json`
-  reports as `frames.lost` (the recorder's `dropped` is its known part): counted, not silent;
-- silent loss = frames received but never published (`received - published`), plus any
-  difference between the file's count and the recorder's own report: nothing counts those.
+For each region of interest and requested frame rate, and each way of running the nodes (all
+in one process, or `--processes`): `metarig rig --hardware lab` on a lab file whose camera is
+pylon's emulator (`PYLON_CAMEMU=1`) and whose shaker and stages are the simulators, on the
+system clock, capturing `--seconds`. The run's MCAP is read back with the `mcap` package and
+every frame accounted for from `run.json` `frames`:
+- taken by the camera = `received_at_camera` + `lost_at_camera` (its frame counter);
+- `lost_at_camera` (counter jumps) and `lost` (published, not in the file): counted;
+- silent loss = frames received but never published (`received_at_camera - published`),
+  plus any difference between the file's frames and the recorder's own count.
 Sustained rate = recorded frames / the span of their stamps. For comparison, the emulator
-alone: the frames/s the camera driver grabs from it in this process, no ROS (`--alone-s`), at
-each region of interest as fast as it goes. Writes
-`<out>/bench_lab_camera.json` (machine, load average before and after) and prints a table.
+alone: the frames/s the camera driver grabs from it in this process, no ROS (`--alone-s`),
+asked for 1 kHz. Writes `<out>/bench_lab_camera.json` (machine, load average before and after)
+and prints a table.
 """
 
 import argparse
 import json
 import os
-import signal
 import subprocess
 import sys
 import tempfile
@@ -35,7 +31,11 @@ from machine import describe
 
 BIN = Path(sys.prefix) / "bin"
 IMAGE = "/camera/image_raw"
-LAB = """[camera]
+LAB = """[shaker]
+driver = "sim"
+[stage]
+driver = "sim"
+[camera]
 driver = "pylon"
 serial = "0815-0000"
 frame_rate_hz = {rate}
@@ -45,128 +45,6 @@ max_frame_rate_hz = 5000.0
 exposure_range_s = [1e-6, 0.01]
 buffers = 256
 """
-
-
-class Driver:
-    """The benchmark's own node: starts and stops the camera, reads the statuses."""
-
-    def __init__(self, domain: int):
-        import rclpy
-        from rclpy.context import Context
-        from rclpy.executors import SingleThreadedExecutor
-        from rclpy.qos import DurabilityPolicy, QoSProfile
-        from std_msgs.msg import String
-        from std_srvs.srv import Trigger
-
-        os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")  # as the nodes
-        self.ctx = Context()
-        rclpy.init(context=self.ctx, domain_id=domain)
-        self.node = rclpy.create_node("bench_driver", context=self.ctx)
-        self.ex = SingleThreadedExecutor(context=self.ctx)
-        self.ex.add_node(self.node)
-        self.camera, self.recorder = {}, {}
-        latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self.node.create_subscription(String, "/camera/status",
-                                      lambda m: self.camera.update(json.loads(m.data)), latched)
-        self.node.create_subscription(String, "/recorder/status",
-                                      lambda m: self.recorder.update(json.loads(m.data)), 10)
-        self.trigger = Trigger
-        self.clients = {n: self.node.create_client(Trigger, n) for n in
-                        ("/camera/start", "/camera/stop", "/recorder/start", "/recorder/stop")}
-
-    def until(self, predicate, what: str, timeout_s: float) -> None:
-        deadline = time.monotonic() + timeout_s
-        while not predicate():
-            if time.monotonic() > deadline:
-                raise RuntimeError(f"timed out waiting for {what}")
-            self.ex.spin_once(timeout_sec=0.05)
-
-    def call(self, name: str, timeout_s: float = 60.0):
-        client = self.clients[name]
-        self.until(client.service_is_ready, name, timeout_s)
-        fut = client.call_async(self.trigger.Request())
-        self.until(fut.done, f"the answer of {name}", timeout_s)
-        return fut.result()
-
-    def close(self) -> None:
-        import rclpy
-
-        self.ex.shutdown()
-        self.node.destroy_node()
-        rclpy.try_shutdown(context=self.ctx)
-
-
-def run_one(work: Path, w: int, h: int, rate: float, seconds: float, domain: int) -> dict:
-    lab, mcap = work / f"lab_{w}x{h}_{rate:g}.toml", work / f"cam_{w}x{h}_{rate:g}.mcap"
-    lab.write_text(LAB.format(rate=rate, w=w, h=h))
-    mcap.unlink(missing_ok=True)
-    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-               PYLON_CAMEMU="1", PYTHONUNBUFFERED="1")
-    rec = subprocess.Popen([str(BIN / "metarig-recorder"), "--ros-args", "-p", f"path:={mcap}",
-                            "-p", f"topics:=[{IMAGE}, /camera/camera_info]", "-p",
-                            "queue_depth:=5000", "-p", "chunk_size:=4194304"],
-                           env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    cam = subprocess.Popen([str(BIN / "metarig-camera"), "--ros-args", "-p", "hardware:=lab",
-                            "-p", f"lab_file:={lab}"],
-                           env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    drv = Driver(domain)
-    try:
-        drv.until(lambda: drv.camera.get("state") == "idle", "the lab camera to open", 60.0)
-        drv.call("/recorder/start")
-        drv.until(lambda: drv.recorder.get("recording") and drv.recorder.get("matched")
-                  and drv.node.count_subscribers(IMAGE) >= 1, "the recorder to subscribe", 60.0)
-        t0 = time.monotonic()
-        r = drv.call("/camera/start")
-        if not r.success:
-            raise RuntimeError(f"the camera refused: {r.message}")
-        while time.monotonic() - t0 < seconds:
-            drv.ex.spin_once(timeout_sec=0.1)
-        drv.call("/camera/stop")
-        drv.until(lambda: drv.camera.get("state") in ("done", "error"), "the camera to stop", 30.0)
-        cam_status = dict(drv.camera)
-        published = int(cam_status["frames"])
-        # the recorder writes what was published, or stops gaining for 2 s
-        last, since = -1, time.monotonic()
-        while drv.recorder.get("counts", {}).get(IMAGE, 0) < published and \
-                time.monotonic() - since < 2.0:
-            drv.ex.spin_once(timeout_sec=0.1)
-            n = drv.recorder.get("counts", {}).get(IMAGE, 0)
-            if n != last:
-                last, since = n, time.monotonic()
-        report = json.loads(drv.call("/recorder/stop").message)
-    finally:
-        drv.close()
-        for proc in (cam, rec):
-            proc.send_signal(signal.SIGINT)
-        for proc in (cam, rec):
-            try:
-                proc.communicate(timeout=30)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-    from mcap.reader import make_reader
-
-    stamps = []
-    with mcap.open("rb") as f:
-        for _, _, message in make_reader(f).iter_messages(topics=[IMAGE]):
-            stamps.append(message.log_time)
-    stamps = np.array(stamps)
-    recorded = int(stamps.size)
-    t = report["topics"].get(IMAGE, {"count": 0, "dropped": 0, "missing_by_stamp": 0})
-    received, lost = int(cam_status.get("received", 0)), int(cam_status.get("lost", 0))
-    span = (stamps[-1] - stamps[0]) * 1e-9 if recorded > 1 else float("nan")
-    silent = (received - published) + abs(recorded - int(t["count"]))
-    out = {"roi_px": [w, h], "requested_rate_hz": rate,
-           "device_rate_hz": cam_status.get("settings", {}).get("frame_rate_hz"),
-           "seconds": seconds, "taken": received + lost, "lost_at_camera": lost,
-           "received": received, "published": published, "recorded": recorded,
-           "recorder_count": int(t["count"]), "recorder_dropped": int(t["dropped"]),
-           "missing_from_file": published - recorded, "silent_loss": silent,
-           "sustained_frames_per_s": (recorded - 1) / span if recorded > 1 else 0.0,
-           "megabytes_per_s": (recorded - 1) * w * h / span / 1e6 if recorded > 1 else 0.0,
-           "stamp_gaps": int(t.get("gaps", 0)), "camera_state": cam_status.get("state"),
-           "mcap_bytes": mcap.stat().st_size}
-    mcap.unlink(missing_ok=True)
-    return out
 
 
 def device_alone(w: int, h: int, seconds: float) -> float:
@@ -190,14 +68,55 @@ def device_alone(w: int, h: int, seconds: float) -> float:
     return rate
 
 
+def run_one(work: Path, w: int, h: int, rate: float, seconds: float, processes: bool,
+            domain: int) -> dict:
+    name = f"{w}x{h}_{rate:g}_{'processes' if processes else 'inprocess'}"
+    lab, out = work / f"{name}.toml", work / name
+    lab.write_text(LAB.format(rate=rate, w=w, h=h))
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+               PYLON_CAMEMU="1")
+    t0 = time.monotonic()
+    r = subprocess.run([str(BIN / "metarig"), "rig", "--hardware", "lab", "--lab", str(lab),
+                        "--out", str(out), "--nx", "6", "--ny", "5", "--strain", "0.01",
+                        "--record-s", f"{seconds:g}", *(["--processes"] if processes else [])],
+                       env=env, capture_output=True, text=True, timeout=600)
+    wall = time.monotonic() - t0
+    if r.returncode != 0:
+        raise RuntimeError(f"{name}: metarig rig failed:\n{r.stderr[-3000:]}")
+    run = json.loads((out / "run.json").read_text())
+    from mcap.reader import make_reader
+
+    stamps = []
+    with (out / "recording.mcap").open("rb") as f:
+        for _, _, message in make_reader(f).iter_messages(topics=[IMAGE]):
+            stamps.append(message.log_time)
+    stamps = np.array(stamps)
+    recorded = int(stamps.size)
+    frames, report = run["frames"], run["recording"]["topics"][IMAGE]
+    received, lost = frames["received_at_camera"], frames["lost_at_camera"]
+    span = (stamps[-1] - stamps[0]) * 1e-9 if recorded > 1 else float("nan")
+    return {"roi_px": [w, h], "requested_rate_hz": rate,
+            "nodes": "one process per node" if processes else "one process",
+            "seconds": seconds, "taken": received + lost, "lost_at_camera": lost,
+            "received": received, "published": frames["published"], "recorded": recorded,
+            "recorder_count": int(report["count"]), "recorder_dropped": int(report["dropped"]),
+            "missing_from_file": frames["lost"],
+            "silent_loss": (received - frames["published"]) + abs(recorded - report["count"]),
+            "sustained_frames_per_s": (recorded - 1) / span if recorded > 1 else 0.0,
+            "megabytes_per_s": (recorded - 1) * w * h / span / 1e6 if recorded > 1 else 0.0,
+            "stamp_gaps": int(report.get("gaps", 0)), "messages": run["recording"]["messages"],
+            "dropped_all_topics": run["recording"]["dropped"], "run_wall_s": wall,
+            "mcap_bytes": (out / "recording.mcap").stat().st_size}
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0],
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--out", type=Path, default=Path("benchmarks/results"))
-    p.add_argument("--seconds", type=float, default=10.0, help="stream length per case")
-    p.add_argument("--rates", type=float, nargs="+", default=[50.0, 100.0, 1000.0],
-                   help="requested frame rates, Hz")
-    p.add_argument("--rois", nargs="+", default=["640x480", "1024x1040"],
+    p.add_argument("--seconds", type=float, default=10.0, help="capture length per case")
+    p.add_argument("--rates", type=float, nargs="+", default=[1000.0],
+                   help="requested frame rates, Hz (1000: as fast as the emulator goes)")
+    p.add_argument("--rois", nargs="+", default=["640x480", "1024x1040", "2048x2048"],
                    help="regions of interest WxH (from the sensor's corner)")
     p.add_argument("--alone-s", type=float, default=5.0,
                    help="seconds of grabbing from the emulator without ROS per region (0: skip)")
@@ -214,27 +133,32 @@ def main(argv=None) -> int:
                 alone[roi] = device_alone(w, h, args.alone_s)
                 print(f"{roi}: the emulator alone gives {alone[roi]:.1f} frames/s", flush=True)
             for rate in args.rates:
-                c = run_one(Path(tmp), w, h, rate, args.seconds, domain)
-                cases.append(c)
-                print(f"{w}x{h} at {rate:g} Hz: {c['recorded']}/{c['taken']} frames, "
-                      f"{c['sustained_frames_per_s']:.1f} frames/s, lost at camera "
-                      f"{c['lost_at_camera']}, missing {c['missing_from_file']}, silent "
-                      f"{c['silent_loss']}", flush=True)
+                for processes in (False, True):
+                    c = run_one(Path(tmp), w, h, rate, args.seconds, processes, domain)
+                    cases.append(c)
+                    print(f"{roi} at {rate:g} Hz, {c['nodes']}: {c['recorded']}/{c['taken']} "
+                          f"frames, {c['sustained_frames_per_s']:.1f} frames/s, silent "
+                          f"{c['silent_loss']}", flush=True)
     res = {"machine": describe(),
            "load_average_1_5_15_min": {"before": load0, "after": os.getloadavg()},
-           "wall_s": time.monotonic() - t0, "camera": "pylon emulator (PYLON_CAMEMU=1), mono8, "
-           "camera node and recorder node in two processes",
+           "wall_s": time.monotonic() - t0,
+           "camera": "pylon emulator (PYLON_CAMEMU=1), mono8, exposure 0.1 ms, through "
+                     "`metarig rig --hardware lab` (simulated shaker and stages)",
            "emulator_alone_frames_per_s": alone, "cases": cases}
     path = args.out / "bench_lab_camera.json"
     path.write_text(json.dumps(res, indent=2))
-    print(f"{'roi':<11}{'asked Hz':>9}{'frames/s':>10}{'alone':>7}{'MB/s':>7}{'taken':>7}"
-          f"{'recorded':>9}{'lost@cam':>9}{'missing':>8}{'silent':>7}")
-    for c in cases:
-        roi = "x".join(map(str, c["roi_px"]))
-        print(f"{roi:<11}{c['requested_rate_hz']:>9g}{c['sustained_frames_per_s']:>10.1f}"
-              f"{alone.get(roi, float('nan')):>7.1f}{c['megabytes_per_s']:>7.1f}{c['taken']:>7}"
-              f"{c['recorded']:>9}{c['lost_at_camera']:>9}{c['missing_from_file']:>8}"
-              f"{c['silent_loss']:>7}")
+    # the table: (heading, width (negative: left-aligned), value of a case)
+    columns = [("roi", -11, lambda c: "x".join(map(str, c["roi_px"]))),
+               ("nodes", -22, lambda c: c["nodes"]),
+               ("frames/s", 10, lambda c: f"{c['sustained_frames_per_s']:.1f}"),
+               ("alone", 7, lambda c: f"{alone.get('x'.join(map(str, c['roi_px'])), np.nan):.1f}"),
+               ("MB/s", 7, lambda c: f"{c['megabytes_per_s']:.1f}")]
+    columns += [(head, 9, lambda c, k=key: str(c[k])) for head, key in (
+        ("taken", "taken"), ("recorded", "recorded"), ("lost@cam", "lost_at_camera"),
+        ("missing", "missing_from_file"), ("silent", "silent_loss"))]
+    for row in [None, *cases]:
+        print("".join(f"{head if row is None else value(row):{'<' if w < 0 else '>'}{abs(w)}}"
+                      for head, w, value in columns))
     print(f"wrote {path}")
     return 0
 

@@ -25,7 +25,7 @@ the requested one and the RMS error over the window within `rms_tolerance` of th
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -55,23 +55,17 @@ class CompensationConfig:
 
 
 @dataclass(frozen=True, slots=True)
-class Iteration:
-    """One drive played: its measured peak error and RMS error (fractions of the amplitude)."""
-
-    peak_error: float
-    rms_error: float
-    drive_peak_m: float
-
-
-@dataclass(frozen=True, slots=True)
 class CompensationResult:
-    """The drive to play (`drive`: a 'samples' waveform), whether it met the tolerances, every
-    iteration's errors, and why it stopped."""
+    """The drive to play (`drive`: a 'samples' waveform), whether it met the tolerances, why it
+    stopped, and per drive played (oldest first): the measured peak error and RMS error
+    (fractions of the amplitude) and the drive's peak (m)."""
 
     drive: Waveform
     converged: bool
-    iterations: list[Iteration] = field(default_factory=list)
-    stopped: str = ""
+    stopped: str
+    peak_errors: tuple[float, ...]
+    rms_errors: tuple[float, ...]
+    drive_peaks_m: tuple[float, ...]
 
 
 def window(request: Waveform, rate_hz: float, tail_periods: float) -> np.ndarray:
@@ -131,15 +125,20 @@ def compensate(request: Waveform, limits: ShakerLimits,
         taper[tail] = 0.5 * (1.0 + np.cos(math.pi * x))
     u = r.copy()
     drive = _samples(limits, u, rate_hz)
-    history: list[Iteration] = []
+    history: list[tuple[float, float, float]] = []
+
+    def result(converged: bool, why: str) -> CompensationResult:
+        peaks, rms, drives = zip(*history)
+        return CompensationResult(drive, converged, why, peaks, rms, drives)
+
     for _ in range(cfg.max_iterations):
         y = np.asarray(measure(drive), np.float64)
         if y.shape != u.shape:
             raise ValueError(f"measure returned {y.shape} samples for a drive of {u.shape}")
         peak_err, rms_err = errors(r, y, a)
-        history.append(Iteration(peak_err, rms_err, float(np.max(np.abs(u)))))
+        history.append((peak_err, rms_err, float(np.max(np.abs(u)))))
         if abs(peak_err) <= cfg.peak_tolerance and rms_err <= cfg.rms_tolerance:
-            return CompensationResult(drive, True, history, "within the tolerances")
+            return result(True, "within the tolerances")
         if len(history) == cfg.max_iterations:
             break
         step = correction(u, y, r, rate_hz, cfg.bandwidth_factor * request.frequency_hz,
@@ -150,11 +149,9 @@ def compensate(request: Waveform, limits: ShakerLimits,
         try:
             drive = _samples(limits, new, rate_hz)
         except LimitError as e:
-            return CompensationResult(drive, False, history,
-                                      f"the next drive is outside the limits: {e}")
+            return result(False, f"the next drive is outside the limits: {e}")
         u = new
-    return CompensationResult(drive, False, history,
-                              f"not within the tolerances after {cfg.max_iterations} drives")
+    return result(False, f"not within the tolerances after {cfg.max_iterations} drives")
 
 
 def _samples(limits: ShakerLimits, u: np.ndarray, rate_hz: float) -> Waveform:

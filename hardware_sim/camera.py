@@ -14,7 +14,9 @@ and row = origin_px[1] - y / m_per_px when `y_up` (row = origin_px[1] + y / m_pe
 
 Pure functions of (config, inputs, rng); no ROS imports. The blob sum is a small compiled
 loop over each blob's footprint (a BLAS matrix product would do the same work, but threaded
-BLAS on small matrices crawls when the cores are shared).
+BLAS on small matrices crawls when the cores are shared); the outline test and the pixel
+averaging run in the same compiled loop (`_unit_block`; the numpy version of these took a
+quarter more CPU time for the same 8-bit frames).
 """
 
 from dataclasses import dataclass
@@ -23,7 +25,7 @@ import cv2
 import numpy as np
 from numba import njit
 
-from metarig.polygon import area_centroids, points_inside
+from metarig.polygon import area_centroids
 
 FULL_SCALE = 255.0  # grey levels of an 8-bit frame
 
@@ -166,11 +168,17 @@ _CUTOFF = 1e-9  # blob factors below this are dropped (their sum is far below a 
 
 
 @njit(cache=True)
-def _speckle_sum(e_row: np.ndarray, e_col: np.ndarray) -> np.ndarray:
-    """sum_k e_row[k, j] * e_col[k, i] -> [n_rows, n_cols], over each blob's footprint only."""
+def _unit_block(e_row: np.ndarray, e_col: np.ndarray, gx: np.ndarray, gy: np.ndarray,
+                verts: np.ndarray, amp: float, base: float, ss: int) -> np.ndarray:
+    """One unit's radiance over its bounding box, box-averaged to pixels [n_rows, n_cols].
+
+    At sub-pixel (j, i): speckle s = sum_k e_row[k, j] * e_col[k, i] over each blob's
+    footprint (factors below `_CUTOFF` dropped), radiance amp (1 - exp(-s)) + base inside the
+    outline `verts` [nv, 2] (even-odd rule, `metarig.polygon.points_inside`'s arithmetic) and 0
+    outside, at sub-pixel coordinates (gx[i], gy[j]); each pixel the mean of its ss x ss."""
     k_n, nj = e_row.shape
     ni = e_col.shape[1]
-    out = np.zeros((nj, ni))
+    speckle = np.zeros((nj, ni))
     for k in range(k_n):
         j0 = 0
         while j0 < nj and e_row[k, j0] < _CUTOFF:
@@ -184,11 +192,36 @@ def _speckle_sum(e_row: np.ndarray, e_col: np.ndarray) -> np.ndarray:
         i1 = ni
         while i1 > i0 and e_col[k, i1 - 1] < _CUTOFF:
             i1 -= 1
+        ek = e_col[k]
         for j in range(j0, j1):
             r = e_row[k, j]
+            sj = speckle[j]
             for i in range(i0, i1):
-                out[j, i] += r * e_col[k, i]
-    return out
+                sj[i] += r * ek[i]
+    nv = verts.shape[0]
+    out = np.zeros((nj // ss, ni // ss))
+    crossing = np.empty(nv)  # x where the edges spanning this row's y cross it
+    for j in range(nj):
+        y = gy[j]
+        n_cross = 0
+        for a in range(nv):
+            x1, y1 = verts[a, 0], verts[a, 1]
+            b = a + 1 if a + 1 < nv else 0
+            x2, y2 = verts[b, 0], verts[b, 1]
+            if y1 != y2 and (y > y1) != (y > y2):
+                crossing[n_cross] = x1 + (y - y1) * (x2 - x1) / (y2 - y1)
+                n_cross += 1
+        if n_cross == 0:
+            continue
+        for i in range(ni):
+            x = gx[i]
+            inside = False
+            for c in range(n_cross):
+                if x < crossing[c]:
+                    inside = not inside
+            if inside:
+                out[j // ss, i // ss] += amp * (1.0 - np.exp(-speckle[j, i])) + base
+    return out / (ss * ss)
 
 
 def _render_units(
@@ -201,6 +234,7 @@ def _render_units(
     frame = np.full((h, w), cfg.background_level, dtype=np.float64)
     cents = area_centroids(polygons_m)
     amp = cfg.speckle_level - cfg.unit_level
+    base = cfg.unit_level - cfg.background_level
     two_sig2 = 2.0 * tex.sigma_m**2
     # sub-pixel sample offsets inside one pixel, pixels (pixel centre at 0)
     sub = (np.arange(ss) + 0.5) / ss - 0.5
@@ -228,11 +262,8 @@ def _render_units(
         q = tex.centres_m[b, keep] @ rot.T  # blob centres in the current orientation
         e_col = np.exp(-((gx[None, :] - q[:, 0:1]) ** 2) / two_sig2)
         e_row = np.exp(-((gy[None, :] - q[:, 1:2]) ** 2) / two_sig2)
-        speckle = _speckle_sum(e_row, e_col)  # [n_rows_sub, n_cols_sub]
-        radiance = amp * (1.0 - np.exp(-speckle)) + (cfg.unit_level - cfg.background_level)
-        radiance *= points_inside(gx[None, :], gy[:, None], verts_rel)
-        block = radiance.reshape(r1 - r0, ss, c1 - c0, ss).mean(axis=(1, 3))
-        frame[r0:r1, c0:c1] += block
+        frame[r0:r1, c0:c1] += _unit_block(e_row, e_col, gx, gy, np.ascontiguousarray(verts_rel),
+                                           amp, base, ss)
     return frame
 
 

@@ -166,18 +166,23 @@ def test_the_pulse_objective_through_a_static_start_in_contact_matches_finite_di
     """The slow 8x8 check below at small scale, with the start in contact: 6x6 at 7 % (its
     equilibrium closes voids past the contact cutoff, 4.3 deg above the asymptote), a 2 mm
     pulse, fixed-step Verlet with contact in float64 at 0.025 ms (0.53 x the stability limit at
-    the equilibrium). dJ/dx includes the implicit derivative of the start state.
+    the equilibrium), over a window of one input period (as the gradient checks of
+    test_gradients.py: half the steps of the preset's two; J > 0 is asserted). dJ/dx includes
+    the implicit derivative of the start state.
 
     A fixed-step solve is a smooth function of the design whose exact derivative autodiff
     gives, so the central difference at h = 1e-3 mm differs from it only by O(h^2) truncation
-    and by the static solve's convergence noise over 2h: measured 5.7e-9 relative. The bound
-    1e-6 is 170x that, and far above what another CPU's rounding moves (1e-16 relative on
-    J ~ 1 mJ becomes ~2e-12 of the derivative after the division by 2h). Without the implicit derivative of the start (the equilibrium's gradient
-    cut) autodiff gives -0.080 against the difference's +0.0265: the test fails."""
+    and by the static solve's convergence noise over 2h: measured 2.7e-10 relative (5.7e-9 over
+    two periods). The bound 1e-6 is far above that, and far above what another CPU's rounding
+    moves (1e-16 relative on J ~ 1 mJ becomes ~2e-12 of the derivative after the division by
+    2h). Without the implicit derivative of the start (the equilibrium's gradient cut) autodiff
+    gives 0.1035 against the difference's 0.0527 (two periods: -0.080 against +0.0265): the
+    test fails."""
     from design_engine.fixed_step import FixedStepVerlet
     from gradcheck import directional_check
 
-    sc = build_scene("protection-24x18", nx=6, ny=6, strain=0.07, amplitude_m=2e-3)
+    sc = build_scene("protection-24x18", nx=6, ny=6, strain=0.07, amplitude_m=2e-3,
+                     periods=1.0)
     assert sc.loading.is_static
     config = SolverConfig(solver=FixedStepVerlet(max_dt=0.025), use_contact=True,
                           dtype="float64")

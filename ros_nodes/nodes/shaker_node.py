@@ -17,6 +17,8 @@ program; cleanup releases everything. With `hardware` "lab" the lab file's limit
 `device.*` changes at run time do not reach the drive.
 """
 
+import threading
+
 import numpy as np
 from metarig_msgs.srv import FirePulse
 from rclpy.lifecycle import LifecycleNode, State, TransitionCallbackReturn
@@ -55,6 +57,7 @@ class ShakerNode(LifecycleNode):
         self._playing_until: float | None = None  # rig time the accepted waveform ends, s
         self._timer = None
         self._pubs: dict = {}
+        self._device_lock = threading.Lock()  # the timer's readings vs close() (another thread)
         self.create_service(FirePulse, T.SHAKER_FIRE.name, self._on_fire)
         self.create_service(Trigger, T.SHAKER_STOP.name, self._on_stop)
         self.create_subscription(Empty, T.RIG_STOP.name, lambda _m: self._stop("rig stop"), COMMAND)
@@ -126,13 +129,17 @@ class ShakerNode(LifecycleNode):
         return self.get_clock().now().nanoseconds * 1e-9
 
     def _tick(self) -> None:
-        cfg = self._params.config
-        for t in due_samples(self._drive.time_s, self._now_s(), 1.0 / cfg.rate_hz):
-            r = self._drive.read(t)
-            self._pubs["js"].publish(convert.shaker_state(int(round(r.t * 1e9)), r.x_m, r.v_m_s))
-        if self._playing_until is not None and self._drive.time_s > self._playing_until:
-            self._playing_until = None
-            self._report("ok", "waveform finished")
+        with self._device_lock:
+            if self._drive is None:  # closed
+                return
+            cfg = self._params.config
+            for t in due_samples(self._drive.time_s, self._now_s(), 1.0 / cfg.rate_hz):
+                r = self._drive.read(t)
+                self._pubs["js"].publish(convert.shaker_state(int(round(r.t * 1e9)), r.x_m,
+                                                              r.v_m_s))
+            if self._playing_until is not None and self._drive.time_s > self._playing_until:
+                self._playing_until = None
+                self._report("ok", "waveform finished")
 
     def _on_fire(self, req, res):
         if not self._active:
@@ -218,7 +225,8 @@ class ShakerNode(LifecycleNode):
     def close(self) -> None:
         """Bring the shaker to rest and release the device (the node is going down)."""
         self._active = False
-        self._timer = release_device(self, self._timer)
+        with self._device_lock:
+            self._timer = release_device(self, self._timer)
 
 
 def main(args=None) -> int:

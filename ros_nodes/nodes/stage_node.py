@@ -15,6 +15,8 @@ transition with one logged line. With "lab" the lab file's limits hold: `device.
 run time do not reach the stages.
 """
 
+import threading
+
 import numpy as np
 from metarig_msgs.srv import SetStrain
 from rclpy.lifecycle import LifecycleNode, State, TransitionCallbackReturn
@@ -52,6 +54,7 @@ class StageNode(LifecycleNode):
         self._timer = None
         self._pubs: dict = {}
         self._last_mode = None
+        self._device_lock = threading.Lock()  # the timer's readings vs close() (another thread)
         self.create_service(SetStrain, T.STAGE_SET_STRAIN.name, self._on_set_strain)
         self.create_service(Trigger, T.STAGE_STOP.name, self._on_stop)
         self.create_service(Trigger, T.STAGE_RESET.name, self._on_reset)
@@ -123,6 +126,10 @@ class StageNode(LifecycleNode):
         return self.get_clock().now().nanoseconds * 1e-9
 
     def _tick(self) -> None:
+        with self._device_lock:
+            self._sample()
+
+    def _sample(self) -> None:
         if self._stages is None:
             return
         cfg = self._params.config
@@ -196,9 +203,14 @@ class StageNode(LifecycleNode):
         return res
 
     def close(self) -> None:
-        """Bring the stages to rest and release the device (the node is going down)."""
+        """Bring the stages to rest and release the device (the node is going down): a stop
+        still pending (`/rig/stop` just before) reaches the stages now, then the port closes."""
         self._active = False
-        self._timer = release_device(self, self._timer)
+        with self._device_lock:
+            if self._stages is not None:  # one reading sends it, due or not
+                self._stages.command(StageCommand(stop=True))
+                self._stages.read(max(self._now_s(), self._stages.time_s))
+            self._timer = release_device(self, self._timer)
 
 
 def main(args=None) -> int:

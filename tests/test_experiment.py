@@ -246,3 +246,22 @@ def test_device_motion_still_on_its_way_is_waited_for_then_reported(caplog):
     timings = Experiment(PLAN, rig).run()
     assert "timed out waiting for the recorder to hold the shaker and stage motion" in caplog.text
     assert timings["frames"] == 41 and rig.wall - w0 > 30.0  # waited its 30 s, then went on
+
+
+def test_a_device_that_fails_during_the_capture_ends_the_run_at_once():
+    rig = FakeRig(PLAN)
+    fire = rig.fire
+
+    def fire_then_fault(*args):  # the stage controller stops answering after the pulse
+        out = fire(*args)
+        rig._stage = "fault: no reply from the stage controller on /dev/ttyUSB0"
+        return out
+
+    rig.fire = fire_then_fault
+    exp = Experiment(PLAN, rig)
+    with pytest.raises(RigError, match=r"^stage fault: no reply from the stage controller"):
+        exp.run()
+    assert rig.sim - dict(exp.events)["record"] < 0.005  # at once, not after record_s
+    exp.finish(completed=False)
+    assert [p for p, _ in exp.events][-4:] == ["record", "pulse", "stop", "aborted"]
+    assert rig.names()[-2:] == ["stop_devices", "recorder_stop"]

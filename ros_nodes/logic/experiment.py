@@ -124,14 +124,18 @@ class Experiment:
         log.info("phase %-11s t = %.4f s", p.value, t - self.events[0][1])
 
     def until(self, predicate: Callable[[], object], what: str,
-              timeout_s: float | None = None) -> None:
-        """Wait until `predicate()` is true; `RigError` after `timeout_s` (plan default); a
-        progress line every `PROGRESS_S` while it waits."""
+              timeout_s: float | None = None,
+              fault: Callable[[], str | None] | None = None) -> None:
+        """Wait until `predicate()` is true; `RigError` after `timeout_s` (plan default), or as
+        soon as `fault()` names one; a progress line every `PROGRESS_S` while it waits."""
         port = self.port
         start = port.now()
         deadline = start + (timeout_s or self.plan.timeout_s)
         next_note = start + PROGRESS_S
         while not predicate():
+            why = fault() if fault is not None else None
+            if why:
+                raise RigError(why)
             now = port.now()
             if now > deadline:
                 raise RigError(f"timed out waiting for {what}")
@@ -152,11 +156,22 @@ class Experiment:
 
     def run_clock_until(self, t_s: float) -> None:
         """Run simulated time up to exactly `t_s` (rounded to the clock step), then hold it;
-        on the system clock, wait until it has passed `t_s`."""
+        on the system clock, wait until it has passed `t_s`. A stage fault or a camera error
+        meanwhile (a device that stopped answering) ends the run (`RigError`)."""
         self.port.start_clock(t_s)
         self.until(self.port.clock_reached,
-                   f"rig time {t_s - (self.events[0][1] if self.events else 0.0):.4f} s")
+                   f"rig time {t_s - (self.events[0][1] if self.events else 0.0):.4f} s",
+                   fault=self._device_fault)
         self.port.pause_clock()
+
+    def _device_fault(self) -> str | None:
+        """A stage in FAULT or a camera in error, as one line (None: both well)."""
+        stage, cam = self.port.stage_state(), self.port.camera()
+        if stage.startswith("fault"):
+            return f"stage {stage}"
+        if cam.get("state") == "error":
+            return f"camera: {cam.get('message')}"
+        return None
 
     # the procedure ----------------------------------------------------------------------------
     def run(self) -> dict:

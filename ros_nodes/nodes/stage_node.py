@@ -9,6 +9,8 @@ Interfaces (node name `stage`):
 - `~/joint_states` (sensor_msgs/JointState: stage_bottom, stage_top; m toward the centre).
 - `~/target_strain` (std_msgs/Float64, latched) and `~/state` (std_msgs/String, latched:
   idle / moving / holding / fault[: reason]); `/diagnostics` on every state change.
+In FAULT the node samples the stages once per timer call (the newest due sample): a controller
+that stopped answering costs a reply timeout per reading.
 The stages are those of parameter `hardware`: "sim", or "lab" with `lab_file`
 (`ros_nodes.hardware`); a lab file or controller that cannot be used fails the configure
 transition with one logged line. With "lab" the lab file's limits hold: `device.*` changes at
@@ -133,7 +135,12 @@ class StageNode(LifecycleNode):
         if self._stages is None:
             return
         cfg = self._params.config
-        for t in due_samples(self._stages.time_s, self._now_s(), 1.0 / cfg.rate_hz):
+        times = due_samples(self._stages.time_s, self._now_s(), 1.0 / cfg.rate_hz)
+        if self._stages.status.mode == StageMode.FAULT:
+            # in FAULT only the newest sample is taken: a controller that stopped answering
+            # costs a reply timeout per reading, and catching up would never end
+            times = times[-1:]
+        for t in times:
             try:  # a command acts once, at the first sample after it came
                 r = self._stages.read(t)
             except LimitError as e:  # cannot happen for checked commands; never kill the node
@@ -143,6 +150,8 @@ class StageNode(LifecycleNode):
                 self._pubs["js"].publish(convert.stage_state(int(round(r.t * 1e9)), r.bottom_m,
                                                              r.top_m))
             self._publish_mode()
+            if r.mode == StageMode.FAULT:
+                break
 
     def _publish_mode(self, force: bool = False) -> None:
         s = self._stages.status

@@ -20,6 +20,12 @@ def ros_env() -> dict[str, str]:
 
 
 @pytest.fixture
+def lab_env(ros_env):
+    """`ros_env` with one emulated pylon camera (serial 0815-0000) for the node processes."""
+    return {**ros_env, "PYLON_CAMEMU": "1"}
+
+
+@pytest.fixture
 def ros_context():
     """A fresh rclpy context for one test, shut down afterwards."""
     import rclpy

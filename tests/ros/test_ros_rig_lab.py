@@ -8,9 +8,7 @@ and flags of the simulated rig are refused in one line before anything starts.""
 import json
 import os
 import signal
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,70 +16,10 @@ import pytest
 pytest.importorskip("pypylon", reason="pip install pypylon")
 pytest.importorskip("pyvisa_sim", reason="pip install pyvisa-sim")
 
+from labrig import (BIN, CAMERA, DOMAIN, HEIGHT_M, MICROSTEP_M, RUN, lab_text,  # noqa: E402
+                    read_mcap, read_until)
+
 from ros_nodes import topics as T  # noqa: E402
-
-BIN = sys.prefix + "/bin/"
-DOMAIN = os.environ["ROS_DOMAIN_ID"]
-HEIGHT_M, MICROSTEP_M = 0.06, 1e-6
-CAMERA = """[camera]
-driver = "pylon"
-serial = "0815-0000"
-frame_rate_hz = 100.0
-exposure_s = 0.002
-roi = [0, 0, 320, 240]
-max_frame_rate_hz = 500.0
-exposure_range_s = [1e-5, 0.01]
-"""
-
-
-def _lab_text(port: str, domain: str = DOMAIN) -> str:
-    return f"""format = "metarig-lab/1"
-[shaker]
-driver = "keysight33500b"
-address = "TCPIP0::emulated-33522b::inst0::INSTR"
-visa_library = "@sim"
-model = "33522B"
-m_per_v = 0.002
-max_volts = 5.0
-max_amplitude_m = 0.010
-[stage]
-driver = "zaber"
-port = "{port}"
-sample_height_m = {HEIGHT_M}
-max_strain = 0.05
-microstep_m = {MICROSTEP_M}
-closing_speed_m_s = 0.01
-reply_timeout_s = 2.0          # the emulator's thread shares this busy 2-core machine
-eta_margin_s = 2.0
-bottom_device = 1
-top_device = 2
-{CAMERA}[ros]
-domain_id = {domain}
-discovery = "localhost"
-"""
-
-
-@pytest.fixture
-def lab_env(ros_env):
-    return {**ros_env, "PYLON_CAMEMU": "1"}
-
-
-RUN = ["--nx", "6", "--ny", "5", "--strain", "0.02", "--amplitude", "0.005", "--settle-s",
-       "0.05"]
-
-
-def _read_mcap(path: Path) -> tuple[str, dict[str, list]]:
-    """(profile, topic -> [(log_time ns, decoded message)]) through the mcap package."""
-    from mcap.reader import make_reader
-    from mcap_ros2.decoder import DecoderFactory
-
-    out: dict[str, list] = {}
-    with path.open("rb") as f:
-        reader = make_reader(f, decoder_factories=[DecoderFactory()])
-        profile = reader.get_header().profile
-        for _, channel, message, decoded in reader.iter_decoded_messages():
-            out.setdefault(channel.topic, []).append((message.log_time, decoded))
-    return profile, out
 
 
 def _ns(msg) -> int:
@@ -91,7 +29,7 @@ def _ns(msg) -> int:
 def test_an_experiment_on_the_emulated_lab_devices_is_recorded_and_read_back(
         tmp_path, emu, lab_env, start_node):
     lab = tmp_path / "lab.toml"
-    lab.write_text(_lab_text(emu.port))
+    lab.write_text(lab_text(emu.port))
     out = tmp_path / "run"
     proc = start_node([BIN + "metarig", "rig", "--hardware", "lab", "--lab", lab, "--out", out,
                        "--record-s", "0.5", *RUN], env=lab_env)
@@ -113,7 +51,7 @@ def test_an_experiment_on_the_emulated_lab_devices_is_recorded_and_read_back(
     # 0.5 s at 100 Hz, started and stopped by service calls on the system clock (37-70 seen:
     # the emulator slows down on a busy host rather than skip frames)
     assert 20 <= frames["published"] == frames["recorded"] <= 70, frames
-    profile, msgs = _read_mcap(out / "recording.mcap")
+    profile, msgs = read_mcap(out / "recording.mcap")
     assert profile == "ros2"
     images = [m for _, m in msgs[T.IMAGE.name]]
     assert len(images) == frames["recorded"] == len(msgs[T.CAMERA_INFO.name])
@@ -143,16 +81,11 @@ def test_an_experiment_on_the_emulated_lab_devices_is_recorded_and_read_back(
 
 def test_ctrl_c_stops_every_device_and_keeps_the_recording(tmp_path, emu, lab_env, start_node):
     lab = tmp_path / "lab.toml"
-    lab.write_text(_lab_text(emu.port))
+    lab.write_text(lab_text(emu.port))
     out = tmp_path / "run"
     proc = start_node([BIN + "metarig", "rig", "--hardware", "lab", "--lab", lab, "--out", out,
                        "--record-s", "30", *RUN], env=lab_env)
-    lines, deadline = [], time.monotonic() + 90
-    for line in proc.stdout:
-        lines.append(line)
-        if "phase pulse" in line or time.monotonic() > deadline:
-            break
-    assert any("phase pulse" in x for x in lines), "".join(lines)
+    lines = read_until(proc, "phase pulse", 90.0)
     time.sleep(1.0)  # the camera streams
     proc.send_signal(signal.SIGINT)
     rest, _ = proc.communicate(timeout=60)
@@ -168,7 +101,7 @@ def test_ctrl_c_stops_every_device_and_keeps_the_recording(tmp_path, emu, lab_en
     run = json.loads((out / "run.json").read_text())
     assert run["status"] == "interrupted"
     assert [p["phase"] for p in run["phases"]][-2:] == ["stop", "aborted"]
-    _, msgs = _read_mcap(out / "recording.mcap")  # a complete file: summary and footer
+    _, msgs = read_mcap(out / "recording.mcap")  # a complete file: summary and footer
     assert len(msgs[T.IMAGE.name]) == run["recording"]["topics"][T.IMAGE.name]["count"] > 50
     assert msgs[T.RIG_STOP.name] and msgs[T.SHAKER_JOINTS.name]
 
@@ -202,7 +135,7 @@ def test_a_lab_run_that_cannot_start_says_why_in_one_line(tmp_path, capsys, edit
     from ros_nodes.cli_rig import rig_main
 
     lab = tmp_path / "lab.toml"
-    lab.write_text(_lab_text("/dev/ttyNOSUCH0").replace(*edit))
+    lab.write_text(lab_text("/dev/ttyNOSUCH0").replace(*edit))
     code = rig_main(["--hardware", "lab", "--lab", str(lab), "--out", str(tmp_path / "run"),
                      *args])
     err = capsys.readouterr().err.strip().splitlines()
@@ -236,7 +169,7 @@ def test_a_device_that_cannot_be_opened_stops_the_run_before_any_node_starts(
 
     os.environ.setdefault("PYLON_CAMEMU", "1")  # before pylon's transport layer first looks
     lab = tmp_path / "lab.toml"
-    lab.write_text(_lab_text("/dev/ttyNOSUCH0").replace('serial = "0815-0000"',
+    lab.write_text(lab_text("/dev/ttyNOSUCH0").replace('serial = "0815-0000"',
                                                         'serial = "NOSUCH"'))
     t0 = time.monotonic()
     code = rig_main(["--hardware", "lab", "--lab", str(lab), "--out", str(tmp_path / "run")])

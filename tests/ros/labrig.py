@@ -68,6 +68,16 @@ def read_mcap(path: Path) -> tuple[str, dict[str, list]]:
     return profile, out
 
 
+def start_lab_rig(start_node, tmp_path: Path, port: str, env: dict, *args: str):
+    """`metarig rig --hardware lab` (the `start_node` fixture) on the emulators' lab file with
+    the stage controller on `port`, `RUN` and `args`: (process, lab file, run folder)."""
+    lab, out = tmp_path / "lab.toml", tmp_path / "run"
+    lab.write_text(lab_text(port))
+    proc = start_node([BIN + "metarig", "rig", "--hardware", "lab", "--lab", lab, "--out", out,
+                       *RUN, *args], env=env)
+    return proc, lab, out
+
+
 def read_until(proc: subprocess.Popen, text: str, timeout_s: float) -> list[str]:
     """The output lines of `proc` up to the first holding `text` (AssertionError if none comes
     within `timeout_s`)."""

@@ -16,8 +16,8 @@ import pytest
 pytest.importorskip("pypylon", reason="pip install pypylon")
 pytest.importorskip("pyvisa_sim", reason="pip install pyvisa-sim")
 
-from labrig import (BIN, CAMERA, DOMAIN, HEIGHT_M, MICROSTEP_M, RUN, lab_text,  # noqa: E402
-                    read_mcap, read_until)
+from labrig import (CAMERA, DOMAIN, HEIGHT_M, MICROSTEP_M, lab_text, read_mcap,  # noqa: E402
+                    read_until, start_lab_rig)
 
 from ros_nodes import topics as T  # noqa: E402
 
@@ -28,11 +28,7 @@ def _ns(msg) -> int:
 
 def test_an_experiment_on_the_emulated_lab_devices_is_recorded_and_read_back(
         tmp_path, emu, lab_env, start_node):
-    lab = tmp_path / "lab.toml"
-    lab.write_text(lab_text(emu.port))
-    out = tmp_path / "run"
-    proc = start_node([BIN + "metarig", "rig", "--hardware", "lab", "--lab", lab, "--out", out,
-                       "--record-s", "0.5", *RUN], env=lab_env)
+    proc, lab, out = start_lab_rig(start_node, tmp_path, emu.port, lab_env, "--record-s", "0.5")
     text, _ = proc.communicate(timeout=120)
     assert proc.returncode == 0, text[-3000:]
     assert "Traceback" not in text
@@ -80,11 +76,7 @@ def test_an_experiment_on_the_emulated_lab_devices_is_recorded_and_read_back(
 
 
 def test_ctrl_c_stops_every_device_and_keeps_the_recording(tmp_path, emu, lab_env, start_node):
-    lab = tmp_path / "lab.toml"
-    lab.write_text(lab_text(emu.port))
-    out = tmp_path / "run"
-    proc = start_node([BIN + "metarig", "rig", "--hardware", "lab", "--lab", lab, "--out", out,
-                       "--record-s", "30", *RUN], env=lab_env)
+    proc, _, out = start_lab_rig(start_node, tmp_path, emu.port, lab_env, "--record-s", "30")
     lines = read_until(proc, "phase pulse", 90.0)
     time.sleep(1.0)  # the camera streams
     proc.send_signal(signal.SIGINT)

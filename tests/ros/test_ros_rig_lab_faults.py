@@ -11,18 +11,14 @@ import pytest
 pytest.importorskip("pypylon", reason="pip install pypylon")
 pytest.importorskip("pyvisa_sim", reason="pip install pyvisa-sim")
 
-from labrig import BIN, RUN, lab_text, read_mcap, read_until  # noqa: E402
+from labrig import read_mcap, read_until, start_lab_rig  # noqa: E402
 
 from ros_nodes import topics as T  # noqa: E402
 
 
 def test_stages_that_stop_answering_end_the_run_with_one_line(tmp_path, emu, lab_env,
                                                              start_node):
-    lab = tmp_path / "lab.toml"
-    lab.write_text(lab_text(emu.port))
-    out = tmp_path / "run"
-    proc = start_node([BIN + "metarig", "rig", "--hardware", "lab", "--lab", lab, "--out", out,
-                       "--record-s", "30", *RUN], env=lab_env)
+    proc, _, out = start_lab_rig(start_node, tmp_path, emu.port, lab_env, "--record-s", "30")
     lines = read_until(proc, "phase pulse", 90.0)
     time.sleep(0.5)
     emu.silent = True  # the controller reads and never answers

@@ -269,7 +269,7 @@ def next_config(config: SolverConfig, health: dict, scene: Scene) -> tuple[Solve
     if not faults:
         return None
     what = "; ".join(faults)
-    if (not getattr(solver, "refined", False) and drift * REFINE**2 <= 0.5 * ENERGY_TOLERANCE
+    if (not solver.refined and drift * REFINE**2 <= 0.5 * ENERGY_TOLERANCE
             and ratio * REFINE <= CONTACT_STEP_LIMIT):
         nxt = refined(config)
         return nxt, (f"{what}: re-solved once at {REFINE:g} x the step "

@@ -112,6 +112,7 @@ class SimulatedShaker:
 
     def __init__(self, cfg: ShakerConfig, rng: np.random.Generator):
         self.cfg, self.limits, self._rng = cfg, cfg, rng
+        self.fault = ""  # a simulated actuator does not fail
         self._state = init(cfg, rng)
         self._program: Program | None = None
 
@@ -133,6 +134,11 @@ class SimulatedShaker:
         if self._program is not None and self._state.t > self._program.end_s:
             self._program = None
         return reading
+
+    @property
+    def sensor(self) -> str:
+        return (f"the simulated shaker's displacement sensor (noise {self.cfg.noise_std_m:g} m "
+                "rms)")
 
     def reconfigure(self, cfg: ShakerConfig) -> None:
         self.cfg = self.limits = cfg

@@ -27,11 +27,25 @@ class _Given(argparse.Action):
         namespace.given = getattr(namespace, "given", set()) | {self.dest}
 
 
+class _GivenSwitch(_Given):
+    """A boolean plan field as a switch: the flag alone sets it."""
+
+    def __init__(self, option_strings, dest, **kwargs):
+        super().__init__(option_strings, dest, nargs=0, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        super().__call__(parser, namespace, True, option_string)
+
+
 def plan_flags(p: argparse.ArgumentParser, plan_cls) -> None:
     """One flag per plan field, from its metadata (default, description, choices); a nested
     config (the specimen's imperfections) gives one flag per field of it, named
-    `--<field>-<its field>` (`--specimen-friction-hz`)."""
+    `--<field>-<its field>` (`--specimen-friction-hz`); a boolean field is a switch."""
     for name, f, default in _plan_fields(plan_cls):
+        if isinstance(default, bool):
+            p.add_argument(plan_flag(name), dest=name, default=default, action=_GivenSwitch,
+                           help=f.metadata.get("description"))
+            continue
         p.add_argument(plan_flag(name), dest=name, type=type(default), default=default,
                        action=_Given, choices=f.metadata.get("choices"),
                        help=f.metadata.get("description"))

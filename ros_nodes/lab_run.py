@@ -73,6 +73,10 @@ def check_plan(plan: ExperimentPlan, lab: Lab, frame_rate_hz: float) -> None:
             arb_upload(lab.shaker.limits, wf)
     except LimitError as e:
         raise LabRunError(f"{lab.path}: [shaker]: {e}") from None
+    if plan.compensate and lab.shaker.driver != "sim":
+        raise LabRunError(f"{lab.path}: [shaker]: --compensate needs the shaker's measured "
+                          f"motion, and the '{lab.shaker.driver}' drive measures nothing (its "
+                          "readings are its command); run without --compensate")
     settings = lab.camera.settings
     if frame_rate_hz > 0:
         settings = dataclasses.replace(settings, frame_rate_hz=frame_rate_hz)

@@ -15,6 +15,7 @@ from typing import Any
 
 import yaml
 
+from devices.shaker.compensation import CompensationConfig
 from hardware_sim.shaker import ShakerConfig
 from hardware_sim.specimen import Imperfections
 from hardware_sim.stage import StageConfig
@@ -44,6 +45,9 @@ class ShakerNodeConfig:
     command_rate_hz: float = param(2000.0, "sample rate of the published commanded waveform, Hz",
                                 10.0, 100000.0)
     seed: int = param(0, "seed of the simulated sensor noise", 0, 2**31 - 1)
+    compensation: CompensationConfig = param(CompensationConfig, "drive compensation "
+                                             "(~/compensate): tolerances, caps, rest between "
+                                             "drives")
     hardware: str = param("sim", "device backend: the simulated shaker, or the [shaker] of "
                           "lab_file (whose limits replace device.*)", choices=HARDWARE)
     lab_file: str = param("", "lab file (TOML) naming the devices, when hardware is 'lab'")

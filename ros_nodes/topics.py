@@ -124,6 +124,8 @@ RECORDED: tuple[str, ...] = (
 # services
 SHAKER_FIRE = Service("/shaker/fire", "metarig_msgs/srv/FirePulse", "shaker")
 SHAKER_STOP = Service("/shaker/stop", "std_srvs/srv/Trigger", "shaker")
+SHAKER_COMPENSATE = Service("/shaker/compensate", "metarig_msgs/srv/FirePulse",
+                            "shaker")
 STAGE_SET_STRAIN = Service("/stage/set_strain", "metarig_msgs/srv/SetStrain", "stage")
 STAGE_STOP = Service("/stage/stop", "std_srvs/srv/Trigger", "stage")
 STAGE_RESET = Service("/stage/reset", "std_srvs/srv/Trigger", "stage")
@@ -136,8 +138,9 @@ DIC_RESET = Service("/dic_tracker/reset_reference", "std_srvs/srv/Trigger", "dic
 COMPARE_RUN = Service("/compare/run", "std_srvs/srv/Trigger", "comparison")
 
 SERVICES: tuple[Service, ...] = (
-    SHAKER_FIRE, SHAKER_STOP, STAGE_SET_STRAIN, STAGE_STOP, STAGE_RESET, CAMERA_START,
-    CAMERA_STOP, CAMERA_SNAPSHOT, RECORDER_START, RECORDER_STOP, DIC_RESET, COMPARE_RUN)
+    SHAKER_FIRE, SHAKER_STOP, SHAKER_COMPENSATE, STAGE_SET_STRAIN, STAGE_STOP, STAGE_RESET,
+    CAMERA_START, CAMERA_STOP, CAMERA_SNAPSHOT, RECORDER_START, RECORDER_STOP, DIC_RESET,
+    COMPARE_RUN)
 
 
 def markdown_table() -> str:

@@ -25,6 +25,9 @@ class FakeRig:
         self._recorder: dict = {}
         self._stage, self._t_set, self._t_cam = "idle", None, None
         self.lose_frames = lose_frames
+        self.shaker_fault_text, self.shaker_fault_at = "", math.inf
+        self._compensated_at = math.inf
+        self.compensation_outcome = (True, "compensation done: 3 drives (within the tolerances)")
 
     # time
     def now(self):
@@ -72,6 +75,9 @@ class FakeRig:
     def stage_state(self):
         return self._stage
 
+    def shaker_fault(self):
+        return self.shaker_fault_text if self.sim >= self.shaker_fault_at else ""
+
     def stage_hold_time(self):
         return None if self._stage != "holding" else round(self._t_set + self.eta_s, 9)
 
@@ -89,6 +95,14 @@ class FakeRig:
     def fire(self, waveform, amplitude_m, frequency_hz, cycles, delay_s):
         self.calls.append(("fire", waveform, amplitude_m, frequency_hz, cycles, delay_s))
         return True, ""
+
+    def compensate(self, waveform, amplitude_m, frequency_hz, cycles):
+        self.calls.append(("compensate", self.sim, waveform, amplitude_m, frequency_hz, cycles))
+        self._compensated_at = self.sim + 0.3  # the trial drives take simulated time
+        return True, "compensating"
+
+    def compensation(self):
+        return self.compensation_outcome if self.sim >= self._compensated_at else None
 
     def camera_start(self, t_start_s):
         assert t_start_s == self.sim  # the capture starts at the time the clock holds
@@ -265,3 +279,43 @@ def test_a_device_that_fails_during_the_capture_ends_the_run_at_once():
     exp.finish(completed=False)
     assert [p for p, _ in exp.events][-4:] == ["record", "pulse", "stop", "aborted"]
     assert rig.names()[-2:] == ["stop_devices", "recorder_stop"]
+
+
+def test_a_shaker_fault_during_the_capture_ends_the_run_with_its_line():
+    rig = FakeRig(PLAN)
+    fire = rig.fire
+    why = 'fault: 33522B reports -100,"Command error"; output turned off'
+
+    def fire_then_fault(*args):  # the generator's watchdog finds an error after the pulse
+        out = fire(*args)
+        rig.shaker_fault_text, rig.shaker_fault_at = why, rig.sim + 0.002
+        return out
+
+    rig.fire = fire_then_fault
+    exp = Experiment(PLAN, rig)
+    with pytest.raises(RigError) as e:
+        exp.run()
+    assert str(e.value) == "shaker " + why
+    assert rig.sim - dict(exp.events)["record"] < 0.01  # at once, not after record_s
+    exp.finish(completed=False)
+    assert rig.names()[-2:] == ["stop_devices", "recorder_stop"]
+
+
+def test_the_drive_is_compensated_before_the_recording_starts():
+    plan = ExperimentPlan(**{**PLAN.as_dict(), "compensate": True})
+    rig = FakeRig(plan)
+    exp = Experiment(plan, rig)
+    exp.run()
+    assert rig.names()[:3] == ["compensate", "camera_snapshot", "recorder_start"]
+    comp = next(c for c in rig.calls if c[0] == "compensate")
+    assert comp[2:] == (plan.waveform, plan.amplitude_m, plan.frequency_hz, plan.cycles)
+    phases = dict(exp.events)
+    assert [p for p, _ in exp.events][:3] == ["starting", "compensate", "precompress"]
+    assert phases["precompress"] >= phases["compensate"] + 0.3  # the clock ran the trials
+    assert exp.compensation.startswith("compensation done")
+    # a compensation that fails (a stop, readings missing) ends the run with its line
+    rig = FakeRig(plan)
+    rig.compensation_outcome = (False, "compensation failed: stopped before it ended")
+    with pytest.raises(RigError, match="^shaker: compensation failed: stopped before it ended$"):
+        Experiment(plan, rig).run()
+    assert "set_strain" not in rig.names()

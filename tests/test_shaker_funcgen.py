@@ -19,7 +19,8 @@ from devices.shaker.funcgen import (EMULATOR_RESOURCE, EMULATOR_YAML, FuncGenCon
 from devices.shaker.port import ShakerDrive, prepare  # noqa: E402
 from devices.shaker.waveform import WaveformRequest  # noqa: E402
 
-CFG = FuncGenConfig(m_per_v=0.002, max_volts=5.0, sample_rate_hz=20e3)
+# no watchdog: these tests compare the commands sent (the watchdog has its own tests)
+CFG = FuncGenConfig(m_per_v=0.002, max_volts=5.0, sample_rate_hz=20e3, watchdog_s=0.0)
 ARM = ["BURS:MODE TRIG", "BURS:NCYC 1", "TRIG:SOUR BUS", "BURS:STAT 1", "OUTP 1"]
 
 
@@ -203,3 +204,72 @@ def test_an_instrument_that_stops_answering_is_one_instrument_error(drive):
     with pytest.raises(InstrumentError, match=r"did not answer 'VOLT:LIM:HIGH\?': VI_ERROR_TMO"):
         drive.query("VOLT:LIM:HIGH?")
     del drive._device.write, drive._device.query     # the emulator again, to close cleanly
+
+
+def _armed_burst(drive):
+    """A burst armed 30 s ahead: the output is on and waits for its trigger."""
+    wf = prepare(drive.limits, WaveformRequest("burst", amplitude_m=0.004, frequency_hz=50.0,
+                                               cycles=3))
+    start = drive._clock() + drive._offset_s + 30.0
+    drive.play(wf, start_s=start)
+    return start
+
+
+def _await_fault(drive, timeout_s=5.0):
+    deadline = time.monotonic() + timeout_s
+    while not drive.fault and time.monotonic() < deadline:
+        time.sleep(0.01)
+    return drive.fault
+
+
+@pytest.fixture
+def watched(rm):
+    d = FunctionGeneratorShaker(EMULATOR_RESOURCE, FuncGenConfig(
+        m_per_v=0.002, max_volts=5.0, sample_rate_hz=20e3, watchdog_s=0.05),
+        resource_manager=rm)
+    d.start(100.0)
+    yield d
+    d.close()
+
+
+def test_the_watchdog_turns_the_output_off_on_an_instrument_error(watched, panel):
+    start = _armed_burst(watched)
+    assert panel("OUTP?") == "1" and watched.fault == ""
+    time.sleep(0.2)                         # the watchdog finds nothing while all is well
+    assert watched.fault == "" and panel("OUTP?") == "1"
+    panel_write = watched._rm.open_resource(EMULATOR_RESOURCE, read_termination="\n",
+                                            write_termination="\n")
+    panel_write.write("SOUR:BOGUS 1")       # an error the instrument queues mid-run
+    fault = _await_fault(watched)
+    assert fault == ('Keysight Technologies 33522B serial MY52400001 reports -100,"Command '
+                     'error"; output turned off')
+    assert panel("OUTP?") == "0"            # not left armed: the trigger never comes either
+    assert watched.read(start + 0.01).x_m == 0.0 and watched._timer is None
+    # a new request clears the fault; the watchdog watches again
+    _armed_burst(watched)
+    assert watched.fault == "" and panel("OUTP?") == "1"
+
+
+def test_the_watchdog_reports_a_generator_that_stops_answering(watched, panel):
+    from pyvisa.constants import StatusCode
+    from pyvisa.errors import VisaIOError
+
+    _armed_burst(watched)
+    sent = []
+
+    def silent(msg, *a, **kw):              # the cable pulled: nothing gets through
+        sent.append(msg)
+        raise VisaIOError(StatusCode.error_timeout)
+
+    watched._device.write = silent
+    fault = _await_fault(watched)
+    assert fault.startswith("Keysight Technologies 33522B serial MY52400001 did not answer "
+                            "'SYST:ERR?': VI_ERROR_TMO") and "\n" not in fault
+    # it tried to turn the output off, and says it may still be on
+    assert sent[-2:] == ["ABOR", "OUTP 0"]
+    assert "; the output may still be on: Keysight Technologies 33522B serial MY52400001 did " \
+        "not take 'ABOR': VI_ERROR_TMO" in fault
+    del watched._device.write
+    assert panel("OUTP?") == "1"            # the emulator never heard OUTP 0: honestly said
+    watched.stop()
+    assert panel("OUTP?") == "0"

@@ -21,6 +21,10 @@ drive is checked by `make_waveform` against the shaker's limits (amplitude, peak
 duration) as any request is; a drive the limits refuse ends the iteration (`LimitError`, the
 result keeps the last good drive). Convergence: the measured peak within `peak_tolerance` of
 the requested one and the RMS error over the window within `rms_tolerance` of the amplitude.
+
+`compensate` runs the iteration with a blocking `measure`; `Compensator` is the same iteration
+one drive at a time, and `DriveTrials` schedules its drives on a rig clock and gathers their
+measurements from a device's periodic readings (the shaker node's `/shaker/compensate`).
 """
 
 import math
@@ -52,6 +56,8 @@ class CompensationConfig:
     bandwidth_factor: float = param(8.0, "corrections up to this multiple of the waveform's "
                                     "frequency", 1.0, 100.0)
     tail_periods: float = param(0.5, "drive beyond the request (ringing), periods", 0.0, 10.0)
+    rest_s: float = param(0.05, "rest between two drives played on a rig (the shaker comes to "
+                          "rest), s", 0.0, 60.0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -99,6 +105,65 @@ def correction(u: np.ndarray, y: np.ndarray, r: np.ndarray, rate_hz: float, band
     return np.fft.irfft(step, m)[:n]
 
 
+class Compensator:
+    """The iteration of `compensate` one drive at a time, for a caller that plays the drives
+    on its own clock (the shaker node): play `drive` from rest, sample the measured
+    displacement at `times_s` after its start, hand it to `measured`; `result` is set (and
+    `drive` is the one to play) once the iteration is over."""
+
+    def __init__(self, request: Waveform, limits: ShakerLimits, rate_hz: float,
+                 cfg: CompensationConfig = CompensationConfig()):
+        if request.kind not in ("pulse", "burst"):
+            raise ValueError(f"compensate a pulse or a burst, not {request.kind!r}")
+        self.request, self.limits, self.rate_hz, self.cfg = request, limits, rate_hz, cfg
+        t = window(request, rate_hz, cfg.tail_periods)
+        self.times_s = t
+        self._r = request.displacement(t)
+        self._taper = np.ones_like(t)
+        tail = t > request.duration_s + 0.5 * (t[-1] - request.duration_s)
+        if tail.any():
+            x = (t[tail] - t[tail][0]) / max(t[-1] - t[tail][0], 1e-12)
+            self._taper[tail] = 0.5 * (1.0 + np.cos(math.pi * x))
+        self._u = self._r.copy()
+        self.drive = drive_waveform(limits, self._u, rate_hz)
+        self._history: list[tuple[float, float, float]] = []
+        self.result: CompensationResult | None = None
+
+    def measured(self, y: np.ndarray) -> CompensationResult | None:
+        """Take the displacement [n] (m, at `times_s`) that `drive` produced; the next drive
+        is then in `drive`, or the iteration is over and its result returned (and kept)."""
+        if self.result is not None:
+            raise RuntimeError("the compensation is over")
+        cfg, a = self.cfg, abs(self.request.amplitude_m)
+        y = np.asarray(y, np.float64)
+        if y.shape != self._u.shape:
+            raise ValueError(f"measure returned {y.shape} samples for a drive of "
+                             f"{self._u.shape}")
+        peak_err, rms_err = errors(self._r, y, a)
+        self._history.append((peak_err, rms_err, float(np.max(np.abs(self._u)))))
+        if abs(peak_err) <= cfg.peak_tolerance and rms_err <= cfg.rms_tolerance:
+            return self._end(True, "within the tolerances")
+        if len(self._history) == cfg.max_iterations:
+            return self._end(False, f"not within the tolerances after {cfg.max_iterations} "
+                             "drives")
+        step = correction(self._u, y, self._r, self.rate_hz,
+                          cfg.bandwidth_factor * self.request.frequency_hz, cfg.gain)
+        step = np.clip(step, -cfg.max_step * a, cfg.max_step * a)        # the safety caps
+        new = np.clip((self._u + step) * self._taper, -cfg.max_drive * a, cfg.max_drive * a)
+        new[0] = 0.0
+        try:
+            drive = drive_waveform(self.limits, new, self.rate_hz)
+        except LimitError as e:
+            return self._end(False, f"the next drive is outside the limits: {e}")
+        self._u, self.drive = new, drive
+        return None
+
+    def _end(self, converged: bool, why: str) -> CompensationResult:
+        peaks, rms, drives = zip(*self._history)
+        self.result = CompensationResult(self.drive, converged, why, peaks, rms, drives)
+        return self.result
+
+
 def compensate(request: Waveform, limits: ShakerLimits,
                measure: Callable[[Waveform], np.ndarray], rate_hz: float,
                cfg: CompensationConfig = CompensationConfig()) -> CompensationResult:
@@ -113,48 +178,59 @@ def compensate(request: Waveform, limits: ShakerLimits,
         rate_hz: the drive's and the measurement's sample rate, Hz.
         cfg: tolerances, gain and the safety caps.
     """
-    if request.kind not in ("pulse", "burst"):
-        raise ValueError(f"compensate a pulse or a burst, not {request.kind!r}")
-    t = window(request, rate_hz, cfg.tail_periods)
-    a = abs(request.amplitude_m)
-    r = request.displacement(t)
-    taper = np.ones_like(t)
-    tail = t > request.duration_s + 0.5 * (t[-1] - request.duration_s)
-    if tail.any():
-        x = (t[tail] - t[tail][0]) / max(t[-1] - t[tail][0], 1e-12)
-        taper[tail] = 0.5 * (1.0 + np.cos(math.pi * x))
-    u = r.copy()
-    drive = _samples(limits, u, rate_hz)
-    history: list[tuple[float, float, float]] = []
-
-    def result(converged: bool, why: str) -> CompensationResult:
-        peaks, rms, drives = zip(*history)
-        return CompensationResult(drive, converged, why, peaks, rms, drives)
-
-    for _ in range(cfg.max_iterations):
-        y = np.asarray(measure(drive), np.float64)
-        if y.shape != u.shape:
-            raise ValueError(f"measure returned {y.shape} samples for a drive of {u.shape}")
-        peak_err, rms_err = errors(r, y, a)
-        history.append((peak_err, rms_err, float(np.max(np.abs(u)))))
-        if abs(peak_err) <= cfg.peak_tolerance and rms_err <= cfg.rms_tolerance:
-            return result(True, "within the tolerances")
-        if len(history) == cfg.max_iterations:
-            break
-        step = correction(u, y, r, rate_hz, cfg.bandwidth_factor * request.frequency_hz,
-                          cfg.gain)
-        step = np.clip(step, -cfg.max_step * a, cfg.max_step * a)        # the safety caps
-        new = np.clip((u + step) * taper, -cfg.max_drive * a, cfg.max_drive * a)
-        new[0] = 0.0
-        try:
-            drive = _samples(limits, new, rate_hz)
-        except LimitError as e:
-            return result(False, f"the next drive is outside the limits: {e}")
-        u = new
-    return result(False, f"not within the tolerances after {cfg.max_iterations} drives")
+    c = Compensator(request, limits, rate_hz, cfg)
+    while c.result is None:
+        c.measured(measure(c.drive))
+    return c.result
 
 
-def _samples(limits: ShakerLimits, u: np.ndarray, rate_hz: float) -> Waveform:
-    """The drive `u` (m at `rate_hz`) as a checked 'samples' waveform (`LimitError`)."""
+class DriveTrials:
+    """The drives of a `Compensator` played one after another on a device read every
+    `1 / rate_hz` s of rig time (k / rate_hz, as the shaker node reads it): each drive starts
+    on a reading time, `rest_s` after the last reading of the drive before (the first at
+    `first_s` or after), so that its measured window holds readings only; `take` files each
+    reading of the device's sensor and hands a full window to the compensator."""
+
+    def __init__(self, compensator: Compensator, first_s: float):
+        self.compensator = compensator
+        self._period = 1.0 / compensator.rate_hz
+        self._n = compensator.times_s.size
+        self._start(first_s)
+
+    def _start(self, t_s: float) -> None:
+        self.start_s = math.ceil(t_s / self._period - 1e-9) * self._period
+        self._y = np.full(self._n, np.nan)
+        self.pending = True   # the drive is still to be handed to the device (`play`)
+
+    def play(self) -> tuple[Waveform, float]:
+        """The drive to play now and its start (rig time, s); hand it to the device before the
+        first reading at or after that start."""
+        self.pending = False
+        return self.compensator.drive, self.start_s
+
+    def take(self, t_s: float, x_m: float) -> CompensationResult | None:
+        """File the reading at rig time `t_s` (s; displacement `x_m`, m). The result once the
+        iteration is over; `ValueError` when a window lacks readings (a device read less
+        often than `rate_hz`)."""
+        i = round((t_s - self.start_s) / self._period)
+        if self.pending or i < 0:
+            return None
+        if i < self._n:
+            self._y[i] = x_m
+        if i < self._n - 1:
+            return None
+        missing = int(np.isnan(self._y).sum())
+        if missing:
+            raise ValueError(f"{missing} of the {self._n} readings of a drive are missing "
+                             f"(the device was read less often than {1 / self._period:g} Hz)")
+        result = self.compensator.measured(self._y)
+        if result is None:
+            self._start(t_s + self.compensator.cfg.rest_s)
+        return result
+
+
+def drive_waveform(limits: ShakerLimits, u: np.ndarray, rate_hz: float) -> Waveform:
+    """The drive `u` [n] (m at `rate_hz`, from rest) as a 'samples' waveform checked against
+    `limits` (`LimitError`): every drive, and a kept one again before it is played."""
     return make_waveform(limits, WaveformRequest("samples", samples_m=tuple(float(v) for v in u),
                                                  sample_rate_hz=rate_hz))

@@ -16,7 +16,13 @@ reads `SYST:ERR?` until "No error" and raises `InstrumentError` (one line, the i
 reply) if an error was queued.
 
 Between bursts the generator holds the waveform's first point: 0 V for a pulse or a burst.
-`stop` aborts and turns the output off; `close` leaves it off.
+`stop` aborts and turns the output off (both are tried, whichever fails); `close` leaves it off.
+
+A watchdog thread (while open, every `watchdog_s`) asks `SYST:ERR?`: an error the instrument
+queued on its own (between commands, which each drain the queue) or a query that fails (VISA
+timeout, a lost connection) cancels a pending trigger and turns the output off as far as the
+instrument still answers (`ABOR`, `OUTP 0`), and sets `fault` to one line saying what happened
+and whether the output is off; a later `play` clears it.
 
 `read` has no sensor to read: a function generator only commands. It returns the commanded
 motion (the waveform at t since the trigger, and its derivative); a measured motion comes
@@ -68,6 +74,8 @@ class FuncGenConfig(ShakerLimits):
                             MIN_POINTS, 16_000_000)
     timeout_s: float = param(5.0, "VISA I/O timeout, s (an upload of max_points included)",
                              0.1, 60.0)
+    watchdog_s: float = param(0.5, "how often the watchdog asks the generator for errors "
+                              "while it is open, s (0: no watchdog)", 0.0, 60.0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -127,7 +135,10 @@ class FunctionGeneratorShaker:
         self._timer: threading.Timer | None = None
         self._armed = 0                         # which play() a pending trigger belongs to
         self.started_s: float | None = None     # rig time the last *TRG was sent
-        self.fault = ""                         # a failed trigger (from the timer thread)
+        self.fault = ""                         # a failed trigger or the watchdog's finding
+        self.sensor = ""                        # read() is the command: nothing is measured
+        self._closing = threading.Event()
+        self._watchdog: threading.Thread | None = None
         self.open()
 
     # -- lifecycle -------------------------------------------------------------------------
@@ -158,15 +169,25 @@ class FunctionGeneratorShaker:
         for cmd in ("OUTP 0", "OUTP:LOAD INF", f"VOLT:LIM:HIGH {self.cfg.max_volts:.6e}",
                     f"VOLT:LIM:LOW {-self.cfg.max_volts:.6e}", "VOLT:LIM:STAT 1"):
             self._send(cmd)
+        if self.cfg.watchdog_s > 0:
+            self._closing.clear()
+            self._watchdog = threading.Thread(target=self._watch, daemon=True,
+                                              name=f"watchdog {self.resource}")
+            self._watchdog.start()
 
     def close(self) -> None:
         if self._device is None:
             return
+        self._closing.set()
+        if self._watchdog is not None:
+            self._watchdog.join(timeout=self.cfg.timeout_s + 1.0)
+            self._watchdog = None
         try:
             self.stop()
         finally:
-            self._device.close()
-            self._device = None
+            with self._io:
+                self._device.close()
+                self._device = None
 
     # -- the shaker port -------------------------------------------------------------------
     @property
@@ -208,8 +229,7 @@ class FunctionGeneratorShaker:
         with self._io:
             self._armed += 1                    # a trigger already under way sends nothing
             if self._device is not None:
-                self._send("ABOR")
-                self._send("OUTP 0")
+                self._output_off()
 
     def read(self, t_s: float) -> ShakerReading:
         """The commanded motion at rig time `t_s` (no sensor on a function generator): the
@@ -229,6 +249,50 @@ class FunctionGeneratorShaker:
             for cmd in (f"VOLT:LIM:HIGH {cfg.max_volts:.6e}", f"VOLT:LIM:LOW {-cfg.max_volts:.6e}"):
                 self._send(cmd)
 
+    # -- the watchdog ----------------------------------------------------------------------
+    def _watch(self) -> None:
+        """Ask for errors every `watchdog_s` while open; a finding stops the output and sets
+        `fault` (polling pauses until a `play` clears it)."""
+        while not self._closing.wait(self.cfg.watchdog_s):
+            if self.fault:
+                continue
+            with self._io:
+                if self._device is None:
+                    return
+                try:
+                    errors = self._drain_errors()
+                except InstrumentError as e:
+                    why = str(e)
+                else:
+                    if not errors:
+                        continue
+                    why = f"{self.identity} reports {'; '.join(errors)}"
+                self._fail(why)
+
+    def _fail(self, why: str) -> None:
+        """Stop everything after a fault (`_io` held): the pending trigger cancelled, the output
+        off as far as the instrument answers; `fault` says which."""
+        self._armed += 1
+        self._cancel_timer()
+        self._waveform = None
+        try:
+            self._output_off()
+        except InstrumentError as e:
+            self.fault = f"{why}; the output may still be on: {e}"
+        else:
+            self.fault = f"{why}; output turned off"
+
+    def _output_off(self) -> None:
+        """ABOR and OUTP 0, each tried; `InstrumentError` (the first failure) after both."""
+        failed = None
+        for cmd in ("ABOR", "OUTP 0"):
+            try:
+                self._send(cmd)
+            except InstrumentError as e:
+                failed = failed or e
+        if failed is not None:
+            raise failed
+
     # -- SCPI ------------------------------------------------------------------------------
     def _trigger(self, armed: int) -> None:
         with self._io:
@@ -240,8 +304,12 @@ class FunctionGeneratorShaker:
     def _trigger_later(self, armed: int) -> None:
         try:
             self._trigger(armed)
-        except Exception as e:  # a timer thread has no caller to raise to
-            self.fault = str(e)
+        except Exception as e:  # a timer thread has no caller to raise to: the fault says it
+            with self._io:
+                if self._device is not None:
+                    self._fail(f"the trigger failed: {e}")
+                else:
+                    self.fault = f"the trigger failed: {e}"
 
     def _cancel_timer(self) -> None:
         if self._timer is not None:

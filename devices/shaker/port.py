@@ -23,9 +23,17 @@ class ShakerReading:
 
 @runtime_checkable
 class ShakerDrive(Protocol):
-    """A shaker and what drives it."""
+    """A shaker and what drives it.
+
+    `sensor` says what `read` measures, in words ("": nothing, `read` returns the commanded
+    motion: no drive compensation against it). `fault` is "" while the drive is well, else
+    one line saying what went wrong on its own (a failed trigger, an instrument error or a
+    lost connection seen by a watchdog), after which the drive has been told to stop; a later
+    `play` clears it."""
 
     limits: ShakerLimits
+    sensor: str
+    fault: str
 
     @property
     def time_s(self) -> float:

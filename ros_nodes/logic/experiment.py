@@ -76,6 +76,14 @@ class RigPort(Protocol):
     def stage_state(self) -> str:
         """The stage's last state string (`idle`, `moving`, `holding`, `fault: why`; '')."""
 
+    def shaker_fault(self) -> str:
+        """The shaker's last fault (`fault: why`: a drive that failed on its own and was told
+        to stop, e.g. a function generator's instrument error or lost connection; '')."""
+
+    def compensation(self) -> tuple[bool, str] | None:
+        """The outcome of the last `compensate`: (within the tolerances, the shaker's line);
+        None while it runs."""
+
     def stage_hold_time(self) -> float | None:
         """Simulated time of the stage sample at which the stages began to hold their target
         (None: not known)."""
@@ -88,6 +96,11 @@ class RigPort(Protocol):
 
     def fire(self, waveform: str, amplitude_m: float, frequency_hz: float, cycles: float,
              delay_s: float) -> tuple[bool, str]: ...
+
+    def compensate(self, waveform: str, amplitude_m: float, frequency_hz: float,
+                   cycles: float) -> tuple[bool, str]:
+        """Start the shaker's drive compensation for this request (`compensation` says when
+        it is over)."""
 
     def camera_start(self, t_start_s: float) -> bool:
         """Start the camera's capture window at simulated time `t_start_s` (the time held)."""
@@ -113,6 +126,7 @@ class Experiment:
         self.plan = plan
         self.port = port
         self.events: list[tuple[str, float]] = []
+        self.compensation = ""  # the shaker's compensation outcome (plan.compensate)
 
     # helpers ----------------------------------------------------------------------------------
     def phase(self, p: Phase) -> None:
@@ -165,10 +179,13 @@ class Experiment:
         self.port.pause_clock()
 
     def _device_fault(self) -> str | None:
-        """A stage in FAULT or a camera in error, as one line (None: both well)."""
-        stage, cam = self.port.stage_state(), self.port.camera()
+        """A stage in FAULT, a shaker fault or a camera in error, as one line (None: all
+        well)."""
+        stage, cam, shaker = self.port.stage_state(), self.port.camera(), self.port.shaker_fault()
         if stage.startswith("fault"):
             return f"stage {stage}"
+        if shaker:
+            return f"shaker {shaker}"
         if cam.get("state") == "error":
             return f"camera: {cam.get('message')}"
         return None
@@ -189,6 +206,8 @@ class Experiment:
         problems = port.device_problems()
         if problems:  # before anything moves
             raise RigError("; ".join(problems))
+        if p.compensate:
+            self.compensate()
         # the unloaded sample: the tracker finds every unit of the pre-compressed first frame
         # against it, so that poses are from the unloaded design (as the simulation's)
         ok, why = port.camera_snapshot()
@@ -265,6 +284,28 @@ class Experiment:
         if "received" in cam:  # ... and those the driver delivered to the node
             timings["camera_received"] = int(cam["received"])
         return timings
+
+    def compensate(self) -> None:
+        """Have the shaker compensate its drive for the plan's pulse (trial drives played
+        and measured by the shaker on the rig clock, before the recording starts)."""
+        p, port = self.plan, self.port
+        self.phase(Phase.COMPENSATE)
+        ok, why = port.compensate(p.waveform, p.amplitude_m, p.frequency_hz, p.cycles)
+        if not ok:
+            raise RigError(f"shaker: {why}")
+        log.info("shaker: %s", why)
+        port.start_clock(None)
+        self.until(lambda: port.compensation() is not None, "the shaker's drive compensation",
+                   fault=self._device_fault)
+        port.pause_clock()
+        converged, line = port.compensation()
+        if line.startswith("compensation failed"):
+            raise RigError(f"shaker: {line}")
+        self.compensation = line
+        if converged:
+            log.info("shaker: %s", line)
+        else:  # the best drive within the limits is still played; the line says how far off
+            log.warning("shaker: %s", line)
 
     def _devices_recorded(self, t_s: float) -> bool:
         last = self.port.recorder().get("last_stamp_s", {})

@@ -34,6 +34,7 @@ class Phase(str, Enum):
     STOP = "stop"
     DONE = "done"
     ABORTED = "aborted"
+    COMPENSATE = "compensate"  # after starting, with plan.compensate
 
 
 @dataclass(frozen=True, slots=True)
@@ -55,6 +56,9 @@ class ExperimentPlan:
     amplitude_m: float = param(0.0075, "shaker amplitude A, m", 0.0, 0.05)
     frequency_hz: float = param(30.0, "shaker frequency f, Hz", 0.1, 1000.0)
     cycles: float = param(1.0, "burst length, periods", 0.0, 1000.0)
+    compensate: bool = param(False, "before the test, iterate the shaker's drive against its "
+                             "measured motion until the measured pulse matches the request "
+                             "(/shaker/compensate), then fire the compensated drive")
     fps: float = param(1000.0, "camera frame rate, Hz", 1.0, 100000.0)
     width: int = param(640, "frame width, px", 8, 8192)
     height: int = param(480, "frame height, px", 8, 8192)

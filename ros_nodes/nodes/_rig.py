@@ -101,6 +101,8 @@ def run_rig(plan, node_params: dict[str, dict], out: Path, processes: bool = Fal
     data = summary(plan, node_params, report, timings, exp.events if exp else [], status, clock)
     if lab is not None:
         data["lab_file"], data["ros"] = str(lab["lab_file"]), lab.get("ros", {})
+    if exp is not None and exp.compensation:
+        data["compensation"] = exp.compensation
     path = write_summary(out, data)
     if report is not None:
         lost = report.get("dropped", 0)

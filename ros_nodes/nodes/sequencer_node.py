@@ -39,6 +39,7 @@ __all__ = ["NAME", "RigError", "SequencerNode"]
 # client name -> (service, type); the procedure waits for all of them before it starts
 _SERVICES = {"set_strain": (T.STAGE_SET_STRAIN, SetStrain), "stage_stop": (T.STAGE_STOP, Trigger),
              "fire": (T.SHAKER_FIRE, FirePulse), "shaker_stop": (T.SHAKER_STOP, Trigger),
+             "compensate": (T.SHAKER_COMPENSATE, FirePulse),
              "cam_start": (T.CAMERA_START, Trigger), "cam_stop": (T.CAMERA_STOP, Trigger),
              "cam_snapshot": (T.CAMERA_SNAPSHOT, Trigger),
              "rec_start": (T.RECORDER_START, Trigger), "rec_stop": (T.RECORDER_STOP, Trigger)}
@@ -81,6 +82,8 @@ class SequencerNode(Node):
         self.clients_ = {name: self.create_client(srv_type, srv.name)
                          for name, (srv, srv_type) in _SERVICES.items()}
         self._hold_ns: int | None = None  # stamp of the stage's `holding` diagnostics
+        self._shaker_fault = ""  # the shaker's `fault: ...` diagnostics
+        self._compensation: tuple[bool, str] | None = None  # its compensation outcome
         self.create_subscription(DiagnosticArray, T.DIAGNOSTICS.name, self._on_diagnostics,
                                  qos_profile(T.DIAGNOSTICS.qos))
         # the camera's own parameter service: the capture starts at the time held here
@@ -223,6 +226,25 @@ class SequencerNode(Node):
         for st in msg.status:
             if st.name == "stage" and st.message.startswith("holding") and self._hold_ns is None:
                 self._hold_ns = convert.to_ns(msg.header.stamp)
+            elif st.name == "shaker" and st.message.startswith("fault: "):
+                self._shaker_fault = st.message
+            elif st.name == "shaker" and st.message.startswith("compensation "):
+                values = {kv.key: kv.value for kv in st.values}
+                self._compensation = (values.get("converged") == "True", st.message)
+
+    def shaker_fault(self) -> str:
+        return self._shaker_fault
+
+    def compensation(self) -> tuple[bool, str] | None:
+        return self._compensation
+
+    def compensate(self, waveform: str, amplitude_m: float, frequency_hz: float,
+                   cycles: float) -> tuple[bool, str]:
+        self._compensation = None
+        r = self.call("compensate", FirePulse.Request(
+            waveform=waveform, amplitude_m=amplitude_m, frequency_hz=frequency_hz,
+            cycles=cycles))
+        return r.accepted, r.message
 
     def stage_hold_time(self) -> float | None:
         return None if self._hold_ns is None else self._hold_ns * 1e-9

@@ -117,3 +117,69 @@ def test_stage_moves_holds_refuses_and_validates_parameters(ros_node, start_node
         assert not r.accepted and "0.05" in r.message
     finally:
         print(stop_process(proc))
+
+
+def test_shaker_compensates_its_drive_and_the_measured_peak_error_drops(ros_node, start_node,
+                                                                        tmp_path):
+    """A resonant simulated actuator (80 Hz, damping 0.3) overshoots the paper's 7.5 mm pulse;
+    `/shaker/compensate` iterates the drive against the shaker's sensor, and the same request
+    fired again is measured (the joint states the node publishes) within 0.5 % of 7.5 mm."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from metarig_msgs.srv import FirePulse
+    from sensor_msgs.msg import JointState
+
+    from ros_nodes import topics as T
+    from ros_nodes.nodes._common import COMMAND, qos_profile
+
+    params = tmp_path / "shaker.yaml"
+    params.write_text("shaker:\n  ros__parameters:\n    allowed_callers: [/test_client]\n"
+                      "    device:\n      natural_frequency_hz: 80.0\n"
+                      "      damping_ratio: 0.3\n")
+    proc = start_node("metarig-shaker", "--params-file", str(params))
+    node, ex = ros_node
+    try:
+        states, diags = [], []
+        node.create_subscription(JointState, T.SHAKER_JOINTS.name, states.append,
+                                 qos_profile(T.SHAKER_JOINTS.qos, depth=5000))
+        node.create_subscription(DiagnosticArray, T.DIAGNOSTICS.name,
+                                 lambda m: diags.extend(m.status), COMMAND)
+        fire = node.create_client(FirePulse, T.SHAKER_FIRE.name)
+        compensate = node.create_client(FirePulse, T.SHAKER_COMPENSATE.name)
+        req = FirePulse.Request(waveform="pulse", amplitude_m=0.0075, frequency_hz=30.0,
+                                delay_s=0.05)
+
+        def stamp(t):
+            return t.sec + 1e-9 * t.nanosec
+
+        def peak_error(r) -> float:
+            """The measured peak over the drive and 30 ms after, against 7.5 mm."""
+            t0, t1 = stamp(r.start), stamp(r.start) + r.duration_s + 0.03
+            spin_until(ex, lambda: states and stamp(states[-1].header.stamp) > t1 + 0.01,
+                       20.0, "the joint states of the pulse")
+            x = [m.position[0] for m in states if t0 <= stamp(m.header.stamp) <= t1]
+            assert len(x) > 0.9 * (t1 - t0) * 1000  # the node reads at 1 kHz
+            return max(x) / 0.0075 - 1.0
+
+        r = call(fire, req, ex)
+        assert r.accepted and "compensated" not in r.message, r.message
+        before = peak_error(r)
+        assert 0.05 < before < 0.08  # the overshoot the lab saw: 7.9-8.7 mm for 7.5 mm
+        spin_until(ex, lambda: any(s.message == "waveform finished" for s in diags), 10.0,
+                   "the pulse to end")
+        r = call(compensate, req, ex)
+        assert r.accepted, r.message
+        assert "measured by the simulated shaker's displacement sensor" in r.message
+        spin_until(ex, lambda: any(s.message.startswith("compensation ") for s in diags),
+                   60.0, "the compensation's outcome")
+        done = next(s for s in diags if s.message.startswith("compensation "))
+        assert done.message.startswith("compensation done: ") and "\n" not in done.message
+        values = {kv.key: kv.value for kv in done.values}
+        assert values["converged"] == "True"
+        first = float(values["peak_errors"].strip("[]").split(",")[0])
+        assert first == pytest.approx(before, abs=0.002)  # the first drive is the request
+        r = call(fire, req, ex)
+        assert r.accepted and "compensated drive" in r.message, r.message
+        after = peak_error(r)
+        assert abs(after) <= 0.005 and abs(after) < abs(before) / 10, (before, after)
+    finally:
+        print(stop_process(proc))

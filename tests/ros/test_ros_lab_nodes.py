@@ -64,6 +64,16 @@ def test_shaker_plays_on_the_lab_function_generator_and_refuses_what_it_cannot(
         # the node still serves: a good pulse after the refusal
         r = _fire(client, ex, 0.005)
         assert r.accepted, r.message
+        spin_until(ex, lambda: shaker._playing_until is None, 10.0, "the pulse to end")
+        # no drive compensation: the generator's readings are its command, not a measurement
+        from metarig_msgs.srv import FirePulse
+
+        r = call(client.create_client(FirePulse, "/shaker/compensate"),
+                 FirePulse.Request(waveform="pulse", amplitude_m=0.005, frequency_hz=30.0), ex,
+                 timeout_s=20.0)
+        assert not r.accepted and r.message == (
+            "refused: the drive measures nothing (its readings are the commanded motion, as a "
+            "function generator's): nothing to compensate against")
     finally:
         ex.remove_node(shaker)
         shaker.destroy_node()

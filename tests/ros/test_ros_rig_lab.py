@@ -98,6 +98,41 @@ def test_ctrl_c_stops_every_device_and_keeps_the_recording(tmp_path, emu, lab_en
     assert msgs[T.RIG_STOP.name] and msgs[T.SHAKER_JOINTS.name]
 
 
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_a_stop_signal_with_one_process_per_node_stops_every_device(tmp_path, emu, lab_env,
+                                                                    start_node, sig):
+    proc, _, out = start_lab_rig(start_node, tmp_path, emu.port, lab_env, "--processes",
+                                 "--record-s", "30")
+    lines = read_until(proc, "phase pulse", 120.0)
+    time.sleep(1.0)  # the camera streams
+    proc.send_signal(sig)
+    rest, _ = proc.communicate(timeout=90)
+    text = "".join(lines) + rest
+    assert proc.returncode == 130, text[-3000:]
+    logs = {f.stem: f.read_text() for f in (out / "logs").iterdir()}
+    assert sorted(logs) == ["camera", "recorder", "shaker", "stage"]
+    assert not any("Traceback" in t for t in (text, *logs.values())), text[-3000:]
+    # each node process heard the rig stop and stopped its device: the generator (ABOR, OUTP 0
+    # answered: no "did not stop"), both emulated stages, the camera's stream
+    assert "stop (rig stop)" in logs["shaker"] and "did not stop" not in logs["shaker"]
+    assert "rig stop: the camera stops streaming" in logs["camera"]
+    moved = max(i for i, m in enumerate(emu.received) if "move abs" in m)
+    assert {"/1 1 stop", "/2 1 stop"} <= set(emu.received[moved:])
+    # then every node process went down on its own (no escalation to SIGTERM/SIGKILL)
+    assert "did not stop on" not in text
+    pids = [int(x.split("(pid ")[1].rstrip(")\n")) for x in text.splitlines() if "(pid " in x]
+    assert len(pids) == 4
+    for pid in pids:
+        with pytest.raises(ProcessLookupError):
+            os.kill(pid, 0)
+    run = json.loads((out / "run.json").read_text())
+    assert run["status"] == "interrupted"
+    assert [p["phase"] for p in run["phases"]][-2:] == ["stop", "aborted"]
+    _, msgs = read_mcap(out / "recording.mcap")  # a complete file: summary and footer
+    assert len(msgs[T.IMAGE.name]) == run["recording"]["topics"][T.IMAGE.name]["count"] > 20
+    assert msgs[T.RIG_STOP.name] and msgs[T.SHAKER_JOINTS.name]
+
+
 @pytest.fixture
 def ros_vars(monkeypatch):
     """The ROS variables a lab run sets in this process, restored after the test."""

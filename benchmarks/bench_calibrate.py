@@ -18,8 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
-from design_engine import calibrate as cal
-from design_engine.material import reference_damping
+from design_engine.calibration.fit import start_damping_ratio, to_si
+from design_engine.calibration.hinge import fit_hinge, hinge_sample, read_hinge_file
+from design_engine.calibration.oscillation import fit_oscillation, log_decrement, oscillation_sample
+from design_engine.calibration.pulse import fit_pulse
+from design_engine.physics.material import reference_damping
 from hardware_sim import characterisation as ch
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -39,20 +42,20 @@ def summary(fit, truth_si):
 
 
 def si(m, n):
-    return cal.to_si(n, float(getattr(m, n)))
+    return to_si(n, float(getattr(m, n)))
 
 
 def bench_hinge(seeds):
     import tempfile
 
     f = {"k_stretch": 1.2, "k_shear": 0.8, "k_bend": 1.2}
-    true = cal.hinge_sample().material.scaled(f)
+    true = hinge_sample().material.scaled(f)
     out = []
     for seed in seeds:
         d = tempfile.mkdtemp()
         paths = ch.hinge_tests(true, d, runs=3, seed=100 * seed)
         t0 = time.perf_counter()
-        fit = cal.fit_hinge([cal.read_hinge_file(p) for p in paths])
+        fit = fit_hinge([read_hinge_file(p) for p in paths])
         out.append({"seed": seed, "wall_s": time.perf_counter() - t0, "rms_N": fit.rms,
                     "parameters": summary(fit, {n: si(true, n) for n in f})})
     return {"noise_N": ch.FORCE_NOISE_N, "points": "3 tests x 3 runs x 200", "factors": f,
@@ -61,19 +64,19 @@ def bench_hinge(seeds):
 
 def bench_oscillation(seeds):
     f = {"k_bend": 1.2, "damping_ratio": 0.8}  # a spec 6.3 truth: c_u, c_theta from zeta, k
-    sample = cal.oscillation_sample()
+    sample = oscillation_sample()
     m = sample.material
-    zeta = 0.8 * cal.start_damping_ratio(m, sample.lattice)
+    zeta = 0.8 * start_damping_ratio(m, sample.lattice)
     true = m.scaled({"k_bend": 1.2})
     c_u, c_t = reference_damping(sample.lattice, zeta, true.density, true.k_shear, true.k_bend)
     true = true.replaced(damping_u=c_u, damping_theta=c_t)
     clean = ch.free_oscillation(true, ch.OscillationConfig(noise_rad=0.0, noise_m=0.0))
-    modal = cal.log_decrement(clean.t, clean.q[:, 1, 2])["damping_ratio"]
+    modal = log_decrement(clean.t, clean.q[:, 1, 2])["damping_ratio"]
     out = []
     for seed in seeds:
         tr = ch.free_oscillation(true, ch.OscillationConfig(seed=seed))
         t0 = time.perf_counter()
-        fit = cal.fit_oscillation(tr.t, tr.q[:, 1, 2])
+        fit = fit_oscillation(tr.t, tr.q[:, 1, 2])
         ld = fit.extra["log_decrement"]
         out.append({"seed": seed, "wall_s": time.perf_counter() - t0, "rms_rad": fit.rms,
                     "parameters": summary(fit, {"damping_ratio": zeta, "k_bend": si(true, "k_bend")}),
@@ -110,7 +113,7 @@ def bench_pulse(nx=24, ny=16, fit=("k_stretch", "k_shear", "k_bend", "damping_u"
     qn = q + np.random.default_rng(0).normal(0, noise, q.shape) * np.array([1.0, 1.0, 0.0])
     scene = replace(s.scene, material=nominal)
     t0 = time.perf_counter()
-    fitted = cal.fit_pulse(scene, times, qn, np.ones(q.shape[:2], bool), t_in, u_in, fit=fit)
+    fitted = fit_pulse(scene, times, qn, np.ones(q.shape[:2], bool), t_in, u_in, fit=fit)
     wall = time.perf_counter() - t0
     return {"lattice": [nx, ny], "frames": int(times.size), "fps": fps, "amplitude_m": 2e-3,
             "noise_m": noise, "factors": f, "truth_simulation_s": truth_s, "fit_wall_s": wall,
@@ -128,7 +131,7 @@ def bench_rig(out=ROOT / "runs" / "bench-calibrate"):
     import os
     import subprocess
 
-    from design_engine.material_file import default_si, save_material
+    from design_engine.physics.material_file import default_si, save_material
     from ros_nodes.recorded_run import pulse_inputs
 
     run = out / "rig"
@@ -142,7 +145,7 @@ def bench_rig(out=ROOT / "runs" / "bench-calibrate"):
         rig_s = time.perf_counter() - t0
     d = default_si()
     scene = pulse_inputs(run, "truth")[0]
-    truth = {n: cal.to_si(n, float(getattr(scene.material, n)))
+    truth = {n: to_si(n, float(getattr(scene.material, n)))
              for n in ("k_stretch", "k_shear", "k_bend", "damping_u", "damping_theta")}
     truth["damping_ratio"] = d["damping_ratio"]
     res = {"rig_s": rig_s, "load_before": os.getloadavg()}

@@ -32,8 +32,8 @@ def main(argv=None) -> int:
 
     import jax.numpy as jnp
 
-    from design_engine.auto import contact_config
-    from design_engine.run import make_objective
+    from design_engine.solve.policy import contact_config
+    from design_engine.solve.run import make_objective
     from design_engine.studies.speedup import SCENES, term_scene, timed_value_and_grad
 
     report = {"before": "Dopri8, rtol 1e-8, atol 1e-4, with contact, float64, dynamic ramp",

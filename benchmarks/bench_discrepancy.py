@@ -9,7 +9,7 @@ calibration makes of a discrepant specimen.
   design (`benchmarks/results/design_focusing-24x16.json`) under the paper's pulse (7.5 mm,
   30 Hz), and on the default `metarig rig` sample (the periodic 24x16 lattice, 2 % pre-
   compression). At level 1 each imperfection alone as well.
-- calibration: `design_engine.calibrate.fit_pulse` (k_shear, k_bend, damping ratio) on a small
+- calibration: `design_engine.calibration.calibrate.fit_pulse` (k_shear, k_bend, damping ratio) on a small
   discrepant specimen (8x6, the asymmetric design of tests/test_specimen.py, 4 mm pulse,
   tracked-position noise 1.2e-5 m), at levels 0 and 1: the fitted values, their stated errors
   (statistical and model parts) and the effective truth, the nominal material with the
@@ -53,7 +53,7 @@ def comparison_case(cfg, levels, t_in, u_in, times, stage=None, each=True):
     """Comparison metrics of the specimen `cfg` at each level (and each imperfection alone);
     `stage` = (t s, closing m, closing speed m/s, hold time s) or None."""
     from comparison.experiment import compare_experiment, scene_of_design
-    from design_engine.auto import contact_config
+    from design_engine.solve.policy import contact_config
     from hardware_sim import specimen as sp
     from hardware_sim.rig import MotionRecord, specimen_motion
     from metarig.trajectory import Trajectory
@@ -118,8 +118,8 @@ def bench_comparison(design: str, quick: bool):
 def bench_calibration(levels=(0.0, 1.0), seed: int = 0):
     import tempfile
 
-    from design_engine import calibrate as cal
-    from design_engine.material import default_si
+    from design_engine.calibration.pulse import fit_pulse
+    from design_engine.physics.material import default_si
     from hardware_sim import characterisation as ch
     from hardware_sim import specimen as sp
     from hardware_sim.rig import MotionRecord, capture_times, specimen_motion
@@ -139,7 +139,7 @@ def bench_calibration(levels=(0.0, 1.0), seed: int = 0):
         q = specimen_motion(s, times, MotionRecord(t_in, u_in), None, FPS).q[1:]
         q = q + np.random.default_rng(seed).normal(0, ch.POSITION_NOISE_M, q.shape) * [1, 1, 0]
         t0 = time.perf_counter()
-        fit = cal.fit_pulse(nominal.scene, times, q, np.ones(q.shape[:2], bool), t_in, u_in,
+        fit = fit_pulse(nominal.scene, times, q, np.ones(q.shape[:2], bool), t_in, u_in,
                             fit=fit_names, start=start)
         eff = s.effective_si()
         # the effective truth: the specimen's mean material (the damping ratio: the nominal one,

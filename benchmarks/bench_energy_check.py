@@ -7,7 +7,7 @@ on scenes from smooth to hypersensitive and on steps from 0.3 to 1.2 x the stabi
 (2 / omega_max at the state the pulse starts from), how that drift relates to the true error of
 the objective J (the target's mean kinetic energy) against a tight reference (Dopri8, rtol 1e-11,
 atol 1e-9), with contact in float64 and, at the policy's step, float32. The policy's tolerance
-(`auto.ENERGY_TOLERANCE`) is read off the chart: every solve under it must be within 1e-4 of J.
+(`policy.ENERGY_TOLERANCE`) is read off the chart: every solve under it must be within 1e-4 of J.
 
 Scenes: the focusing lattice 8x6 at 44 deg bias (2 deg voids) under 2, 4 and 6 mm pulses (the
 6 mm one is the case a fast solve once missed by 2x without a signal), a small jammed
@@ -37,8 +37,8 @@ RATIOS = (0.3, 0.6, 0.9, 1.2)
 
 
 def scenes(only: list[str] | None):
-    from design_engine.design_io import load_design
-    from design_engine.scenes import build_scene
+    from design_engine.design.design_io import load_design
+    from design_engine.physics.scenes import build_scene
     from design_engine.studies.speedup import SCENES, term_scene
 
     def optimised(**kw):
@@ -69,11 +69,11 @@ def scenes(only: list[str] | None):
 
 def measure(scene) -> dict:
     """Reference, then each fixed-step configuration: J error, energy drift, barrier figures."""
-    from design_engine.auto import contact_frequency, max_angular_frequency, next_config
-    from design_engine.fixed_step import FixedStepVerlet
-    from design_engine.run import simulate_scene
-    from design_engine.simulate import SimulationError, SolverConfig, solve_health
-    from design_engine.statics import equilibrium_state
+    from design_engine.solve.policy import contact_frequency, max_angular_frequency, next_config
+    from design_engine.solve.fixed_step import FixedStepVerlet
+    from design_engine.solve.run import simulate_scene
+    from design_engine.solve.simulate import SimulationError, SolverConfig, solve_health
+    from design_engine.physics.statics import equilibrium_state
     from design_engine.studies.methods import reference_method
 
     state = equilibrium_state(scene) if scene.loading.is_static else None
@@ -120,13 +120,13 @@ def plot(report: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from design_engine.auto import ENERGY_TOLERANCE
+    from design_engine.solve.policy import ENERGY_TOLERANCE
 
     fig, ax = plt.subplots(figsize=(7.5, 5.2))
     for k, (name, res) in enumerate(report["scenes"].items()):
         rows = [r for r in res["rows"] if r.get("ok")]
         # a solve without contact terms whose voids reached the cutoff solved another model:
-        # its J error is the contact rule's to catch (`auto.needs_contact`), not the ledger's
+        # its J error is the contact rule's to catch (`policy.needs_contact`), not the ledger's
         for marker, sel in (("o", lambda r: r["contact"] and r["dtype"] == "float64"),
                             ("^", lambda r: r["contact"] and r["dtype"] == "float32"),
                             ("x", lambda r: not r["contact"])):

@@ -106,8 +106,8 @@ def summarise(folder: Path, ran: dict) -> dict:
 def _config(summary: dict):
     import diffrax
 
-    from design_engine.fixed_step import FixedStepVerlet
-    from design_engine.simulate import SolverConfig
+    from design_engine.solve.fixed_step import FixedStepVerlet
+    from design_engine.solve.simulate import SolverConfig
 
     if summary["solver"] == "FixedStepVerlet":
         solver = FixedStepVerlet(max_dt=summary["max_dt_s"] * 1e3,
@@ -124,9 +124,9 @@ def recheck(folder: Path, evals: int, count: int, rows: list[dict], save) -> lis
     configuration that counted and with tight Dopri8; rows already in `rows` are kept."""
     import diffrax
 
-    from design_engine.simulate import SolverConfig
-    from design_engine.task import load_task
-    from design_engine.task_eval import TaskEvaluator
+    from design_engine.solve.simulate import SolverConfig
+    from design_engine.design.task import load_task
+    from design_engine.design.evaluator import TaskEvaluator
 
     history = _evaluations(folder / "history.json")
     xs = np.load(folder / "checkpoint.npz")["x"]

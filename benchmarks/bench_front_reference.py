@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def ramp_task(source: str, size):
     """The sweep's task with every scene's pre-compression on the dynamic ramp."""
-    from design_engine.task import load_task, preset_path
+    from design_engine.design.task import load_task, preset_path
 
     path = Path(source) if Path(source).exists() else preset_path(source)
     text = path.read_text()
@@ -43,9 +43,9 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
 
     import design_engine  # noqa: F401  (x64, cache)
-    from design_engine.auto import contact_config
-    from design_engine.design_io import load_design
-    from design_engine.task_eval import TaskEvaluator
+    from design_engine.solve.policy import contact_config
+    from design_engine.design.design_io import load_design
+    from design_engine.design.evaluator import TaskEvaluator
 
     try:
         sweep = json.loads((args.sweep / "sweep.json").read_text())

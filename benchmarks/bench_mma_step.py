@@ -29,8 +29,8 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
 
     import design_engine  # noqa: F401
-    from design_engine.optimize import run_design
-    from design_engine.task import load_task
+    from design_engine.design.optimize import run_design
+    from design_engine.design.task import load_task
 
     size = tuple(int(v) for v in args.size.split("x")) if args.size else None
     args.out.mkdir(parents=True, exist_ok=True)

@@ -32,7 +32,7 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, default=Path("runs/bench-pareto"))
     args = p.parse_args(argv)
 
-    from design_engine.sweep import run_sweep
+    from design_engine.sweeps.pareto_sweep import run_sweep
 
     size = tuple(int(v) for v in args.size.split("x"))
     weights = [float(w) for w in args.weights.split(",")]

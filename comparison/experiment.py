@@ -104,7 +104,7 @@ def measured_input_of(scene, poses: Trajectory, frame_t0_s: float, shaker_t_s=No
 def engine_input(measured: MeasuredInput) -> tuple[np.ndarray, np.ndarray]:
     """(t s, u m) of the input as the engine takes it: smoothed (`smooth_input`) and at rest
     from t = 0 to the record's start."""
-    from design_engine.run import smooth_input
+    from design_engine.solve.run import smooth_input
 
     t_in, u_in = smooth_input(measured.t_s, measured.u_m)
     if t_in[0] > 0:
@@ -116,7 +116,7 @@ def simulate_measured(scene, frame_t_s: np.ndarray, measured: MeasuredInput,
                       config=None) -> Trajectory:
     """The engine's motion of `scene` at the frame times (rig clock, s) under the measured input,
     from rest at t = 0; q from the undeformed reference, as the engine gives it."""
-    from design_engine.run import simulate_rig
+    from design_engine.solve.run import simulate_rig
 
     t_in, u_in = engine_input(measured)
     has_stages = len(scene.stage_units_top) > 0 and measured.stage_t_s is not None
@@ -136,8 +136,8 @@ def scene_of_design(doc: dict):
     Raises:
         ValueError: the document does not describe a scene.
     """
-    from design_engine.geometry import InvalidDesignError
-    from design_engine.scenes import build_scene
+    from design_engine.physics.geometry import InvalidDesignError
+    from design_engine.physics.scenes import build_scene
 
     try:
         nx, ny = (doc["nx"], doc["ny"]) if "nx" in doc else doc["lattice"]["shape"]
@@ -146,7 +146,7 @@ def scene_of_design(doc: dict):
         if doc.get("design_m") is not None:
             scene = scene.with_design(np.asarray(doc["design_m"], np.float64) * 1e3)
         if doc.get("material_si") is not None:
-            from design_engine.material_file import with_material
+            from design_engine.physics.material_file import with_material
 
             scene = with_material(scene, dict(doc["material_si"]))
     except (KeyError, TypeError) as exc:
@@ -196,7 +196,7 @@ def compare_experiment(scene, poses: Trajectory, frame_t0_s: float, shaker_t_s=N
         ValueError: inconsistent inputs (the message says which).
     """
     from comparison.metrics import compare, pulse_onset
-    from design_engine.regions import row_units
+    from design_engine.physics.regions import row_units
 
     if poses.n_units != scene.n_units:
         raise ValueError(f"the recording tracks {poses.n_units} units but the design has "

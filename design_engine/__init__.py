@@ -37,21 +37,21 @@ if _cache:
     jax.config.update("jax_persistent_cache_min_compile_time_secs",
                       float(os.environ.get("METARIG_JAX_CACHE_MIN_S", "0.5")))
 
-from design_engine.constraints import ConstraintLimits as ConstraintLimits  # noqa: E402
-from design_engine.constraints import make_constraints as make_constraints  # noqa: E402
-from design_engine.geometry import InvalidDesignError as InvalidDesignError  # noqa: E402
-from design_engine.lattice import Lattice as Lattice  # noqa: E402
-from design_engine.lattice import kagome as kagome  # noqa: E402
-from design_engine.lattice import periodic_design as periodic_design  # noqa: E402
-from design_engine.lattice import quads as quads  # noqa: E402
-from design_engine.material import Material as Material  # noqa: E402
-from design_engine.run import SceneRun as SceneRun  # noqa: E402
-from design_engine.run import make_objective as make_objective  # noqa: E402
-from design_engine.run import simulate_rig as simulate_rig  # noqa: E402
-from design_engine.run import simulate_scene as simulate_scene  # noqa: E402
-from design_engine.scenes import PRESETS as PRESETS  # noqa: E402
-from design_engine.scenes import Scene as Scene  # noqa: E402
-from design_engine.scenes import build_scene as build_scene  # noqa: E402
-from design_engine.simulate import SimulationError as SimulationError  # noqa: E402
-from design_engine.simulate import SolverConfig as SolverConfig  # noqa: E402
+from design_engine.design.constraints import ConstraintLimits as ConstraintLimits  # noqa: E402
+from design_engine.design.constraints import make_constraints as make_constraints  # noqa: E402
+from design_engine.physics.geometry import InvalidDesignError as InvalidDesignError  # noqa: E402
+from design_engine.physics.lattice import Lattice as Lattice  # noqa: E402
+from design_engine.physics.lattice import kagome as kagome  # noqa: E402
+from design_engine.physics.lattice import periodic_design as periodic_design  # noqa: E402
+from design_engine.physics.lattice import quads as quads  # noqa: E402
+from design_engine.physics.material import Material as Material  # noqa: E402
+from design_engine.solve.run import SceneRun as SceneRun  # noqa: E402
+from design_engine.solve.run import make_objective as make_objective  # noqa: E402
+from design_engine.solve.run import simulate_rig as simulate_rig  # noqa: E402
+from design_engine.solve.run import simulate_scene as simulate_scene  # noqa: E402
+from design_engine.physics.scenes import PRESETS as PRESETS  # noqa: E402
+from design_engine.physics.scenes import Scene as Scene  # noqa: E402
+from design_engine.physics.scenes import build_scene as build_scene  # noqa: E402
+from design_engine.solve.simulate import SimulationError as SimulationError  # noqa: E402
+from design_engine.solve.simulate import SolverConfig as SolverConfig  # noqa: E402
 from metarig.trajectory import Trajectory as Trajectory  # noqa: E402

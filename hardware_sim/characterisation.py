@@ -2,7 +2,7 @@
 
 Hinge tests (12.1): the 4 x 6 rotating-squares sample (bias 20 deg), bottom row fixed, top row
 displaced quasi-statically (tension v = +1.05 mm, compression v = -3.75 mm, shear u = +3.75 mm);
-the engine's equilibrium (`design_engine.calibrate.make_hinge_forces`) gives the reaction
+the engine's equilibrium (`design_engine.calibration.calibrate.make_hinge_forces`) gives the reaction
 force, plus Gaussian load-cell noise. Written as Instron-style CSV files::
 
     metarig simulated Instron hinge test
@@ -27,14 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-from design_engine.calibrate import (
-    HINGE_HEADER,
-    HINGE_TESTS,
-    hinge_sample,
-    make_hinge_forces,
-    make_oscillation_model,
-    oscillation_sample,
-)
+from design_engine.calibration.hinge import HINGE_HEADER, HINGE_TESTS, hinge_sample, make_hinge_forces
+from design_engine.calibration.oscillation import make_oscillation_model, oscillation_sample
 from metarig.trajectory import Trajectory
 
 # Noise levels. The paper states no load-cell noise; 0.02 N is ~0.5-1.5 % of the peak forces

@@ -64,7 +64,7 @@ def imperfect(scene, imp: Imperfections, seed: int) -> tuple[object, dict]:
     """The true scene of a sample with imperfections `imp` (see `Imperfections`), and a
     JSON-ready summary of what they did. The stiffnesses become per-bond [n_bonds] arrays and
     the damping per-unit [n_blocks] arrays where an imperfection varies them
-    (`design_engine.material.Material`); a switched-off imperfection changes nothing.
+    (`design_engine.physics.material.Material`); a switched-off imperfection changes nothing.
 
     Friction with the base plate is viscous on the absolute velocity, proportional to each
     unit's weight: force -gamma m_b v and, summed over the unit's footprint, torque
@@ -176,7 +176,7 @@ class Specimen:
         """The sample as it was designed, a `metarig-design/1` design file (loadable by `metarig
         simulate --design`), plus the rig context: scene, inputs, stage rows, the true-parameter
         factors and the imperfections' settings (not their draws: what a lab knows)."""
-        from design_engine.design_io import design_document
+        from design_engine.design.design_io import design_document
 
         s = self.scene
         design = s.design if self.nominal_design is None else self.nominal_design
@@ -201,7 +201,7 @@ def build(cfg: SpecimenConfig) -> Specimen:
 
     nx, ny, design = cfg.nx, cfg.ny, None
     if cfg.design_path:
-        from design_engine.design_io import load_design
+        from design_engine.design.design_io import load_design
 
         lattice, design = load_design(cfg.design_path)
         nx, ny = lattice.shape
@@ -214,7 +214,7 @@ def build(cfg: SpecimenConfig) -> Specimen:
         scene = scene.with_design(design)
     material_si = None
     if cfg.material_path:
-        from design_engine.material_file import material_for_scene
+        from design_engine.physics.material_file import material_for_scene
 
         material, material_si = material_for_scene(scene, cfg.material_path)
         scene = replace(scene, material=material)
@@ -244,8 +244,8 @@ def simulate(specimen: Specimen, times_s, shaker_t_s, shaker_u_m, stage_t_s=None
         `design_engine.Trajectory` (t [n_t], q and qdot [n_t, n_units, 3], SI).
     """
     import design_engine as de
-    from design_engine.auto import contact_config
-    from design_engine.run import smooth_input
+    from design_engine.solve.policy import contact_config
+    from design_engine.solve.run import smooth_input
 
     has_stages = len(specimen.scene.stage_units_top) > 0
     # the shaker's joint states sample a smooth motion (a 250 Hz second-order drive): the

@@ -11,14 +11,14 @@ from metarig.signals import stop_on_signals
 
 # subcommand -> (module, function, one-line help). Each function is `main(argv) -> int`.
 SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
-    "simulate": ("design_engine.cli", "simulate_main", "simulate a scene and write its outputs"),
-    "modes": ("design_engine.cli", "modes_main", "linear modal analysis of a scene"),
-    "design": ("design_engine.design_cli", "design_main", "optimise a design for a task (MMA)"),
-    "pareto": ("design_engine.sweep", "pareto_main", "Pareto sweep of a two-objective task on Dask"),
-    "robustness": ("design_engine.robustness_cli", "robustness_main",
+    "simulate": ("design_engine.commands.simulate", "simulate_main", "simulate a scene and write its outputs"),
+    "modes": ("design_engine.commands.simulate", "modes_main", "linear modal analysis of a scene"),
+    "design": ("design_engine.commands.design", "design_main", "optimise a design for a task (MMA)"),
+    "pareto": ("design_engine.commands.pareto", "pareto_main", "Pareto sweep of a two-objective task on Dask"),
+    "robustness": ("design_engine.commands.robustness", "robustness_main",
                    "target-to-rest ratio over input frequency x amplitude (Fig. 2C) on Dask"),
-    "export": ("design_engine.export", "export_main", "export a design's outlines for fabrication (SVG, DXF)"),
-    "bench": ("design_engine.studies.cli", "bench_main", "speed-accuracy studies (work-precision, speedup)"),
+    "export": ("design_engine.commands.export", "export_main", "export a design's outlines for fabrication (SVG, DXF)"),
+    "bench": ("design_engine.commands.bench", "bench_main", "speed-accuracy studies (work-precision, speedup)"),
     "rig": ("ros_nodes.cli_rig", "rig_main", "run an experiment on the simulated (or real) rig"),
     "devices": ("devices.cli", "devices_main",
                 "list the lab devices this machine sees, or check a lab file against them"),

@@ -2,7 +2,7 @@
 
 Polygons are vertex arrays [..., n_vertices, 2], closed implicitly (the last vertex joins the
 first). Any length unit; results are in the same unit. The differentiable JAX version used by the
-design engine is `design_engine.geometry.polygon_properties`.
+design engine is `design_engine.physics.geometry.polygon_properties`.
 """
 
 import numpy as np

@@ -70,7 +70,7 @@ def detect_kind(sources: list[Path]) -> tuple[str, list[Path]]:
 def _start_material(path, lattice):
     if path is None:
         return None
-    from design_engine.material_file import load_material
+    from design_engine.physics.material_file import load_material
 
     return load_material(path, lattice)
 
@@ -103,11 +103,12 @@ class Progress:
 
 
 def calibrate_hinge(files, fit, material_path=None, progress=None):
-    from design_engine import calibrate as cal
+    from design_engine.calibration.fit import STIFFNESSES
+    from design_engine.calibration.hinge import fit_hinge, hinge_sample, read_hinge_file
 
-    sample = cal.hinge_sample()
-    records = [cal.read_hinge_file(f) for f in files]
-    out = cal.fit_hinge(records, fit or cal.STIFFNESSES,
+    sample = hinge_sample()
+    records = [read_hinge_file(f) for f in files]
+    out = fit_hinge(records, fit or STIFFNESSES,
                         _start_material(material_path, sample.lattice), sample, progress=progress)
     return out, {}
 
@@ -137,13 +138,13 @@ def read_oscillation_tracks(path: Path):
 
 
 def calibrate_oscillation(files, fit, material_path=None, progress=None):
-    from design_engine import calibrate as cal
+    from design_engine.calibration.oscillation import DEFAULT_OSC_FIT, fit_oscillation, oscillation_sample
 
     if len(files) != 1:
         raise InputError("give one free-oscillation tracks file")
     t, theta = read_oscillation_tracks(files[0])
-    sample = cal.oscillation_sample()
-    out = cal.fit_oscillation(t, theta, fit or cal.DEFAULT_OSC_FIT,
+    sample = oscillation_sample()
+    out = fit_oscillation(t, theta, fit or DEFAULT_OSC_FIT,
                               _start_material(material_path, sample.lattice), sample,
                               progress=progress)
     return out, {}
@@ -151,14 +152,14 @@ def calibrate_oscillation(files, fit, material_path=None, progress=None):
 
 def calibrate_pulse(files, fit, material_path=None, poses_source="auto", calibration=None,
                     workers=None, progress=None):
-    from design_engine import calibrate as cal
+    from design_engine.calibration.pulse import DEFAULT_PULSE_FIT, fit_pulse
 
     if len(files) != 1:
         raise InputError("give one run folder or .mcap recording")
     scene, poses, t0, (t_in, u_in), stage = pulse_inputs(files[0], poses_source, calibration,
                                                          workers)
-    out = cal.fit_pulse(scene, poses.t + t0, poses.q, poses.valid, t_in, u_in,
-                        *(stage or (None, None)), fit=fit or cal.DEFAULT_PULSE_FIT,
+    out = fit_pulse(scene, poses.t + t0, poses.q, poses.valid, t_in, u_in,
+                        *(stage or (None, None)), fit=fit or DEFAULT_PULSE_FIT,
                         start=_start_material(material_path, scene.lattice), progress=progress,
                         tracked_sigma=poses.sigma)
     return out, {"n_frames": poses.n_t, "n_units": poses.n_units,
@@ -208,7 +209,7 @@ def calibration_document(fit, kind: str, sources, extra: dict) -> dict:
 
 def material_values(fit) -> tuple[dict, dict]:
     """(values, stderr) of the fitted material parameters (SI) for the material file."""
-    from design_engine.material_file import SI_UNITS
+    from design_engine.physics.material_file import SI_UNITS
 
     vals, errs = {}, {}
     for n in fit.names:
@@ -276,9 +277,9 @@ def calibrate(sources, out: Path, fit=None, kind: str = "auto", material=None,
     """Run one calibration and write its outputs; returns the calibration document.
 
     Raises:
-        InputError (or design_engine.calibrate.CalibrationError): unusable inputs, one line.
+        InputError (or design_engine.calibration.calibrate.CalibrationError): unusable inputs, one line.
     """
-    from design_engine.material_file import save_material
+    from design_engine.physics.material_file import save_material
 
     t0 = time.perf_counter()
     mine = Path(out) / "calibration.json"
@@ -336,8 +337,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def calibrate_main(argv: list[str] | None = None) -> int:
     """Fit material constants (stiffnesses, damping) to a recorded test, with standard errors."""
-    from design_engine.calibrate import CalibrationError
-    from design_engine.material_file import MaterialFileError
+    from design_engine.calibration.fit import CalibrationError
+    from design_engine.physics.material_file import MaterialFileError
 
     args = build_parser().parse_args(argv)
     fit = None if args.fit is None else [s.strip() for s in args.fit.split(",") if s.strip()]

@@ -123,7 +123,7 @@ def _plan(args):
         values["nx"], values["ny"] = nx, ny
         values["design"] = str(path.resolve())
     if values["material"]:
-        from design_engine.material_file import read_material_file
+        from design_engine.physics.material_file import read_material_file
 
         read_material_file(values["material"])  # MaterialFileError (a ValueError) names the key
         values["material"] = str(Path(values["material"]).resolve())

@@ -17,8 +17,8 @@ def asymmetric_design(path: Path) -> Path:
     """The 8x6 periodic design (25 deg) with every design coordinate moved by N(0, 0.5 mm),
     seed 7, written to `path` (a design file); returns the path."""
     import design_engine as de
-    from design_engine.design_io import save_design
-    from design_engine.lattice import periodic_design
+    from design_engine.design.design_io import save_design
+    from design_engine.physics.lattice import periodic_design
 
     lat = de.build_scene("focusing-24x16", nx=8, ny=6).lattice
     x = np.asarray(periodic_design(lat, math.radians(25.0)))

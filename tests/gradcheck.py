@@ -4,7 +4,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from design_engine.run import checked, make_objective
+from design_engine.solve.run import checked, make_objective
 
 
 def directional_check(scene, config, h, seed=0, rel=1e-4, one_program=False):

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from design_engine.energy import (
+from design_engine.physics.energy import (
     DEFAULT_MODEL,
     BondMeasures,
     Model,
@@ -21,9 +21,9 @@ from design_engine.energy import (
     make_energy,
     void_stiffness,
 )
-from design_engine.geometry import block_geometry
-from design_engine.lattice import periodic_design, quads
-from design_engine.material import Material
+from design_engine.physics.geometry import block_geometry
+from design_engine.physics.lattice import periodic_design, quads
+from design_engine.physics.material import Material
 
 
 def _one_bond():
@@ -131,7 +131,7 @@ def test_the_contact_frequency_is_the_law_s_own():
     """The solver policy's contact stiffness is differentiated from the law: the default
     barrier's closed form k_c (1 + 3 tau^2) / (1 - tau^2)^3 to rounding, and a law four times
     as stiff has twice the frequency without a line of policy code changed."""
-    from design_engine.auto import contact_frequency
+    from design_engine.solve.policy import contact_frequency
 
     _, _, _, mat = _one_bond()
     span = float(mat.contact_cutoff - mat.contact_min)
@@ -151,9 +151,9 @@ def test_a_new_law_reaches_the_simulator_the_gradient_and_the_policy():
     """A scene carrying a model with the new ligament law: the policy measures its stiffer
     lattice (a smaller fixed step), the simulation differs from the default model's, and the
     gradient through it matches a central finite difference."""
-    from design_engine.auto import choose_config
-    from design_engine.run import checked, make_objective
-    from design_engine.scenes import build_scene
+    from design_engine.solve.policy import choose_config
+    from design_engine.solve.run import checked, make_objective
+    from design_engine.physics.scenes import build_scene
 
     base = build_scene("focusing-24x16", nx=4, ny=3, amplitude_m=2e-3)
     new = dataclasses.replace(base, model=Model(ligament=hardening_ligament))

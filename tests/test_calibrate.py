@@ -13,9 +13,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from design_engine import calibrate as cal
-from design_engine.material import reference_damping
-from design_engine.material_file import SI_UNITS
+from design_engine.calibration.fit import CalibrationError, LARGE_SD, covariance, start_damping_ratio, to_si
+from design_engine.calibration.hinge import fit_hinge, hinge_sample, read_hinge_file
+from design_engine.calibration.oscillation import fit_oscillation, log_decrement, oscillation_sample
+from design_engine.calibration.pulse import WINDOWS, fit_pulse, pose_weights, window_frames
+from design_engine.physics.material import reference_damping
+from design_engine.physics.material_file import SI_UNITS
 from hardware_sim import characterisation as ch
 from ros_nodes.cli_calibrate import calibrate_main
 
@@ -31,12 +34,12 @@ def _spec_damped(m, lattice, zeta, **stiffness_factors):
 
 
 def _truth_si(m, name):
-    return cal.to_si(name, float(getattr(m, name)))
+    return to_si(name, float(getattr(m, name)))
 
 
 @pytest.fixture(scope="module")
 def hinge_files(tmp_path_factory):
-    true = cal.hinge_sample().material.scaled(FACTORS)
+    true = hinge_sample().material.scaled(FACTORS)
     d = tmp_path_factory.mktemp("hinge")
     return true, ch.hinge_tests(true, d, n_points=50, seed=1)
 
@@ -65,7 +68,7 @@ def test_hinge_calibration_recovers_the_stiffnesses(hinge_files, tmp_path, capsy
         assert abs(p["value"] / t - 1) < tol, (name, p, t)
         assert abs(p["value"] - t) < 3 * p["stderr"], (name, p, t)
     assert (out / "material.toml").exists() and (out / "calibration.png").stat().st_size > 0
-    from design_engine.material_file import load_material_file
+    from design_engine.physics.material_file import load_material_file
 
     vals, errs = load_material_file(out / "material.toml")
     assert vals["k_shear"] == pytest.approx(doc["parameters"]["k_shear"]["value"])
@@ -75,8 +78,8 @@ def test_hinge_calibration_recovers_the_stiffnesses(hinge_files, tmp_path, capsy
 def test_a_parameter_the_test_does_not_see_gets_a_large_stderr(hinge_files):
     """Shear test alone: k_stretch barely changes the shear force."""
     true, paths = hinge_files
-    recs = [cal.read_hinge_file(p) for p in paths if "shear" in p.name]
-    fit = cal.fit_hinge(recs, ("k_stretch", "k_shear"))
+    recs = [read_hinge_file(p) for p in paths if "shear" in p.name]
+    fit = fit_hinge(recs, ("k_stretch", "k_shear"))
     assert fit.stderr["k_stretch"] > 0.5 * fit.values["k_stretch"]  # > 50 %: not determined
     assert "k_stretch" in fit.undetermined and "k_shear" not in fit.undetermined
     t = _truth_si(true, "k_shear")
@@ -85,9 +88,9 @@ def test_a_parameter_the_test_does_not_see_gets_a_large_stderr(hinge_files):
 
 @pytest.fixture(scope="module")
 def oscillation(tmp_path_factory):
-    sample = cal.oscillation_sample()
+    sample = oscillation_sample()
     m = sample.material
-    zeta = 0.8 * cal.start_damping_ratio(m, sample.lattice)  # spec 6.3 truth: zeta and k_bend
+    zeta = 0.8 * start_damping_ratio(m, sample.lattice)  # spec 6.3 truth: zeta and k_bend
     true = _spec_damped(m, sample.lattice, zeta, k_bend=1.2)
     cfg = ch.OscillationConfig(n_frames=300)
     path = ch.write_oscillation(tmp_path_factory.mktemp("osc") / "tracks.npz",
@@ -106,7 +109,7 @@ def test_oscillation_damping_by_log_decrement_and_by_fit(oscillation, tmp_path):
     assert calibrate_main([str(path), "--out", str(out)]) == 0
     doc = json.loads((out / "calibration.json").read_text())
     assert doc["kind"] == "oscillation"
-    ref = cal.log_decrement(clean.t, clean.q[:, 1, 2])["damping_ratio"]
+    ref = log_decrement(clean.t, clean.q[:, 1, 2])["damping_ratio"]
     ld = doc["log_decrement"]
     assert ld["damping_ratio"] == pytest.approx(ref, rel=0.10)
     assert ld["damping_ratio_of_fit"] == pytest.approx(ref, rel=0.01)  # fit: the true curve
@@ -226,7 +229,7 @@ def _simulated_pulse_fit(half_amplitude_m, fit, start_factors):
     s, times, t_in, u_in, q = _pulse_truth(half_amplitude_m)
     q = q + np.random.default_rng(0).normal(0, ch.POSITION_NOISE_M, q.shape) * [1, 1, 0]
     m = s.scene.material
-    fit = cal.fit_pulse(s.scene, times, q, np.ones(q.shape[:2], bool), t_in, u_in,
+    fit = fit_pulse(s.scene, times, q, np.ones(q.shape[:2], bool), t_in, u_in,
                         fit=fit, start=m.scaled(start_factors))
     return fit, m
 
@@ -283,7 +286,7 @@ def test_pulse_calibration_of_an_imperfect_specimen_states_its_model_error(tmp_p
     times = capture_times(0.001, 0.05, 1000.0)
     q = specimen_motion(s, times, MotionRecord(t_in, u_in), None, 1000.0).q[1:]
     q = q + np.random.default_rng(0).normal(0, ch.POSITION_NOISE_M, q.shape) * [1, 1, 0]
-    fit = cal.fit_pulse(nominal.scene, times, q, np.ones(q.shape[:2], bool), t_in, u_in,
+    fit = fit_pulse(nominal.scene, times, q, np.ones(q.shape[:2], bool), t_in, u_in,
                         fit=("k_shear", "k_bend"),
                         start=nominal.scene.material.scaled({"k_shear": 1.2, "k_bend": 0.8}))
     me = fit.extra["model_error"]
@@ -304,12 +307,12 @@ def test_pose_weights_follow_the_stated_errors():
     use = np.array([[True, True, False], [True, True, True]])
     sigma = np.ones((2, 3, 3)) * 1e-5
     sigma[:, 1, :2] = 4e-5
-    w = cal.pose_weights(sigma, use)
+    w = pose_weights(sigma, use)
     assert w.shape == (2, 3, 2) and np.all(w[0, 2] == 0.0)  # unused: no weight
     assert np.allclose(w[:, 0], 1.0) and np.allclose(w[:, 1], 0.25)  # median / own
-    assert cal.pose_weights(None, use) is None
+    assert pose_weights(None, use) is None
     sigma[1, 2, 0] = np.nan  # a used pose without a stated error: no weighting at all
-    assert cal.pose_weights(sigma, use) is None
+    assert pose_weights(sigma, use) is None
 
 
 @pytest.mark.slow  # 25-35 s; pose_weights above is the fast check of the weights
@@ -326,7 +329,7 @@ def test_the_pulse_fit_weights_poses_by_their_stated_errors():
     t = _truth_si(m, "k_shear")
     errs = {}
     for weighted in (False, True):
-        fit = cal.fit_pulse(s.scene, times, q, np.ones(q.shape[:2], bool), t_in, u_in,
+        fit = fit_pulse(s.scene, times, q, np.ones(q.shape[:2], bool), t_in, u_in,
                             fit=("k_shear",), start=m.scaled({"k_shear": 1.2}),
                             tracked_sigma=sigma if weighted else None)
         assert fit.extra["weighted_by_pose_sigma"] is weighted
@@ -357,8 +360,8 @@ def test_pulse_calibration_of_a_recording_writes_its_outputs(tmp_path):
     """The focusing-12x8 sample recording end to end (ground-truth poses, measured input), from
     a start material file 20 % off: the fit comes back to the material the sample was
     recorded with, and the files say what it found."""
-    from design_engine.material import default_si
-    from design_engine.material_file import read_material_file, save_material
+    from design_engine.physics.material import default_si
+    from design_engine.physics.material_file import read_material_file, save_material
 
     run = ROOT / "recordings" / "focusing-12x8"
     # the recorded sample is the default material: no material file, no perturbation
@@ -409,13 +412,13 @@ def test_cluster_robust_errors_equal_gauss_newton_for_noise_and_grow_for_correla
     x = rng.normal(size=groups.size) + 0.3 * rng.normal(size=200)[groups]
     J = np.c_[x, np.ones_like(x)]
     r = rng.normal(0, 0.1, x.size)
-    gn = np.sqrt(np.diag(cal.covariance(J, r)[0]))
-    cr = np.sqrt(np.diag(cal.covariance(J, r, groups)[0]))
+    gn = np.sqrt(np.diag(covariance(J, r)[0]))
+    cr = np.sqrt(np.diag(covariance(J, r, groups)[0]))
     assert np.allclose(cr, gn, rtol=0.15)
     shared = r + rng.normal(0, 0.1, 200)[groups]  # the residual at the LS optimum, offset per group
     shared -= J @ np.linalg.lstsq(J, shared, rcond=None)[0]
-    gn = np.sqrt(np.diag(cal.covariance(J, shared)[0]))
-    cr = np.sqrt(np.diag(cal.covariance(J, shared, groups)[0]))
+    gn = np.sqrt(np.diag(covariance(J, shared)[0]))
+    cr = np.sqrt(np.diag(covariance(J, shared, groups)[0]))
     assert cr[1] > 4 * gn[1]  # the intercept sees the group offsets in full
     # over 200 repeats, the per-group offsets move the intercept by ~0.1 / sqrt(200) = 0.007
     assert cr[1] == pytest.approx(0.1 / np.sqrt(200), rel=0.3)
@@ -424,24 +427,24 @@ def test_cluster_robust_errors_equal_gauss_newton_for_noise_and_grow_for_correla
 def test_a_direction_the_data_do_not_see_gets_the_large_standard_error():
     J = np.c_[np.linspace(0, 1, 30), np.zeros(30)]
     r = np.random.default_rng(0).normal(0, 0.01, 30)
-    sd = np.sqrt(np.diag(cal.covariance(J, r, np.arange(30) // 3)[0]))
-    assert sd[0] < 0.1 and sd[1] == pytest.approx(cal.LARGE_SD)
+    sd = np.sqrt(np.diag(covariance(J, r, np.arange(30) // 3)[0]))
+    assert sd[0] < 0.1 and sd[1] == pytest.approx(LARGE_SD)
 
 
 def test_pulse_fit_windows_grow_from_the_input_onset():
     t = np.arange(1, 101) * 1e-3  # frames 1..100 ms
     t_in = np.linspace(0, 0.1, 1001)
     u_in = np.where(t_in > 0.02, 1e-3 * np.sin(np.pi * np.clip(t_in - 0.02, 0, 0.03) / 0.03), 0)
-    n = cal.window_frames(t, t_in, u_in)
+    n = window_frames(t, t_in, u_in)
     assert n[-1] == t.size and n == sorted(set(n))
     onset = 0.02
-    for k, f in zip(n[:-1], cal.WINDOWS):  # window k ends `f` of the way from onset to the end
+    for k, f in zip(n[:-1], WINDOWS):  # window k ends `f` of the way from onset to the end
         assert t[k - 1] <= onset + f * (t[-1] - onset) < t[k]
 
 
 def test_damping_as_a_ratio_or_as_two_coefficients_not_both(tmp_path):
-    with pytest.raises(cal.CalibrationError, match="either damping_ratio"):
-        cal.fit_oscillation(np.arange(60) / 960, np.zeros(60), ("damping_ratio", "damping_u"))
+    with pytest.raises(CalibrationError, match="either damping_ratio"):
+        fit_oscillation(np.arange(60) / 960, np.zeros(60), ("damping_ratio", "damping_u"))
 
 
 def test_two_way_clusters_see_an_error_shared_by_all_groups_at_one_time():
@@ -460,8 +463,8 @@ def test_two_way_clusters_see_an_error_shared_by_all_groups_at_one_time():
         coef = np.linalg.lstsq(J, y, rcond=None)[0]
         r = J @ coef - y
         slopes.append(coef[0])
-        sd_unit.append(np.sqrt(cal.covariance(J, r, unit)[0][0, 0]))
-        sd_two.append(np.sqrt(cal.covariance(J, r, (unit, frame // 10))[0][0, 0]))
+        sd_unit.append(np.sqrt(covariance(J, r, unit)[0][0, 0]))
+        sd_two.append(np.sqrt(covariance(J, r, (unit, frame // 10))[0][0, 0]))
     actual = np.std(slopes)
     assert np.median(sd_unit) < 0.5 * actual
     assert 0.6 * actual < np.median(sd_two) < 1.6 * actual

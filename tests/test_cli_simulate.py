@@ -90,7 +90,7 @@ def test_zero_or_empty_values_are_refused_not_taken_for_the_default(tmp_path, ca
                                                                      message):
     """0 and "" were read as "not given" (the preset's size, no task); now they are refused in
     one line before anything is simulated or written."""
-    from design_engine.cli import modes_main, simulate_main
+    from design_engine.commands.simulate import modes_main, simulate_main
 
     for main, name in ((simulate_main, "simulate"), (modes_main, "modes")):
         out = tmp_path / name
@@ -107,7 +107,7 @@ def test_one_of_nx_ny_with_a_task_is_honoured():
     dropped, silently): the lattice of the scene that `simulate` and `modes` would run."""
     import argparse
 
-    from design_engine.cli import _build, _scene_args
+    from design_engine.commands.simulate import _build, _scene_args
 
     p = argparse.ArgumentParser()
     _scene_args(p)
@@ -134,8 +134,8 @@ def test_unknown_preset_and_command(capsys):
 
 
 def test_design_file_round_trip(tmp_path):
-    from design_engine.design_io import load_design, save_design
-    from design_engine.lattice import periodic_design, quads
+    from design_engine.design.design_io import load_design, save_design
+    from design_engine.physics.lattice import periodic_design, quads
 
     lat = quads(4, 3)  # the next test's lattice: the same (eager) geometry programs
     x = periodic_design(lat, 0.4) + np.random.default_rng(0).uniform(-0.2, 0.2, lat.n_design)
@@ -147,9 +147,9 @@ def test_design_file_round_trip(tmp_path):
 
 
 def test_a_cut_or_binary_design_file_is_refused_naming_it(tmp_path):
-    from design_engine.design_io import load_design, save_design
-    from design_engine.geometry import InvalidDesignError
-    from design_engine.lattice import periodic_design, quads
+    from design_engine.design.design_io import load_design, save_design
+    from design_engine.physics.geometry import InvalidDesignError
+    from design_engine.physics.lattice import periodic_design, quads
 
     lat = quads(4, 3)
     text = save_design(tmp_path / "d.json", lat, periodic_design(lat, 0.4)).read_bytes()

@@ -15,8 +15,8 @@ import pytest
 
 from comparison.experiment import compare_experiment, scene_of_design
 from comparison.metrics import compare
-from design_engine.auto import contact_config
-from design_engine.run import smooth_input
+from design_engine.solve.policy import contact_config
+from design_engine.solve.run import smooth_input
 from hardware_sim import camera as cam
 from hardware_sim import specimen as sp
 from hardware_sim.rig import (

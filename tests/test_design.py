@@ -8,14 +8,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from design_engine.constraints import (ConstraintLimits, active_constraint_masks,
+from design_engine.design.constraints import (ConstraintLimits, active_constraint_masks,
                                        make_constraints, make_sparse_constraints)
-from design_engine.design_io import load_design
-from design_engine.lattice import periodic_design, quads
-from design_engine.optimize import ResumeError, run_design
-from design_engine.simulate import SimulationError
-from design_engine.task import TaskError, load_task, preset_names, preset_path
-from design_engine.task_eval import TaskEvaluator
+from design_engine.design.design_io import load_design
+from design_engine.physics.lattice import periodic_design, quads
+from design_engine.design.optimize import ResumeError, run_design
+from design_engine.solve.simulate import SimulationError
+from design_engine.design.task import TaskError, load_task, preset_names, preset_path
+from design_engine.design.evaluator import TaskEvaluator
 
 SMALL = {"size": (8, 6)}
 
@@ -128,7 +128,7 @@ def test_the_precompression_of_a_task_scene_is_static_unless_the_file_says_ramp(
 
 
 def test_design_cli_refuses_a_bad_task_in_one_line(tmp_path, capsys):
-    from design_engine.design_cli import design_main
+    from design_engine.commands.design import design_main
 
     path = tmp_path / "bad.toml"
     path.write_text('name = "x"\ngoal = "max"\n[lattice]\nkind = "hexagons"\nsize = [4, 4]\n')
@@ -162,17 +162,17 @@ def test_sparse_constraint_jacobian_equals_the_dense_one():
 
 def test_wide_voids_are_not_taken_for_units_through_the_barrier():
     """A void wider than 180 deg is signed negative; it must not count as a barrier crossing."""
-    from design_engine.run import simulate_scene
-    from design_engine.scenes import build_scene
+    from design_engine.solve.run import simulate_scene
+    from design_engine.physics.scenes import build_scene
 
-    from design_engine.simulate import SolverConfig
+    from design_engine.solve.simulate import SolverConfig
 
     lat = quads(8, 6)
     x = periodic_design(lat, math.radians(25))
     x[13] -= 5.0  # opens one void to 199 deg (the smallest stays at 27 deg)
     scene = build_scene("focusing-24x16", nx=8, ny=6, design=x)
-    from design_engine.angles import bond_angles
-    from design_engine.geometry import block_geometry
+    from design_engine.physics.angles import bond_angles
+    from design_engine.physics.geometry import block_geometry
 
     ang = bond_angles(lat, block_geometry(lat, jnp.asarray(scene.design)).arms)
     widest = max(np.max(np.mod(ang[k], 2 * np.pi)) for k in ("alpha1", "alpha2"))
@@ -228,8 +228,8 @@ def test_small_focusing_run_improves_and_stays_feasible(tmp_path, focus_run):
     assert set(hist["evaluations"][0]) >= {"eval", "objective", "objectives", "max_constraint",
                                            "feasible", "wall_s", "event"}
     # objective = the target's mean kinetic energy over the window, in J (as simulate reports)
-    from design_engine.run import simulate_scene
-    from design_engine.simulate import SolverConfig
+    from design_engine.solve.run import simulate_scene
+    from design_engine.solve.simulate import SolverConfig
 
     sc = task.scenes["pulse"]
     ref = simulate_scene(sc, SolverConfig()).metrics["target_ke_mean_J"]
@@ -308,7 +308,7 @@ def test_a_damaged_run_record_is_refused_in_one_line_and_kept(tmp_path, capsys):
     """`metarig design --resume` on a run whose checkpoint.npz (or history.json, run.json) was
     cut to half its bytes: one line naming the file and what to do, exit code 2, and no byte of
     the run folder changed; with the file restored the run goes on."""
-    from design_engine.design_cli import design_main
+    from design_engine.commands.design import design_main
 
     out = tmp_path / "run"
     first = ["focusing-demo", "--out", str(out), "--quiet", "--no-plots"]
@@ -373,8 +373,8 @@ def test_an_adaptive_solve_over_the_step_budget_fails_the_design_at_once(make_ta
     evaluation straight away: no fallback to a slower solver (which would grind on the same
     stiffness), so the optimiser steps back. The budget is a task-file key, recorded with the
     configuration; within it the same solve stands."""
-    from design_engine.auto import contact_config
-    from design_engine.task_eval import EvaluationFailed
+    from design_engine.solve.policy import contact_config
+    from design_engine.design.evaluator import EvaluationFailed
 
     path = tmp_path / "budget.toml"
     path.write_text(preset_path("splitting").read_text().replace(
@@ -399,8 +399,8 @@ def test_an_adaptive_solve_over_the_step_budget_fails_the_design_at_once(make_ta
 
 def test_the_fixed_step_follows_the_design(make_task):
     """A step that is too large for the current design is re-chosen (and said) before a solve."""
-    from design_engine.fixed_step import FixedStepVerlet
-    from design_engine.simulate import SolverConfig
+    from design_engine.solve.fixed_step import FixedStepVerlet
+    from design_engine.solve.simulate import SolverConfig
 
     task = make_task(3)
     evaluator = TaskEvaluator(task)
@@ -416,7 +416,7 @@ def test_the_fixed_step_follows_the_design(make_task):
     assert not again.events
     assert evaluator.compilations <= 1  # the re-chosen step equals the first: same program
     # the warm-started estimate agrees with a cold 300-iteration power iteration
-    from design_engine.auto import max_angular_frequency
+    from design_engine.solve.policy import max_angular_frequency
 
     assert st.omega == pytest.approx(max_angular_frequency(task.scenes["pulse"].with_design(
         task.initial_design + 0.01)), rel=2e-3)
@@ -427,7 +427,7 @@ def test_a_fixed_step_that_would_shrink_past_a_quarter_gives_way_to_dopri8(make_
     """When the highest frequency of the current design (set by a deep contact barrier) would
     need a step below a quarter of the first one, the scene moves to adaptive Dopri8 (a fixed
     step there needs many times the steps and the reverse pass's memory)."""
-    from design_engine.auto import contact_config
+    from design_engine.solve.policy import contact_config
 
     task = make_task(3)
     evaluator = TaskEvaluator(task)
@@ -461,7 +461,7 @@ def test_design_files_carry_task_objectives_and_provenance(tmp_path, small_file)
     hypersensitive (the same design's J moved 2.3x between a Verlet step and its half, 17 %
     between float32 and float64), so two programs that round differently (the design loop's
     value-and-gradient and `simulate`'s) disagree by 1-3 %, by CPU and XLA code generator."""
-    from design_engine.design_cli import design_main
+    from design_engine.commands.design import design_main
 
     out = tmp_path / "run"
     assert design_main([str(small_file), "--size", "8x6", "--max-evals", "4", "--out", str(out),
@@ -476,7 +476,7 @@ def test_design_files_carry_task_objectives_and_provenance(tmp_path, small_file)
     for name in ("history.png", "designs.png", "active_constraints.png", "last_design.json"):
         assert (out / name).stat().st_size > 0
     # the result is a normal design file for `metarig simulate --design`
-    from design_engine.cli import simulate_main
+    from design_engine.commands.simulate import simulate_main
 
     assert simulate_main(["--design", str(out / "design.json"), "--amplitude", "0.0015",
                           "--out", str(tmp_path / "sim"), "--no-plots", "--quiet"]) == 0
@@ -537,8 +537,8 @@ def test_nlopt_backends_run_and_record(tmp_path, make_task, algorithm, focus_run
 
 def test_an_invalid_trial_design_is_not_simulated_and_the_run_steps_back(tmp_path, make_task,
                                                                            monkeypatch):
-    import design_engine.optimize as opt
-    from design_engine.geometry import InvalidDesignError, check_design
+    import design_engine.design.optimize as opt
+    from design_engine.physics.geometry import InvalidDesignError, check_design
 
     calls = {"n": 0}
 

@@ -6,7 +6,7 @@ import pytest
 from matplotlib.collections import LineCollection, PolyCollection
 from matplotlib.colors import LogNorm
 
-from design_engine import design_plots as dp
+from design_engine.design import plots as dp
 
 PNG = b"\x89PNG\r\n\x1a\n"
 

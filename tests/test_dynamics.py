@@ -8,15 +8,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from design_engine.dynamics import dof_damping
-from design_engine.energy import bond_geometry, kinetic_energy, make_energy
-from design_engine.geometry import block_geometry
-from design_engine.lattice import periodic_design, quads
-from design_engine.loading import Loading, Supports
-from design_engine.material import Material
-from design_engine.modal import modal_analysis
-from design_engine.scenes import build_scene
-from design_engine.simulate import SimulationError, SolverConfig, check_solution, make_simulator
+from design_engine.physics.dynamics import dof_damping
+from design_engine.physics.energy import bond_geometry, kinetic_energy, make_energy
+from design_engine.physics.geometry import block_geometry
+from design_engine.physics.lattice import periodic_design, quads
+from design_engine.physics.loading import Loading, Supports
+from design_engine.physics.material import Material
+from design_engine.physics.modal import modal_analysis
+from design_engine.physics.scenes import build_scene
+from design_engine.solve.simulate import SimulationError, SolverConfig, check_solution, make_simulator
 
 
 @functools.lru_cache(maxsize=None)
@@ -105,7 +105,7 @@ def test_step_budget_exhaustion_is_reported_not_returned():
 
 
 def test_modes_about_a_precompressed_state_are_stable_and_shifted():
-    from design_engine.modal import prestressed_state
+    from design_engine.physics.modal import prestressed_state
 
     scene = build_scene("protection-24x18", nx=8, ny=8, strain=0.03)
     q = prestressed_state(scene)

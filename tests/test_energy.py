@@ -8,10 +8,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from design_engine.energy import bond_geometry, contact_energy, make_bond_terms, make_energy
-from design_engine.geometry import block_geometry
-from design_engine.lattice import kagome, periodic_design, quads
-from design_engine.material import Material
+from design_engine.physics.energy import bond_geometry, contact_energy, make_bond_terms, make_energy
+from design_engine.physics.geometry import block_geometry
+from design_engine.physics.lattice import kagome, periodic_design, quads
+from design_engine.physics.material import Material
 
 TH_MIN, TH_CUT, KC = math.radians(-15), math.radians(-10), 1.5
 

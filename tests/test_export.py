@@ -13,9 +13,9 @@ import pytest
 import svgelements as se
 from ezdxf import recover as ezdxf_recover
 
-from design_engine.design_io import save_design
-from design_engine.export import export_main
-from design_engine.lattice import periodic_design, quads, vertex_offsets
+from design_engine.design.design_io import save_design
+from design_engine.commands.export import export_main
+from design_engine.physics.lattice import periodic_design, quads, vertex_offsets
 
 # svgelements reports lengths in its pixels: its own inch per mm (0.0393701) at 96 per inch
 PX_PER_MM = se.Length("1mm").in_inches() * se.DEFAULT_PPI
@@ -190,14 +190,14 @@ def test_no_output_requested_and_unwritable_output(design, tmp_path, capsys):
 
 
 def test_command_line_refuses_an_inverted_design_in_one_line(tmp_path):
-    """As a separate process (`python -m design_engine.export`): nothing but the error line on
+    """As a separate process (`python -m metarig export`): nothing but the error line on
     stderr, even once JAX has started (its start-up logging must not leak out)."""
     lattice = quads(2, 2)
     path = save_design(tmp_path / "d.json", lattice, periodic_design(lattice, 0.3))
     doc = json.loads(path.read_text())
     doc["design_m"][4] = -0.02  # x-shift of block 0's vertex 0: 20 mm to the left, through the unit
     path.write_text(json.dumps(doc))
-    r = subprocess.run([sys.executable, "-m", "design_engine.export", str(path), "--svg",
+    r = subprocess.run([sys.executable, "-m", "metarig", "export", str(path), "--svg",
                         str(tmp_path / "o.svg")], capture_output=True, text=True, timeout=300,
                        check=False)
     assert r.returncode == 2

@@ -2,8 +2,8 @@
 
 import pytest
 
-from design_engine.scenes import build_scene
-from design_engine.simulate import SolverConfig
+from design_engine.physics.scenes import build_scene
+from design_engine.solve.simulate import SolverConfig
 from gradcheck import directional_check
 
 TIGHT = SolverConfig(rtol=1e-10, atol=1e-9)

@@ -6,17 +6,17 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from design_engine import implicit_step as im
-from design_engine.auto import max_angular_frequency
-from design_engine.dynamics import make_full_state
-from design_engine.energy import bond_geometry, kinetic_energy, make_energy
-from design_engine.fixed_step import FixedStepVerlet
-from design_engine.geometry import block_geometry
-from design_engine.implicit_step import ImplicitNewmark
-from design_engine.loading import Loading
-from design_engine.run import simulate_scene
-from design_engine.scenes import build_scene
-from design_engine.simulate import SimulationError, SolverConfig, check_solution, make_simulator
+from design_engine.solve import implicit_step as im
+from design_engine.solve.policy import max_angular_frequency
+from design_engine.physics.dynamics import make_full_state
+from design_engine.physics.energy import bond_geometry, kinetic_energy, make_energy
+from design_engine.solve.fixed_step import FixedStepVerlet
+from design_engine.physics.geometry import block_geometry
+from design_engine.solve.implicit_step import ImplicitNewmark
+from design_engine.physics.loading import Loading
+from design_engine.solve.run import simulate_scene
+from design_engine.physics.scenes import build_scene
+from design_engine.solve.simulate import SimulationError, SolverConfig, check_solution, make_simulator
 from gradcheck import directional_check
 
 
@@ -147,7 +147,7 @@ def test_bad_settings_are_refused():
 def test_both_schemes_share_the_fixed_step_interface():
     import diffrax
 
-    from design_engine.fixed_step import is_fixed_step
+    from design_engine.solve.fixed_step import is_fixed_step
 
     verlet, newmark = FixedStepVerlet(max_dt=0.01), ImplicitNewmark(iterations=4, tol=1e-5)
     assert is_fixed_step(verlet) and is_fixed_step(newmark) and not is_fixed_step(diffrax.Dopri5())

@@ -16,6 +16,8 @@ from pathlib import Path
 
 import pytest
 
+from metarig.cli import SUBCOMMANDS
+
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("metarig", "design_engine", "tracking", "comparison", "hardware_sim", "devices",
             "ros_nodes")
@@ -107,11 +109,9 @@ def test_layering(pkg):
     assert not bad, "\n".join(bad)
 
 
-# command modules: parse arguments, call the libraries, print; imported by the dispatcher only
-COMMANDS = ("design_engine.cli", "design_engine.design_cli", "design_engine.robustness_cli",
-            "ros_nodes.cli_rig", "ros_nodes.cli_compare", "ros_nodes.cli_calibrate",
-            "ros_nodes.cli_demo", "ros_nodes.cli_import", "ros_nodes.cli_loop", "devices.cli",
-            "tracking.camera_calibrate_cli")
+# command modules: parse arguments, call the libraries, print; imported by the dispatcher only,
+# which is the one place that knows every command
+COMMANDS = tuple(sorted({module for module, _, _ in SUBCOMMANDS.values()}))
 # modules that build or read ROS messages through `ros_nodes.convert` (which imports the message
 # packages): the nodes, and the offline writer of a comparison's messages into a recording
 CONVERT_USERS = ROS_ALLOWED + ("ros_nodes/recorded_compare.py",)
@@ -127,6 +127,8 @@ def test_commands_are_leaves_and_logic_is_pure():
     that imports `ros_nodes.convert` imports ROS: only the nodes (and the offline comparison
     writer) may, so `ros_nodes/logic/` stays free of ROS even at one remove."""
     assert all((ROOT / (c.replace(".", "/") + ".py")).exists() for c in COMMANDS)
+    rooms = {_module_name(f) for f in ROOT.glob("*/commands/*.py") if f.name != "__init__.py"}
+    assert rooms <= set(COMMANDS), f"not commands, in a commands folder: {rooms - set(COMMANDS)}"
     bad = []
     for f in _scanned():
         rel, mod = f.relative_to(ROOT).as_posix(), _module_name(f)

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from design_engine.material_file import read_material_file, save_material
+from design_engine.physics.material_file import read_material_file, save_material
 from ros_nodes.logic.closed_loop import (LoopError, LoopPlan, carried_material, load_plan_task,
                                          rig_arguments)
 
@@ -58,8 +58,8 @@ def test_rig_capture_covers_a_longer_pre_trigger():
 
 
 def test_a_design_of_another_lattice_is_refused(tmp_path):
-    from design_engine.design_io import save_design
-    from design_engine.lattice import periodic_design, quads
+    from design_engine.design.design_io import save_design
+    from design_engine.physics.lattice import periodic_design, quads
     from ros_nodes.logic.closed_loop import check_design_fits
 
     task = load_plan_task(LoopPlan(task="focusing-demo", out=Path("unused")))
@@ -104,7 +104,7 @@ def test_carried_material_keeps_only_what_the_calibration_determined(tmp_path):
 
 
 def test_carried_material_drops_damping_derived_from_an_undetermined_ratio():
-    from design_engine.material import default_si
+    from design_engine.physics.material import default_si
 
     values, _, dropped = carried_material(None, _calibration(["damping_ratio"]))
     assert values == {**default_si(), "k_shear": 1000.0, "k_bend": 1e-4}  # the ratio: default
@@ -112,7 +112,7 @@ def test_carried_material_drops_damping_derived_from_an_undetermined_ratio():
 
 
 def test_a_calibration_that_determined_nothing_leaves_a_complete_model(tmp_path):
-    from design_engine.material import default_si
+    from design_engine.physics.material import default_si
 
     model = save_material(tmp_path / "m.toml", {"k_shear": 900.0}, {"k_shear": 30.0})
     undetermined = ["k_shear", "k_bend", "damping_ratio"]

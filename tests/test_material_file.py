@@ -7,9 +7,9 @@ import math
 
 import pytest
 
-from design_engine.lattice import kagome, quads
-from design_engine.material import Material
-from design_engine.material_file import (
+from design_engine.physics.lattice import kagome, quads
+from design_engine.physics.material import Material
+from design_engine.physics.material_file import (
     DEFAULT_PATH,
     FORMAT,
     SI_UNITS,
@@ -139,7 +139,7 @@ def test_missing_file_and_json_files(tmp_path):
 
 
 def test_a_scene_keeps_its_contact_angles_unless_the_file_sets_them(tmp_path):
-    from design_engine.scenes import build_scene
+    from design_engine.physics.scenes import build_scene
 
     scene = build_scene("focusing-24x16", nx=4, ny=3, contact_deg=(-10.0, -5.0))
     m = with_material(scene, _stiffer(tmp_path / "s.toml")).material
@@ -156,7 +156,7 @@ def _simulate(tmp_path, name, *extra):
     """`metarig simulate` of a 4x3 scene. Fixed-step Verlet at the default step: the material
     is an argument of that one compiled program, while the automatic choice compiled its
     frequency estimate (the material a constant in it) and a step of its own per material."""
-    from design_engine.cli import simulate_main
+    from design_engine.commands.simulate import simulate_main
 
     out = tmp_path / name
     assert simulate_main(["--nx", "4", "--ny", "3", "--amplitude", "0.002", "--samples", "40",
@@ -175,7 +175,7 @@ def test_simulate_material_flag_changes_the_result(tmp_path, capsys):
     assert same["target_ke_mean_J"] == base["target_ke_mean_J"]
     bad = tmp_path / "bad.toml"
     bad.write_text(f'format = "{FORMAT}"\n[parameters]\nk_stretch = -1.0\n')
-    from design_engine.cli import simulate_main
+    from design_engine.commands.simulate import simulate_main
 
     assert simulate_main(["--nx", "4", "--ny", "3", "--material", str(bad), "--out",
                           str(tmp_path / "bad"), "--quiet"]) == 2
@@ -184,7 +184,7 @@ def test_simulate_material_flag_changes_the_result(tmp_path, capsys):
 
 
 def test_task_material_reaches_every_scene_and_the_record(tmp_path):
-    from design_engine.task import TaskError, load_task
+    from design_engine.design.task import TaskError, load_task
 
     path = _stiffer(tmp_path / "s.toml")
     task = load_task("focus-vs-protect", size=(8, 6), material=path)
@@ -202,7 +202,7 @@ def test_task_material_reaches_every_scene_and_the_record(tmp_path):
 
 
 def test_design_material_flag_is_accepted(tmp_path):
-    from design_engine.design_cli import design_main
+    from design_engine.commands.design import design_main
 
     out = tmp_path / "run"
     path = _stiffer(tmp_path / "s.toml")

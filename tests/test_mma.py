@@ -1,4 +1,4 @@
-"""design_engine.mma against NLopt's LD_MMA, plus convergence and input checks.
+"""design_engine.design.mma against NLopt's LD_MMA, plus convergence and input checks.
 
 The comparisons record the points at which each implementation calls the objective and require
 them to agree. What limits the agreement is NLopt's own dual solve (a nested MMA to 1e-14
@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from design_engine.mma import MMAOptions, MMARecord, minimize
+from design_engine.design.mma import MMAOptions, MMARecord, minimize
 
 # ----------------------------------------------------------------------------- problems
 
@@ -144,7 +144,7 @@ def run_nlopt(objective, constraints, x0, max_evals, lower=None, upper=None, dua
 
 
 def run_ours(objective, constraints, x0, max_evals, **options):
-    """design_engine.mma; returns (points at which f was called [k, n], result, records)."""
+    """design_engine.design.mma; returns (points at which f was called [k, n], result, records)."""
     points, records = [], []
 
     def f(x):

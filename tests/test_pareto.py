@@ -12,9 +12,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from design_engine.pareto import dominates, front_indices, pareto_front
-from design_engine.sweep import RunSpec, evaluations_on_disk, pareto_main, run_sweep
-from design_engine.task import TaskError, load_task
+from design_engine.sweeps.pareto import dominates, front_indices, pareto_front
+from design_engine.commands.pareto import pareto_main
+from design_engine.sweeps.pareto_sweep import RunSpec, evaluations_on_disk, run_sweep
+from design_engine.design.task import TaskError, load_task
 
 # 2 weights x 1 start x 2 evaluations: a run per worker of the test cluster, a killed run
 # resumes between its evaluations, a killed or stopped one-worker command has a run left, and
@@ -64,7 +65,7 @@ def cluster():
     import dask
     from distributed import Client, LocalCluster
 
-    from design_engine.distributed import worker_environment
+    from design_engine.sweeps.distributed import worker_environment
 
     with dask.config.set({"distributed.nanny.pre-spawn-environ": worker_environment()}):
         lc = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
@@ -82,7 +83,7 @@ def _points(out: Path):
 @pytest.fixture(scope="module")
 def straight(tmp_path_factory, cluster):
     """SWEEP run once without interruption on the test cluster: the reference of the resumes."""
-    from design_engine.sweep import run_one
+    from design_engine.sweeps.pareto_sweep import run_one
 
     lc, client = cluster
     out = tmp_path_factory.mktemp("pareto") / "straight"
@@ -235,7 +236,6 @@ def test_a_stopped_sweep_writes_the_front_of_what_it_has(tmp_path):
 
 
 def test_pareto_cli_refuses_bad_input_in_one_line(tmp_path, capsys):
-    from design_engine.sweep import pareto_main
 
     assert pareto_main(["focusing", "--out", str(tmp_path / "o"), "--weights", "3"]) == 2
     assert "two" in capsys.readouterr().err

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from design_engine.run import simulate_scene
-from design_engine.scenes import build_scene
-from design_engine.simulate import SolverConfig
+from design_engine.solve.run import simulate_scene
+from design_engine.physics.scenes import build_scene
+from design_engine.solve.simulate import SolverConfig
 
 FULL = SolverConfig()  # the reference configuration the anchors were produced with
 

@@ -49,8 +49,8 @@ def test_expected_frames_counts_the_multiples_of_the_period_inside_the_window(t_
 ])
 def test_the_rig_refuses_empty_or_contradicting_flags_before_it_starts(tmp_path, capsys, args,
                                                                        message):
-    from design_engine.design_io import save_design
-    from design_engine.lattice import periodic_design, quads
+    from design_engine.design.design_io import save_design
+    from design_engine.physics.lattice import periodic_design, quads
     from ros_nodes.cli_rig import rig_main
 
     design = save_design(tmp_path / "d.json", quads(8, 6), periodic_design(quads(8, 6), 0.4))

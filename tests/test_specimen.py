@@ -119,7 +119,7 @@ def test_the_comparison_error_grows_with_the_discrepancy_level(config, nominal):
     1; target peak kinetic energy +4.7 %, +9.4 %); the design the specimen publishes is the
     nominal one."""
     from comparison.experiment import compare_experiment, scene_of_design
-    from design_engine.auto import contact_config
+    from design_engine.solve.policy import contact_config
     from metarig.trajectory import Trajectory
 
     s0, motion0 = nominal

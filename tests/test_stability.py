@@ -7,14 +7,14 @@ import numpy as np
 
 import pytest
 
-from design_engine import run as run_mod
-from design_engine.auto import (ENERGY_TOLERANCE, STABILITY_SAFETY, Choice, choose_config,
+from design_engine.solve import run as run_mod
+from design_engine.solve.policy import (ENERGY_TOLERANCE, STABILITY_SAFETY, Choice, choose_config,
                                 contact_config, max_angular_frequency)
-from design_engine.fixed_step import FixedStepVerlet
-from design_engine.modal import modal_analysis
-from design_engine.run import simulate_scene
-from design_engine.scenes import build_scene
-from design_engine.simulate import SimulationError, SolverConfig
+from design_engine.solve.fixed_step import FixedStepVerlet
+from design_engine.physics.modal import modal_analysis
+from design_engine.solve.run import simulate_scene
+from design_engine.physics.scenes import build_scene
+from design_engine.solve.simulate import SimulationError, SolverConfig
 from gradcheck import directional_check
 
 # the tight Dopri8 reference (`studies.methods.reference_method`): one compiled program for the
@@ -129,7 +129,7 @@ def test_a_rejected_fixed_step_is_refined_once_when_that_can_pass_else_dopri8():
     ENERGY_TOLERANCE. Past either it re-solves once at REFINE x the step when that is predicted
     to pass (dt x omega_c <= the limit, drift <= half the tolerance, Verlet being second order),
     else, and for a refined step rejected again, with Dopri8."""
-    from design_engine.auto import (CONTACT_STEP_LIMIT, ENERGY_TOLERANCE, REFINE,
+    from design_engine.solve.policy import (CONTACT_STEP_LIMIT, ENERGY_TOLERANCE, REFINE,
                                     contact_frequency, next_config, refined)
 
     scene = build_scene("focusing-24x16", nx=8, ny=6, bias_angle_deg=44.0)
@@ -201,7 +201,7 @@ def test_precompressed_scenes_step_from_the_static_state_and_the_ramp_uses_dopri
 def test_an_evaluation_starts_where_the_last_one_in_contact_ended():
     """`start_config` keeps the contact configuration only while the voids still reached the
     cutoff; the choice otherwise."""
-    from design_engine.auto import start_config, with_contact
+    from design_engine.solve.policy import start_config, with_contact
 
     scene = build_scene("focusing-24x16", nx=8, ny=6, bias_angle_deg=44.0)
     span = float(scene.material.contact_cutoff - scene.material.contact_min)
@@ -228,7 +228,7 @@ def jammed():
 
 @pytest.fixture(scope="module")
 def jammed_state(jammed):
-    from design_engine.modal import prestressed_state
+    from design_engine.physics.modal import prestressed_state
 
     return prestressed_state(jammed)
 
@@ -256,7 +256,7 @@ def test_a_small_static_precompression_in_contact_starts_with_contact(jammed, ja
                                                                       jammed_choice):
     """The slow 12x10 check below at small scale: the policy sees the equilibrium's contact and
     solves with it from the first solve; at 1 % the same lattice is out of contact."""
-    from design_engine.auto import static_void_margin
+    from design_engine.solve.policy import static_void_margin
 
     span = float(jammed.material.contact_cutoff - jammed.material.contact_min)
     assert static_void_margin(jammed, jammed_state) < span  # measured 0.86 span
@@ -272,7 +272,7 @@ def _contact_step_sweep(scene, factors):
     """Verlet with contact at `factors` x the stability limit (the policy's own step first)
     against the tight reference: each row a reported failure, one `next_config` sends on to
     Dopri8, or accepted within 0.5 % of the reference. Returns the rows."""
-    from design_engine.statics import equilibrium_state
+    from design_engine.physics.statics import equilibrium_state
     from design_engine.studies.methods import reference_method
     from design_engine.studies.stability import step_sweep_in_contact
 
@@ -311,8 +311,8 @@ def test_a_small_fixed_step_in_contact_is_accurate_or_rejected(jammed_sweep):
 
 @pytest.mark.slow
 def test_a_static_precompression_in_contact_starts_with_contact():
-    from design_engine.auto import static_void_margin
-    from design_engine.modal import prestressed_state
+    from design_engine.solve.policy import static_void_margin
+    from design_engine.physics.modal import prestressed_state
 
     scene = build_scene("protection-24x18", nx=12, ny=10, strain=0.05)
     span = float(scene.material.contact_cutoff - scene.material.contact_min)

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from design_engine import build_scene
-from design_engine.simulate import SolverConfig, make_simulator
-from design_engine.statics import (GRADIENT_TOL, EquilibriumError, check_equilibrium,
+from design_engine.solve.simulate import SolverConfig, make_simulator
+from design_engine.physics.statics import (GRADIENT_TOL, EquilibriumError, check_equilibrium,
                                    make_static_solver)
 
 
@@ -46,9 +46,9 @@ def test_equilibrium_is_a_stable_minimum_in_contact(scene, equilibrium):
     assert float(info["gradient_norm"]) < 10 * GRADIENT_TOL
     check_equilibrium(info)
     assert np.all(np.isfinite(np.asarray(q))) and np.abs(np.asarray(q)).max() > 0.1  # deformed
-    from design_engine.energy import bond_geometry, make_energy
-    from design_engine.geometry import block_geometry
-    from design_engine.loading import make_prescribed
+    from design_engine.physics.energy import bond_geometry, make_energy
+    from design_engine.physics.geometry import block_geometry
+    from design_engine.physics.loading import make_prescribed
 
     energy = make_energy(scene.lattice, use_contact=True)
     bonds = bond_geometry(scene.lattice, block_geometry(scene.lattice, jnp.asarray(scene.design)))
@@ -178,7 +178,7 @@ def test_the_pulse_objective_through_a_static_start_in_contact_matches_finite_di
     2h). Without the implicit derivative of the start (the equilibrium's gradient cut) autodiff
     gives 0.1035 against the difference's 0.0527 (two periods: -0.080 against +0.0265): the
     test fails."""
-    from design_engine.fixed_step import FixedStepVerlet
+    from design_engine.solve.fixed_step import FixedStepVerlet
     from gradcheck import directional_check
 
     sc = build_scene("protection-24x18", nx=6, ny=6, strain=0.07, amplitude_m=2e-3,
@@ -202,7 +202,7 @@ def test_the_pulse_objective_through_the_static_start_matches_finite_differences
 def test_a_static_start_that_did_not_converge_fails_the_solve(ramp_solve):
     """check_solution turns an unconverged static start into a one-line SimulationError (on a
     real solution of this module, its start's residual replaced)."""
-    from design_engine.simulate import SimulationError, check_solution
+    from design_engine.solve.simulate import SimulationError, check_solution
 
     config, sol = ramp_solve
     assert check_solution(sol, config) is sol  # the solve itself is sound

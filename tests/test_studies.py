@@ -2,9 +2,9 @@
 
 import diffrax
 
-from design_engine.fixed_step import FixedStepVerlet
-from design_engine.implicit_step import ImplicitNewmark
-from design_engine.simulate import SolverConfig
+from design_engine.solve.fixed_step import FixedStepVerlet
+from design_engine.solve.implicit_step import ImplicitNewmark
+from design_engine.solve.simulate import SolverConfig
 from design_engine.studies.methods import rhs_evaluations
 from design_engine.studies.work_precision import acceptable, fastest_acceptable
 
@@ -37,7 +37,7 @@ def test_rhs_evaluation_counts():
 def test_a_damaged_results_file_or_cache_ends_the_bench_in_one_line(tmp_path, capsys):
     """A cut work_precision.json (the study's resume state) or reference cache is refused,
     named, before any solve, and left as it is."""
-    from design_engine.studies.cli import bench_main
+    from design_engine.commands.bench import bench_main
 
     cases = {"work_precision.json": b'{"scenes": {"focusing-24x16": {"J_ref": 1.',
              "reference_focusing-24x16.npz": b"PK\x03\x04\x14\x00\x00\x00"}

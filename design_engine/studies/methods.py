@@ -8,9 +8,9 @@ from dataclasses import dataclass
 
 import diffrax
 
-from design_engine.fixed_step import FixedStepVerlet, is_fixed_step
-from design_engine.implicit_step import ImplicitNewmark
-from design_engine.simulate import SolverConfig
+from design_engine.solve.fixed_step import FixedStepVerlet, is_fixed_step
+from design_engine.solve.implicit_step import ImplicitNewmark
+from design_engine.solve.simulate import SolverConfig
 
 SPEC_TOL = (1e-8, 1e-4)
 

@@ -23,8 +23,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from design_engine.run import checked, default_choice, make_objective
-from design_engine.scenes import build_scene
+from design_engine.solve.run import checked, default_choice, make_objective
+from design_engine.physics.scenes import build_scene
 from design_engine.studies.measure import errors
 from design_engine.studies.methods import baseline_method, reference_method
 from metarig.readback import read_npz
@@ -69,7 +69,7 @@ def term_scene(term: Term, precompression: str = "static"):
         kw["precompression"] = precompression
     scene = build_scene(kw.pop("name"), **kw)
     if term.design is not None:
-        from design_engine.design_io import load_design
+        from design_engine.design.design_io import load_design
 
         _, x = load_design(FIXTURES / term.design)
         scene = scene.with_design(x)

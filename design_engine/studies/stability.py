@@ -11,19 +11,19 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from design_engine.auto import (
+from design_engine.solve.policy import (
     contact_config,
     contact_frequency,
     max_angular_frequency,
     next_config,
     static_void_margin,
 )
-from design_engine.fixed_step import FixedStepVerlet, is_fixed_step
-from design_engine.implicit_step import ImplicitNewmark
-from design_engine.run import simulate_scene
-from design_engine.scenes import build_scene
-from design_engine.simulate import SimulationError, SolverConfig, solve_health
-from design_engine.statics import EquilibriumError, equilibrium_state
+from design_engine.solve.fixed_step import FixedStepVerlet, is_fixed_step
+from design_engine.solve.implicit_step import ImplicitNewmark
+from design_engine.solve.run import simulate_scene
+from design_engine.physics.scenes import build_scene
+from design_engine.solve.simulate import SimulationError, SolverConfig, solve_health
+from design_engine.physics.statics import EquilibriumError, equilibrium_state
 from design_engine.studies.methods import reference_method
 
 
@@ -87,7 +87,7 @@ def step_sweep_in_contact(scene, ratios, ref_j: float, state=None) -> list[dict]
     """Fixed-step Verlet with contact (float64) at `ratios` x 2/omega_max (omega_max at the state
     the pulse starts from) on a scene in contact: per ratio the J error against `ref_j` (J), the
     barrier's dt x omega_c at the deepest void, and the policy's verdict on the result
-    (`auto.next_config`: "accepted" or the configuration it re-solves with), or the reported
+    (`policy.next_config`: "accepted" or the configuration it re-solves with), or the reported
     failure."""
     limit = 2.0 / max_angular_frequency(scene, state=state)
     rows = []

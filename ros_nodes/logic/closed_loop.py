@@ -96,7 +96,7 @@ class LoopPlan:
 def load_plan_task(plan: LoopPlan):
     """The task of the plan, checked for what the rig can test (one scene, kinetic-energy
     objective terms, a pulse or burst input)."""
-    from design_engine.task import TaskError, load_task
+    from design_engine.design.task import TaskError, load_task
 
     try:
         task = load_task(plan.task, size=plan.size, max_evals=plan.max_evals,
@@ -165,7 +165,7 @@ def rig_arguments(task, rig_args) -> list[str]:
 
 def check_design_fits(path: Path, task) -> None:
     """Refuse a design file that is unreadable or not of the task's lattice."""
-    from design_engine.design_io import load_design
+    from design_engine.design.design_io import load_design
 
     try:
         lattice, _ = load_design(path)
@@ -202,7 +202,7 @@ def objective_of_run(run_dir: Path, task, material: Path | None) -> tuple[dict, 
     Raises:
         LoopError: the run cannot be read or compared, or its capture ends before the window.
     """
-    from design_engine.material_file import MaterialFileError, with_material
+    from design_engine.physics.material_file import MaterialFileError, with_material
     from ros_nodes.logic import comparison_run as run
     from ros_nodes.logic.comparison_run import CompareError
     from ros_nodes.logic.recording import RecordingError, read_recording
@@ -280,8 +280,8 @@ def carried_material(model: Path | None, calibration: dict) -> tuple[dict, dict,
     default file's where it sets none: a complete material) updated with the calibrated
     parameters and the values derived from them, except those the calibration calls
     undetermined (and what derives from them)."""
-    from design_engine.material import default_si
-    from design_engine.material_file import SI_UNITS, read_material_file
+    from design_engine.physics.material import default_si
+    from design_engine.physics.material_file import SI_UNITS, read_material_file
 
     values, errors = read_material_file(model) if model is not None else ({}, {})
     values, errors = {**default_si(), **values}, dict(errors)
@@ -379,7 +379,7 @@ class _Round:
         cal = json.loads((prev / CALIBRATE / "calibration.json").read_text())
         before = prev / MATERIAL_NAME
         values, errors, dropped = carried_material(before if before.exists() else None, cal)
-        from design_engine.material_file import save_material
+        from design_engine.physics.material_file import save_material
 
         self.dir.mkdir(parents=True, exist_ok=True)
         note = (f"not carried (undetermined by the calibration): {', '.join(dropped)}"
@@ -476,7 +476,7 @@ class _Round:
 def round_summary(folder: Path, k: int, design: Path, material: Path | None, objective: dict,
                   calibration: dict, timings: dict, skipped: list[str]) -> dict:
     """One round's entry of `loop.json`."""
-    from design_engine.material_file import load_material_file
+    from design_engine.physics.material_file import load_material_file
 
     doc = json.loads(design.read_text())
     values, errors = load_material_file(material) if material is not None else (None, None)
@@ -551,7 +551,7 @@ def run_loop(plan: LoopPlan) -> dict:
         if path is not None and not Path(path).is_file():
             raise LoopError(f"{what} {path}: no such file")
     if plan.material is not None:
-        from design_engine.material_file import MaterialFileError, read_material_file
+        from design_engine.physics.material_file import MaterialFileError, read_material_file
 
         try:
             read_material_file(plan.material)

@@ -73,7 +73,7 @@ def simulate_and_compare(scene, poses, t0_s: float, shaker_t_s, shaker_u_m, stag
         CompareError: the engine refused the inputs or did not finish.
     """
     from comparison.experiment import compare_experiment
-    from design_engine.auto import contact_config
+    from design_engine.solve.policy import contact_config
 
     try:
         return compare_experiment(scene, poses, t0_s, shaker_t_s, shaker_u_m, stage_t_s,
@@ -129,7 +129,7 @@ def write_run_files(out: Path, scene, polygons: np.ndarray, poses, ec, frames=No
     times and their `calibration` when both are given). Returns the .rrd path."""
     from comparison.plots import window_samples, write_plots
     from comparison.rerun_log import write_rrd
-    from design_engine.regions import row_units
+    from design_engine.physics.regions import row_units
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

@@ -1,0 +1,318 @@
+"""A task's objective as the optimiser sees it: value and exact gradient for any design.
+
+One compiled value-and-gradient per solver configuration (the design, material, loading, sample
+times and weights are traced arguments, so every evaluation, every scene of the same topology and
+every run of a sweep in the same process reuses it). Per evaluation and scene the solver policy (`solve.policy`) applies, with two additions
+that an optimisation needs:
+- the fixed step is kept valid while the design changes: before each fixed-step solve the
+  highest natural frequency of the *current* design is re-measured at the state the last solve
+  started from (rest, or the previous design's static pre-compression) (a warm-started power
+  iteration, `STEP_CHECK_ITERATIONS` Hessian-vector products, a few per cent of a solve) and
+  when the step exceeds `STEP_RECHECK` x 2/omega_max a new step of `policy.STABILITY_SAFETY` x
+  2/omega_max is taken (one more compilation, recorded as an event), or, when that step would
+  be below `MIN_STEP_FRACTION` of the first one (the contact barrier of a design pressed deep
+  into contact sets the frequency), adaptive Dopri8 from then on; a solve that still goes
+  non-finite is caught and redone with the fallback configuration;
+- a design whose voids reach the contact cutoff is re-solved as `policy.next_config` says (with
+  contact at the same step; once at half the step, or with Dopri8, when the barrier outgrows it
+  or the work-energy balance drifts), and a failed solve is retried with the fallback; if that
+  fails too the evaluation raises `EvaluationFailed`;
+- every adaptive solve has the task's step budget (`budget.max_solve_steps`): one that uses it
+  up raises `EvaluationFailed` at once, with no fallback (a slower solver would grind on the same
+  near-singular contact), so the optimiser records a failed design and steps back instead of
+  spending an hour on it.
+Every such step is recorded with its reason.
+"""
+
+import dataclasses
+import time
+from dataclasses import dataclass, field
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from design_engine.solve.policy import (STABILITY_SAFETY, choose_config, contact_config, fallback_config,
+                                initial_vector, make_frequency_estimator, next_config,
+                                start_config)
+from design_engine.solve.fixed_step import is_fixed_step
+from design_engine.physics.modal import prestressed_state
+from design_engine.design.objectives import objective_term
+from design_engine.solve.run import checked, compile_key, config_summary
+from design_engine.solve.simulate import (SimulationError, Solution, SolverConfig, StepBudgetError,
+                                   make_simulator, solve_health)
+from design_engine.design.task import OPTIMISER_SCALE, Task, Term
+
+STEP_RECHECK = 0.8  # re-choose the fixed step above this fraction of the stability limit
+STEP_CHECK_ITERATIONS = 30  # warm-started power iterations per evaluation
+MIN_STEP_FRACTION = 0.25  # below this fraction of the first fixed step, use the adaptive solver
+INITIAL_ITERATIONS = 300  # cold power iterations for the initial design
+
+
+def term_value(term: Term, sol: Solution, ids, point=None):
+    """Internal value of one objective term on a solution (`objectives.objective_term`)."""
+    return objective_term(term.quantity, sol, ids, point)
+
+
+def task_terms(task: Task, solutions: dict[str, Solution]) -> dict[str, float]:
+    """Term name -> internal value, from one solution per scene (scene name -> Solution)."""
+    return {t.name: float(term_value(t, solutions[t.scene], task.targets[t.target],
+                                     task.spin_point)) for t in task.terms}
+
+
+# compiled value-and-gradient programs of this process, shared by every evaluator: the weights
+# are arguments, so the runs of a sweep (other weights, other starts) reuse them
+_PROGRAMS: dict[tuple, object] = {}
+
+
+class EvaluationFailed(RuntimeError):
+    """Every configuration failed for this design; the message says why."""
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """One evaluated design.
+
+    Attributes:
+        value: scalarised objective in optimiser units (sum_i w_i * scale_i * term_i).
+        grad: [n_design] d value / d x, per mm.
+        terms: term name -> internal value (J_Omega mJ summed over samples, or J_L g mm^2/ms).
+        solver: scene name -> {"config": summary, "why": [reasons]} of the solve that counted.
+        events: what happened beyond the plain solve (step re-chosen, contact, fallback).
+        sim_s: wall time of the solves and step checks, s.
+    """
+
+    value: float
+    grad: np.ndarray
+    terms: dict[str, float]
+    solver: dict[str, dict]
+    events: tuple[str, ...] = field(default=())
+    sim_s: float = 0.0
+
+
+@dataclass
+class _SceneState:
+    config: SolverConfig
+    reasons: tuple[str, ...]
+    omega: float | None = None
+    vector: np.ndarray | None = None
+    start_state: np.ndarray | None = None  # [n_blocks, 3] where the last solve started, mm/rad
+    last_config: SolverConfig | None = None  # the configuration the last evaluation ended with
+    first_dt: float = 0.0  # the first fixed step chosen, ms
+    last_health: dict | None = None
+
+
+class TaskEvaluator:
+    """Evaluates a task's scalarised objective and its gradient (see module docstring)."""
+
+    def __init__(self, task: Task, config: SolverConfig | None = None):
+        """`config` forces one configuration on every scene, with no policy (no step checks,
+        no re-solves, no fallback, its own step budget): for comparisons against a fixed
+        method."""
+        self.task = task
+        self.forced = config
+        self.max_solve_steps = task.budget.max_solve_steps
+        self.compilations = 0
+        self._estimators: dict[str, object] = {}
+        self._state: dict[str, _SceneState] = {}
+        for name, scene in task.scenes.items():
+            if config is not None:
+                self._state[name] = _SceneState(config, ("configuration given by the caller",))
+                continue
+            omega, vec, state = None, None, None
+            if scene.loading.strain == 0.0 or scene.loading.is_static:
+                if scene.loading.strain > 0.0:  # the static equilibrium the pulse starts from
+                    state = prestressed_state(scene.with_design(task.initial_design))
+                omega, vec = self._frequency(name, task.initial_design, None, state)
+            choice = choose_config(scene, omega=omega, state=state)  # no second static solve
+            self._state[name] = _SceneState(choice.config, choice.reasons, omega, vec, state)
+            if is_fixed_step(choice.config.solver):
+                self._state[name].first_dt = choice.config.solver.max_dt
+
+    # --- compiled pieces -------------------------------------------------------------------
+
+    def _frequency(self, name: str, x, vector, state=None):
+        scene = self.task.scenes[name]
+        if name not in self._estimators:
+            self._estimators[name] = make_frequency_estimator(scene, STEP_CHECK_ITERATIONS)
+        est = self._estimators[name]
+        rounds = 1
+        if vector is None:
+            vector, rounds = initial_vector(scene), INITIAL_ITERATIONS // STEP_CHECK_ITERATIONS
+        v = jnp.asarray(vector)
+        for _ in range(rounds):
+            omega, v = est(jnp.asarray(x), v, state)
+        return float(omega), np.asarray(v)
+
+    def _function(self, name: str, config: SolverConfig):
+        scene = self.task.scenes[name]
+        terms = [t for t in self.task.terms if t.scene == name]
+        key = compile_key(scene, config, "task", scene.sample_times) + tuple(
+            (t.quantity, tuple(self.task.targets[t.target])) for t in terms) + (
+            None if self.task.spin_point is None else tuple(self.task.spin_point),)
+        if key in _PROGRAMS:
+            return _PROGRAMS[key]
+        sim = make_simulator(scene.lattice, scene.supports, config, scene.sample_times,
+                             model=scene.model)
+        targets = [np.asarray(self.task.targets[t.target]) for t in terms]
+        quantities = [t.quantity for t in terms]
+        point = None if self.task.spin_point is None else jnp.asarray(self.task.spin_point)
+
+        def objective(x, material, loading, ts, weights):
+            sol = sim(x, material, loading, ts)
+            raw = [objective_term(q, sol, ids, point) for q, ids in zip(quantities, targets)]
+            value = sum(weights[k] * OPTIMISER_SCALE[q] * raw[k] for k, q in enumerate(quantities))
+            aux = dict(solve_health(sol), terms=jnp.stack(raw), start_state=sol.q[0])
+            return value, aux
+
+        fn = jax.jit(jax.value_and_grad(objective, has_aux=True))
+        _PROGRAMS[key] = fn
+        self.compilations += 1
+        return fn
+
+    def _budgeted(self, config: SolverConfig) -> SolverConfig:
+        """`config` with the task's step budget if it is adaptive (a fixed step's count is set by
+        its step and the window)."""
+        if self.forced is not None or is_fixed_step(config.solver):
+            return config
+        return dataclasses.replace(config, max_steps=min(config.max_steps, self.max_solve_steps))
+
+    def _record(self, config: SolverConfig, why: list[str]) -> dict:
+        """What an evaluation records of the configuration that counted for a scene."""
+        return {"config": config_summary(self._budgeted(config)), "why": why}
+
+    def _solve(self, name: str, config: SolverConfig, x: np.ndarray):
+        """One value-and-gradient solve; raises `SimulationError` on any failure
+        (`StepBudgetError` when an adaptive solve used up the task's step budget)."""
+        scene = self.task.scenes[name]
+        config = self._budgeted(config)
+        fn = self._function(name, config)
+        terms = [t for t in self.task.terms if t.scene == name]
+        weights = jnp.asarray([t.weight for t in terms])
+        out = fn(jnp.asarray(x), scene.material, scene.loading, jnp.asarray(scene.sample_times),
+                 weights)
+        out = jax.block_until_ready(out)
+        checked(out, config)
+        (value, aux), grad = out
+        grad = np.asarray(grad, np.float64)
+        if not np.all(np.isfinite(grad)):
+            raise SimulationError("non-finite gradient")
+        values = {t.name: float(v) for t, v in zip(terms, np.asarray(aux["terms"]))}
+        return float(value), grad, values, aux
+
+    # --- the policy ------------------------------------------------------------------------
+
+    def _check_step(self, name: str, x: np.ndarray, events: list[str]) -> None:
+        st = self._state[name]
+        solver = st.config.solver
+        if not (is_fixed_step(solver) and solver.stability_limited):
+            return
+        # at the state the last solve started from (rest, or the static pre-compression of the
+        # previous design: an optimiser's step moves it little)
+        omega, vector = self._frequency(name, x, st.vector, st.start_state)
+        if not (np.isfinite(omega) and omega > 0.0 and np.all(np.isfinite(vector))):
+            # the stiffness at the start state is not positive definite along the iterate (or
+            # the design is damaged): no stable fixed step exists; this design gets the fallback
+            raise SimulationError(f"the highest natural frequency of this design came out "
+                                  f"{omega:g} rad/ms: no stable fixed step")
+        st.omega, st.vector = omega, vector
+        limit = 2.0 / st.omega
+        dt = solver.max_dt
+        if dt > STEP_RECHECK * limit:
+            new_dt = STABILITY_SAFETY * limit
+            if new_dt < MIN_STEP_FRACTION * st.first_dt:
+                # the contact barrier sets that frequency: a fixed step would need many times
+                # the steps (and the memory of their reverse pass); the adaptive solver places
+                # small steps only where the barrier is stiff
+                st.config, st.last_config = contact_config(), None
+                events.append(
+                    f"{name}: highest natural frequency rose to "
+                    f"{st.omega / (2 * np.pi) * 1e3:.0f} Hz; a fixed step of {new_dt * 1e3:.1f} us "
+                    f"would be below {MIN_STEP_FRACTION:g} x the first one "
+                    f"({st.first_dt * 1e3:.1f} us): adaptive Dopri8 from here on")
+                st.reasons = st.reasons + ("the contact barrier raised the highest natural "
+                                           "frequency: adaptive Dopri8",)
+                return
+            st.config = SolverConfig(solver=solver.with_max_dt(new_dt),
+                                     use_contact=st.config.use_contact, dtype=st.config.dtype)
+            st.last_config = None  # its step is the old one
+            events.append(
+                f"{name}: highest natural frequency rose to {st.omega / (2 * np.pi) * 1e3:.0f} Hz; "
+                f"fixed step {dt * 1e3:.1f} us was {dt / limit:.2f} x the stability limit, "
+                f"re-chosen to {new_dt * 1e3:.1f} us")
+            st.reasons = st.reasons[:1] + (
+                f"fixed-step Verlet, dt = {new_dt * 1e3:.1f} us = {STABILITY_SAFETY:g} x the "
+                "stability limit of the current design",) + st.reasons[2:]
+
+    def _solve_scene(self, name: str, x: np.ndarray, events: list[str]):
+        st = self._state[name]
+        scene = self.task.scenes[name]
+        config, why = st.config, list(st.reasons)
+        if self.forced is not None:
+            try:
+                value, grad, terms, _ = self._solve(name, config, x)
+            except SimulationError as exc:
+                raise EvaluationFailed(f"{name}: {exc}") from None
+            return value, grad, terms, self._record(config, why)
+        try:
+            self._check_step(name, x, events)
+            config, why = st.config, list(st.reasons)
+            start = start_config(config, st.last_config, st.last_health, scene)
+            if start != config:
+                config = start
+                why.append("the previous design needed contact: started with its configuration")
+            value, grad, terms, aux = self._solve(name, config, x)
+            while (nxt := next_config(config, aux, scene)) is not None:
+                config, reason = nxt
+                why.append(reason)
+                events.append(f"{name}: {reason}")
+                value, grad, terms, aux = self._solve(name, config, x)
+            st.start_state = np.asarray(aux["start_state"])
+            st.last_config, st.last_health = config, {k: np.asarray(v) for k, v in aux.items()
+                                                      if k != "start_state"}
+            return value, grad, terms, self._record(config, why)
+        except SimulationError as exc:
+            if isinstance(exc, StepBudgetError) and not is_fixed_step(config.solver):
+                raise EvaluationFailed(
+                    f"{name}: {exc}; over the evaluation's step budget (budget.max_solve_steps): "
+                    "the design counts as failed, with no fallback") from None
+            fb, reason = fallback_config()
+            if config == fb:
+                fb, reason = SolverConfig(), "retried with the reference Dopri5 configuration"
+            events.append(f"{name}: {exc}; {reason}")
+            try:
+                value, grad, terms, aux = self._solve(name, fb, x)
+            except SimulationError as exc2:
+                raise EvaluationFailed(f"{name}: {exc}; the fallback failed too: {exc2}") from None
+            # the next step check measures at this design's start state (a resumed run's
+            # evaluator starts from the initial design's, where a far design's stiffness can
+            # be indefinite)
+            st.start_state = np.asarray(aux["start_state"])
+            return value, grad, terms, self._record(fb, why + [reason])
+
+    def evaluate(self, x: np.ndarray) -> Evaluation:
+        """Value and gradient of the scalarised objective at design `x` [n_design] (mm).
+
+        Raises:
+            EvaluationFailed: when every configuration failed (the reason is in the message).
+        """
+        start = time.perf_counter()
+        events: list[str] = []
+        value, grad, terms, solver = 0.0, np.zeros(self.task.lattice.n_design), {}, {}
+        for name in self.task.scenes:
+            if not any(t.scene == name for t in self.task.terms):
+                continue
+            v, g, tm, s = self._solve_scene(name, np.asarray(x, np.float64), events)
+            value, grad = value + v, grad + g
+            terms.update(tm)
+            solver[name] = s
+        return Evaluation(value=value, grad=grad, terms=terms, solver=solver,
+                          events=tuple(events), sim_s=time.perf_counter() - start)
+
+    def configurations(self) -> dict[str, dict]:
+        """Scene name -> the configuration currently chosen for it and why."""
+        return {k: {"config": config_summary(s.config), "why": list(s.reasons)}
+                for k, s in self._state.items()}
+
+
+__all__ = ["TaskEvaluator", "Evaluation", "EvaluationFailed", "term_value", "task_terms"]

@@ -1,0 +1,277 @@
+"""Fixed-step schemes for M q'' = F(q, t) - C q': their shared interface, the step grid, and
+velocity Verlet (one force evaluation per step).
+
+Every scheme is a final subclass of `AbstractFixedStep`; `simulate` and the run policies use
+only that interface (`is_fixed_step` tells them from the adaptive diffrax solvers).
+
+Every scheme keeps a work-energy ledger of its own steps (`Ledger`): kinetic plus potential
+energy, minus the work the prescribed motion did, plus the work damping dissipated, is constant
+for the exact motion; its largest drift over the solve, relative to the energy the solve moved
+(`energy_error`), is an a-posteriori check that needs no frequency estimate (the policy in
+`policy.next_config` rejects a fixed-step result above `policy.ENERGY_TOLERANCE`).
+
+Velocity Verlet, kick-drift-kick: the first half kick treats damping explicitly, the second
+implicitly (closed form, C and M diagonal), which keeps the scheme second order and symplectic
+when C = 0. Explicit, so it is stable only for dt < 2 / omega_max (the highest natural
+frequency, see `modal`); the contact barrier stiffens without bound, so a scene driven into
+contact needs a margin or the adaptive solver. Differentiation is discretise-then-optimise
+through `lax.scan`.
+"""
+
+import abc
+import dataclasses
+import math
+from collections.abc import Callable
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+@dataclasses.dataclass(frozen=True)
+class StepGrid:
+    """Static step counts of a solve from t0 = 0 through fixed sample times.
+
+    Attributes:
+        n_pre: steps from 0 to the first sample (0 when it is at 0).
+        n_sub: equal steps between consecutive samples.
+        n_steps: steps in all.
+        dt_nominal: the largest step taken, ms.
+    """
+
+    n_pre: int
+    n_sub: int
+    n_steps: int
+    dt_nominal: float
+
+
+def step_grid(time_grid, max_dt: float) -> StepGrid:
+    """Step counts for [n_t] sample times `time_grid` (ms, from t0 = 0) and steps <= `max_dt`."""
+    grid = np.asarray(time_grid, np.float64)
+    n_pre = substeps(grid[0], max_dt) if grid[0] > 0 else 0
+    n_sub = substeps(float(np.max(np.diff(grid))), max_dt)
+    dt_nominal = max(float(np.max(np.diff(grid))) / n_sub, float(grid[0]) / n_pre if n_pre else 0.0)
+    return StepGrid(n_pre, n_sub, n_pre + n_sub * (grid.size - 1), dt_nominal)
+
+
+# `integrate(force, inv_mass, damping, (q0, v0), ts) -> (q [n_t, n], v [n_t, n], converged,
+# energy_error)`: force(q, t) -> (F, (V, P)) with F = -dV/dq ([n] -> [n]), V the potential energy
+# and P = dV/dt at fixed q (the power the prescribed motion puts in); inv_mass, damping: [n]
+# diagonals; ts: [n_t] sample times (ms) of the step grid; converged: bool scalar, False when the
+# solve must be reported failed; energy_error: the ledger's verdict (`energy_error`)
+Integrator = Callable[..., tuple]
+
+
+class Ledger(NamedTuple):
+    """Work-energy account of a fixed-step solve (scalars, outside differentiation).
+
+    Attributes:
+        e0: kinetic + potential energy at the start.
+        work: work done on the free units by the prescribed motion so far (trapezoid of P).
+        dissipated: work done against damping so far (trapezoid of v . C v).
+        power: P at the current step.
+        drift: largest |E - e0 - work + dissipated| so far.
+        moved: largest |E - e0| or |work| so far (the scale the drift is judged against).
+    """
+
+    e0: jax.Array
+    work: jax.Array
+    dissipated: jax.Array
+    power: jax.Array
+    drift: jax.Array
+    moved: jax.Array
+
+
+def ledger_start(v, mass, aux) -> Ledger:
+    """The account at the start: state velocity `v`, diagonal `mass`, `aux` = (V, P) there."""
+    potential, power = jax.lax.stop_gradient(aux)
+    v = jax.lax.stop_gradient(v)
+    zero = jnp.zeros((), v.dtype)
+    return Ledger(0.5 * jnp.dot(v, mass * v) + potential, zero, zero, power, zero, zero)
+
+
+def ledger_step(led: Ledger, dt, v, v1, mass, damping, aux1) -> Ledger:
+    """The account after a step `dt` from velocity `v` to `v1`, `aux1` = (V, P) at its end."""
+    potential, power = jax.lax.stop_gradient(aux1)
+    v, v1, dt = jax.lax.stop_gradient((v, v1, dt))
+    work = led.work + 0.5 * dt * (led.power + power)
+    dissipated = led.dissipated + 0.5 * dt * (jnp.dot(v, damping * v) + jnp.dot(v1, damping * v1))
+    change = 0.5 * jnp.dot(v1, mass * v1) + potential - led.e0
+    drift = jnp.maximum(led.drift, jnp.abs(change - work + dissipated))
+    moved = jnp.maximum(led.moved, jnp.maximum(jnp.abs(change), jnp.abs(work)))
+    return Ledger(led.e0, work, dissipated, power, drift, moved)
+
+
+def energy_error(led: Ledger):
+    """Largest drift of the work-energy balance over the solve, relative to the energy moved (0
+    when nothing moved)."""
+    return jnp.where(led.moved > 0, led.drift / jnp.where(led.moved > 0, led.moved, 1.0), 0.0)
+
+
+class AbstractFixedStep(eqx.Module):
+    """A scheme that runs on a static step grid fitted between the sample times.
+
+    Attributes:
+        max_dt: largest step, ms.
+        stability_limited: True for an explicit scheme, stable only for max_dt < 2 / omega_max
+            (the policies then keep the step below that limit as the design changes).
+    """
+
+    max_dt: eqx.AbstractVar[float]
+    stability_limited: eqx.AbstractClassVar[bool]
+
+    @abc.abstractmethod
+    def make_integrator(self, grid: StepGrid, bond_blocks: np.ndarray, free: np.ndarray,
+                        n_dof: int) -> Integrator:
+        """Factory: the pure `integrate` (see `Integrator`) for this step grid and topology.
+
+        Args:
+            grid: the step grid of the sample times.
+            bond_blocks: [n_bonds, 2] units joined by each ligament.
+            free: [n] increasing global indices of the integrated DOFs, out of `n_dof`.
+        """
+
+    @abc.abstractmethod
+    def force_evaluations(self, num_steps: int) -> int:
+        """Force evaluations of a solve of `num_steps` steps (the initial one included)."""
+
+    @abc.abstractmethod
+    def summary(self) -> dict:
+        """JSON-ready settings (SI) for reports, besides the class name."""
+
+    @abc.abstractmethod
+    def unstable_hint(self) -> str:
+        """Likely cause of a non-finite state, appended to the error message ("" if none)."""
+
+    @abc.abstractmethod
+    def unconverged_message(self) -> str:
+        """Why a solve reported `converged = False` failed, and what to change."""
+
+    def with_max_dt(self, max_dt: float) -> "AbstractFixedStep":
+        """The same scheme with another largest step (ms)."""
+        return dataclasses.replace(self, max_dt=max_dt)
+
+
+def is_fixed_step(solver) -> bool:
+    """True for a fixed-step scheme, False for an adaptive diffrax solver."""
+    return isinstance(solver, AbstractFixedStep)
+
+
+class FixedStepVerlet(AbstractFixedStep):
+    """Velocity Verlet with at most `max_dt` (ms) per step; steps are fitted between samples.
+
+    Attributes:
+        max_dt: largest step, ms. Stability needs max_dt < 2 / omega_max (omega in rad/ms).
+        remat: recompute the steps between two samples in the backward pass instead of storing
+            them (less memory, one more forward pass).
+        refined: the step is a refinement the policy took after a rejected solve
+            (`policy.next_config`), which it does not refine again.
+    """
+
+    max_dt: float = eqx.field(static=True, default=0.05)
+    remat: bool = eqx.field(static=True, default=False)
+    refined: bool = eqx.field(static=True, default=False)
+    stability_limited = True
+
+    def __check_init__(self):
+        if not self.max_dt > 0:
+            raise ValueError(f"max_dt must be positive, got {self.max_dt} ms")
+
+    def make_integrator(self, grid: StepGrid, bond_blocks: np.ndarray, free: np.ndarray,
+                        n_dof: int) -> Integrator:
+        def run(force, inv_mass, damping, y0, ts):
+            qs, vs, led = integrate(self, force, inv_mass, damping, y0, ts, 0.0, grid.n_pre,
+                                    grid.n_sub)
+            return qs, vs, jnp.asarray(True), energy_error(led)
+
+        return run
+
+    def force_evaluations(self, num_steps: int) -> int:
+        return num_steps + 1
+
+    def summary(self) -> dict:
+        return {"max_dt_s": self.max_dt * 1e-3, **({"refined": True} if self.refined else {})}
+
+    def unstable_hint(self) -> str:
+        return (" (the fixed step is above the stability limit 2/omega_max, or contact stiffened "
+                "the scene beyond it)")
+
+    def unconverged_message(self) -> str:
+        return "the explicit Verlet step has no iterations; it cannot fail to converge"
+
+
+def substeps(interval: float, max_dt: float) -> int:
+    """Number of equal steps of at most `max_dt` that cover `interval` (at least 1)."""
+    return max(1, math.ceil(interval / max_dt - 1e-9))
+
+
+def march(step, carry, ts, t0: float, n_pre: int, n_sub: int, remat: bool = False):
+    """Drive a one-step map through the sample times (shared by every fixed-step scheme).
+
+    Args:
+        step: `step(carry, t, dt) -> carry`; `carry[0], carry[1]` are the sampled q and v.
+        carry: state at t0.
+        ts: [n_t] sample times (the first may equal t0).
+        n_pre: steps from t0 to ts[0] (static; 0 when ts[0] == t0).
+        n_sub: equal steps between consecutive samples (static).
+        remat: recompute the steps between two samples in the backward pass.
+
+    Returns:
+        (carry at ts[-1], q [n_t, ...], v [n_t, ...]).
+    """
+
+    def advance(carry, t_start, t_end, n):
+        dt = (t_end - t_start) / n
+
+        def body(c, k):
+            return step(c, t_start + k * dt, dt), None
+
+        return jax.lax.scan(body, carry, jnp.arange(n, dtype=ts.dtype))[0]
+
+    if n_pre > 0:
+        carry = advance(carry, jnp.asarray(t0, ts.dtype), ts[0], n_pre)
+    first = carry
+
+    def interval(c, pair):
+        advance_fn = jax.checkpoint(advance, static_argnums=(3,)) if remat else advance
+        c = advance_fn(c, pair[0], pair[1], n_sub)
+        return c, (c[0], c[1])
+
+    last, (qs, vs) = jax.lax.scan(interval, carry, jnp.stack([ts[:-1], ts[1:]], axis=1))
+    return last, jnp.concatenate([first[0][None], qs]), jnp.concatenate([first[1][None], vs])
+
+
+def integrate(method: FixedStepVerlet, force, inv_mass, damping, y0, ts, t0: float, n_pre: int,
+              n_sub: int):
+    """Integrate from t0 through the sample times.
+
+    Args:
+        method: the scheme settings.
+        force: `force(q, t) -> (F, (V, P))` (see `Integrator`).
+        inv_mass, damping: [n] diagonal inverse mass and damping.
+        y0: (q0, v0), each [n].
+        ts: [n_t] sample times (the first may equal t0).
+        n_pre: steps from t0 to ts[0] (static; 0 when ts[0] == t0).
+        n_sub: steps between consecutive samples (static).
+
+    Returns:
+        (q [n_t, n], v [n_t, n]) at the sample times and the final `Ledger`.
+    """
+    half_c = 0.5 * inv_mass * damping
+    mass = 1.0 / inv_mass
+
+    def step(carry, t, dt):
+        q, v, f, led = carry
+        v_half = v + 0.5 * dt * inv_mass * (f - damping * v)
+        q1 = q + dt * v_half
+        f1, aux1 = force(q1, t + dt)
+        v1 = (v_half + 0.5 * dt * inv_mass * f1) / (1.0 + dt * half_c)
+        return (q1, v1, f1, ledger_step(led, dt, v, v1, mass, damping, aux1))
+
+    q0, v0 = y0
+    f0, aux0 = force(q0, jnp.asarray(t0, ts.dtype))
+    carry = (q0, v0, f0, ledger_start(v0, mass, aux0))
+    last, qs, vs = march(step, carry, ts, t0, n_pre, n_sub, method.remat)
+    return qs, vs, last[3]

@@ -1,0 +1,309 @@
+"""Per-scene choice of integrator and model from measured quantities (speed against accuracy).
+
+The default policy, read off the work-precision and speed-up charts (README, `metarig bench`):
+- pulse scenes, and pre-compressed scenes with the default static pre-compression (the pulse
+  starts from rest in the equilibrium under the closed stages): fixed-step velocity Verlet (one
+  force evaluation per step) with a step of `safety * 2 / omega_max`, omega_max being the
+  highest natural frequency at the state the pulse starts from (rest, or the static
+  equilibrium with its contact stiffness), measured by power iteration (Hessian-vector
+  products); float32 (on the charts it changes J by 1e-5 to 1e-4 and the gradient by 3e-3 relative,
+  like float64 Verlet, at 20-40 % less time) and nonlinear strains (the linearised strains miss
+  J by tens of percent). The contact terms are left out of the solve and every solve checks
+  that all void angles stayed above the contact cutoff at every sample, in which case the
+  contact energy was identically zero and the result equals the full model's;
+- a solve whose voids reached the cutoff is repeated with contact at the same step in float64
+  (from the first solve when the static equilibrium already reaches it), and that result stands
+  while the barrier's own frequency at the deepest void, omega_c (`contact_frequency`), keeps
+  dt x omega_c <= CONTACT_STEP_LIMIT and the solve's work-energy drift stays within
+  ENERGY_TOLERANCE (`next_config`); past either, the solve is repeated once at REFINE x the step
+  when that is predicted to pass, else with adaptive Dopri8 at the reference tolerances with
+  contact, as is any failed fixed-step solve. An optimiser's next evaluation starts where the
+  last one ended while that was in contact, with the fixed step if that was Dopri8
+  (`start_config`);
+- the dynamic pre-compression ramp (`precompression="ramp"`, the reference's protocol):
+  adaptive Dopri8 at the reference tolerances with contact (the ramp lasts 40-320 ms).
+`full_model=True` forces the reference configuration (Dopri5, spec tolerances).
+"""
+
+import dataclasses
+from dataclasses import dataclass
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from design_engine.physics.dynamics import dof_masses
+from design_engine.physics.energy import (
+    DEFAULT_MODEL,
+    Model,
+    bond_geometry,
+    followed_voids,
+    make_energy,
+    void_stiffness,
+)
+from design_engine.solve.fixed_step import FixedStepVerlet, is_fixed_step
+from design_engine.physics.geometry import block_geometry
+from design_engine.physics.scenes import Scene
+from design_engine.solve.simulate import SimulationError, SolverConfig
+from design_engine.physics.statics import EquilibriumError, equilibrium_state
+
+STABILITY_SAFETY = 0.6  # fraction of the Verlet stability limit 2 / omega_max
+# largest dt x omega_c (the contact barrier's own frequency at the deepest void) a fixed step
+# with contact may take: with dt x omega_max <= 1.2 it keeps dt x sqrt(omega_max^2 + omega_c^2)
+# within 0.8 x the stability limit 2 (measured: 0.45 on the 24x16 focusing design in contact and
+# 0.95 on 24x18 at 8 % pre-compression, both within 1e-4 of J)
+CONTACT_STEP_LIMIT = 1.0
+# largest work-energy drift of a fixed-step solve, relative to the energy it moved
+# (`Solution.energy_error`), that the policy accepts (benchmarks/bench_energy_check.py)
+ENERGY_TOLERANCE = 1e-4
+# a fixed-step solve that these checks reject is re-solved once at REFINE x its step when that
+# is predicted to pass (Verlet is second order: the drift falls by REFINE^2, to at most half
+# the tolerance; dt x omega_c by REFINE, to at most the limit), else with Dopri8.
+# Hypersensitive solves drift far more (8.7e-4 and up on the chart) and go to Dopri8 directly:
+# a step small enough to hide their drift would still miss J by up to 100 x the drift
+REFINE = 0.5
+
+
+@dataclass(frozen=True)
+class Choice:
+    """A configuration and the reasons it was picked (one line each)."""
+
+    config: SolverConfig
+    reasons: tuple[str, ...]
+    omega_max: float | None = None  # rad/ms
+
+
+def make_frequency_estimator(scene: Scene, iterations: int):
+    """Factory: jitted `estimate(x, v0, q_base=None) -> (omega_max, v)` for designs `x`
+    [n_design] (mm).
+
+    Power iteration on M^-1/2 K M^-1/2 with Hessian-vector products (no dense Hessian:
+    `iterations` force-gradient products), started from `v0` [n_free] (unit vector), K taken at
+    `q_base` ([n_blocks, 3] mm/rad, contact included; default the reference state, at rest).
+    Warm-started from the previous eigenvector, a few dozen iterations track omega_max (rad/ms)
+    while an optimiser changes the unit masses. The Rayleigh quotient approaches omega_max from
+    below.
+    """
+    lat, free = scene.lattice, scene.supports.free
+    energy = make_energy(lat, model=scene.model)
+    material = scene.material
+
+    @jax.jit
+    def estimate_at(x, v, q_base):
+        geom = block_geometry(lat, x)
+        bonds = bond_geometry(lat, geom)
+        inv_sqrt_m = 1.0 / jnp.sqrt(dof_masses(geom, material)[free])
+        q0 = jnp.reshape(q_base, -1).astype(x.dtype)
+
+        def grad_free(qf):
+            return jax.grad(lambda z: energy(q0.at[free].set(z).reshape(-1, 3), bonds,
+                                             material))(qf)
+
+        def apply(v):
+            return inv_sqrt_m * jax.jvp(grad_free, (q0[free],), (inv_sqrt_m * v,))[1]
+
+        def body(_, v):
+            w = apply(v)
+            return w / jnp.linalg.norm(w)
+
+        v = jax.lax.fori_loop(0, iterations, body, v)
+        return jnp.sqrt(jnp.maximum(jnp.dot(v, apply(v)), 0.0)), v
+
+    def estimate(x, v, q_base=None):
+        x = jnp.asarray(x)
+        return estimate_at(x, v, jnp.zeros(3 * lat.n_blocks, x.dtype) if q_base is None
+                           else jnp.asarray(q_base))
+
+    return estimate
+
+
+def initial_vector(scene: Scene) -> np.ndarray:
+    """Seeded random unit start vector [n_free] of the power iteration."""
+    v0 = np.random.default_rng(0).normal(size=scene.supports.free.size)
+    return v0 / np.linalg.norm(v0)
+
+
+def max_angular_frequency(scene: Scene, iterations: int = 300, state=None) -> float:
+    """Largest omega (rad/ms) of K phi = omega^2 M phi for the scene's design, K taken at
+    `state` ([n_blocks, 3] mm/rad; default the reference state at rest).
+
+    Power iteration (see `make_frequency_estimator`): a few hundred force evaluations.
+    """
+    omega, _ = make_frequency_estimator(scene, iterations)(
+        jnp.asarray(scene.design), jnp.asarray(initial_vector(scene)), state)
+    return float(omega)
+
+
+def choose_config(scene: Scene, *, full_model: bool = False,
+                  safety: float = STABILITY_SAFETY, omega: float | None = None,
+                  state=None) -> Choice:
+    """Pick the configuration for `scene` (see module docstring).
+
+    `omega` (rad/ms) is a measured highest natural frequency of the scene's design at the state
+    the pulse starts from (`state` [n_blocks, 3], mm/rad: rest, or for a static pre-compression
+    the equilibrium, `modal.prestressed_state`); None measures it.
+    """
+    if full_model:
+        return Choice(SolverConfig(), ("forced full model: Dopri5, rtol 1e-8, atol 1e-4, float64, "
+                                       "nonlinear strains, contact",))
+    ld = scene.loading
+    if ld.strain > 0.0 and not ld.is_static:
+        return Choice(contact_config(), (
+            "dynamic pre-compression ramp (the reference's protocol; tens to hundreds of ms "
+            "before the pulse): adaptive Dopri8, rtol 1e-8, atol 1e-4, with contact",))
+    where, in_contact = "at rest", False
+    if ld.strain > 0.0:
+        where = "in the static pre-compression"
+        if state is None:
+            try:
+                state = equilibrium_state(scene)
+            except EquilibriumError as exc:
+                raise SimulationError(str(exc)) from None
+        margin = static_void_margin(scene, state)
+        in_contact = margin < float(scene.material.contact_cutoff - scene.material.contact_min)
+    omega = max_angular_frequency(scene, state=state) if omega is None else omega
+    dt = safety * 2.0 / omega
+    reasons = (
+        f"highest natural frequency {where} {omega / (2 * np.pi) * 1e3:.0f} Hz",
+        f"fixed-step Verlet, dt = {dt * 1e3:.1f} us = {safety:g} x the stability limit (1 force "
+        "evaluation per step; within 0.5 % of J and 1 % of the gradient on the focusing chart)",
+        "float32: within 1e-5 of J and 3e-3 of the gradient on the focusing chart",
+        "contact terms left out while every void stays above the contact cutoff (checked after "
+        "each solve; exact then, else re-solved with contact at the same step while the "
+        f"barrier's own frequency stays below {CONTACT_STEP_LIMIT:g} / dt, else with Dopri8)",
+    )
+    if ld.strain > 0.0:
+        reasons += ("static pre-compression: the pulse starts from rest in the equilibrium under "
+                    "the closed stages (float64 Newton continuation, implicit gradient)",)
+    config = SolverConfig(solver=FixedStepVerlet(max_dt=dt), use_contact=False, dtype="float32")
+    if in_contact:
+        config = with_contact(config)
+        reasons += (f"the static pre-compression already closes voids past the contact cutoff "
+                    f"({np.degrees(margin):.2f} deg above the asymptote): contact terms on, "
+                    "float64, from the first solve",)
+    return Choice(config, reasons, omega)
+
+
+def static_void_margin(scene: Scene, state) -> float:
+    """Smallest void angle of `state` [n_blocks, 3] (mm, rad) above the contact asymptote, rad."""
+    bonds = bond_geometry(scene.lattice, block_geometry(scene.lattice, jnp.asarray(scene.design)))
+    voids = followed_voids(bonds.void_ref, jnp.asarray(state), scene.lattice.bond_blocks)
+    return float(jnp.min(voids) - scene.material.contact_min)
+
+
+def contact_frequency(min_void_margin: float, material, min_inertia: float,
+                      model: Model = DEFAULT_MODEL) -> float:
+    """Upper bound (rad/ms) of the frequency the contact law adds at its deepest point.
+
+    At the deepest void angle alpha (`min_void_margin` rad above the asymptote, as
+    `Solution.min_void_margin` gives it; taken just inside the cutoff and short of the
+    asymptote) the model's stiffness in that angle, d2V/dalpha2 (N mm/rad, differentiated from
+    the law itself: `energy.void_stiffness`; for the default barrier
+    k_c (1 + 3 tau^2) / (1 - tau^2)^3), joins two units of rotary inertia >= `min_inertia`
+    (g mm^2): they vibrate at most at sqrt(2 d2V/dalpha2 / min_inertia).
+    """
+    span = float(material.contact_cutoff - material.contact_min)
+    tau = min(max((span - float(min_void_margin)) / span, 1e-9), 1.0 - 1e-12)
+    alpha = float(material.contact_cutoff) - tau * span
+    stiffness = void_stiffness(model, material, alpha)
+    return float(np.sqrt(2.0 * max(stiffness, 0.0) / min_inertia))
+
+
+def contact_config() -> SolverConfig:
+    """Configuration for scenes in contact: Dopri8 at the reference tolerances, with contact."""
+    return SolverConfig(solver=diffrax.Dopri8())
+
+
+def needs_contact(config: SolverConfig, min_void_margin: float, scene: Scene) -> bool:
+    """True if a solve without contact let a void angle reach the contact cutoff (so its result
+    differs from the full model's and must be recomputed with contact)."""
+    span = scene.material.contact_cutoff - scene.material.contact_min
+    return (not config.use_contact) and float(min_void_margin) < span
+
+
+def with_contact(config: SolverConfig) -> SolverConfig:
+    """Configuration for a scene whose voids reached the contact cutoff: the same fixed step
+    with the contact terms in float64 (checked by `next_config`), or Dopri8 for an adaptive
+    solve. Float64 because in float32 a solve driven hard into the barrier can stay shallow and
+    wrong, which no depth check sees: on 8x6 units with 44 deg bias under a 6 mm pulse, float32
+    Verlet with contact reached 55 % of the barrier's depth and missed J by 53 %, float64
+    reached 98 % (the check then moves on to Dopri8)."""
+    if is_fixed_step(config.solver) and config.solver.stability_limited:
+        return SolverConfig(solver=config.solver, use_contact=True, dtype="float64")
+    return contact_config()
+
+
+def next_config(config: SolverConfig, health: dict, scene: Scene) -> tuple[SolverConfig, str] | None:
+    """After a solve that did not fail (`simulate.solve_health` scalars): the configuration to
+    solve again with and why, or None when the result stands.
+
+    - voids reached the contact cutoff without contact terms: `with_contact(config)`;
+    - an explicit fixed-step solve whose work-energy balance drifted by more than
+      ENERGY_TOLERANCE of the energy it moved (`Solution.energy_error`), or, with contact, whose
+      barrier frequency at the deepest void (`contact_frequency`) exceeds CONTACT_STEP_LIMIT /
+      dt: re-solved once at REFINE x the step (`refined`) when that is predicted to pass (the
+      drift to half the tolerance), else (and for a refined step rejected again) with Dopri8
+      (`contact_config`).
+    """
+    margin = float(health["void_margin"])
+    if needs_contact(config, margin, scene):
+        nxt = with_contact(config)
+        how = ("Verlet at the same step" if is_fixed_step(nxt.solver) else "adaptive Dopri8")
+        return nxt, f"a void reached the contact cutoff: re-solved with contact ({how})"
+    solver = config.solver
+    if not (is_fixed_step(solver) and solver.stability_limited):
+        return None
+    drift = float(health.get("energy_error", 0.0))
+    ratio = 0.0
+    if config.use_contact:
+        ratio = solver.max_dt * contact_frequency(margin, scene.material,
+                                                  float(health["min_inertia"]), scene.model)
+    faults = []
+    if not drift <= ENERGY_TOLERANCE:
+        faults.append(f"the work-energy balance drifted by {drift:.1e} of the energy the solve "
+                      f"moved (> {ENERGY_TOLERANCE:g})")
+    if ratio > CONTACT_STEP_LIMIT:
+        faults.append(f"the contact barrier stiffened past the step (dt x omega_c = {ratio:.2f} "
+                      f"> {CONTACT_STEP_LIMIT:g})")
+    if not faults:
+        return None
+    what = "; ".join(faults)
+    if (not solver.refined and drift * REFINE**2 <= 0.5 * ENERGY_TOLERANCE
+            and ratio * REFINE <= CONTACT_STEP_LIMIT):
+        nxt = refined(config)
+        return nxt, (f"{what}: re-solved once at {REFINE:g} x the step "
+                     f"({nxt.solver.max_dt * 1e3:.1f} us)")
+    return contact_config(), f"{what}: re-solved with adaptive Dopri8"
+
+
+def refined(config: SolverConfig) -> SolverConfig:
+    """The same fixed-step configuration at REFINE x its step, marked refined."""
+    solver = dataclasses.replace(config.solver, max_dt=config.solver.max_dt * REFINE, refined=True)
+    return dataclasses.replace(config, solver=solver)
+
+
+def start_config(choice: SolverConfig, last: SolverConfig | None, health: dict | None,
+                 scene: Scene) -> SolverConfig:
+    """The configuration an optimiser's next evaluation starts with: the one the previous
+    evaluation ended with (`last`, with its `solve_health`) while its voids still reached the
+    contact cutoff, since the next design, a small step away, most likely needs it too (it
+    saves the no-contact solve that `next_config` would reject); else the choice. When the
+    previous evaluation ended with Dopri8 after a rejected fixed step, the fixed step with
+    contact gets its chance again (`with_contact(choice)`): it costs 1/15-1/25 of Dopri8 and a
+    design a step away may be accepted at it. Either way `next_config` still judges the result,
+    so this changes the cost, not the answer."""
+    if last is None or health is None or last == choice or not last.use_contact:
+        return choice
+    span = float(scene.material.contact_cutoff - scene.material.contact_min)
+    if float(health["void_margin"]) >= span:
+        return choice
+    if is_fixed_step(choice.solver) and not is_fixed_step(last.solver):
+        return with_contact(choice)
+    return last
+
+
+def fallback_config() -> tuple[SolverConfig, str]:
+    """The configuration used when a fixed-step solve fails, and why."""
+    return contact_config(), ("the fixed-step solve failed (contact stiffening or instability): "
+                              "fell back to adaptive Dopri8 at the reference tolerances")

@@ -1,0 +1,342 @@
+"""High-level runs of a scene: forward simulation with metrics, rig replay, objective + gradient.
+
+This is the API the CLI, the simulated rig and the optimiser use. Inputs and outputs here are
+SI where they leave the engine (`Trajectory`, summaries); internal units stay inside.
+"""
+
+import time
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from design_engine.solve.policy import (Choice, choose_config, fallback_config, next_config,
+                                start_config)
+from design_engine.physics.loading import Loading
+from design_engine.design.objectives import (angular_momentum, block_kinetic_energy, objective_term,
+                                      peak_energy_along_units, region_energy, region_energy_ratio)
+from design_engine.physics.regions import row_units
+from design_engine.physics.scenes import Scene
+from design_engine.solve.fixed_step import is_fixed_step
+from design_engine.solve.simulate import (SimulationError, Solution, SolverConfig, check_solution,
+                                    make_simulator, simulation_error, solve_health)
+from metarig.trajectory import Trajectory
+from design_engine.physics import units
+
+_COMPILED: dict[tuple, object] = {}
+
+
+def compile_key(scene: Scene, config: SolverConfig, tag: str, ts_ms) -> tuple:
+    s = scene.supports
+    grid = np.asarray(ts_ms).tobytes() if is_fixed_step(config.solver) else b""
+    return (tag, scene.lattice.kind, scene.lattice.shape, scene.lattice.spacing,
+            scene.lattice.ligament_length, s.constrained.tobytes(), s.channel.tobytes(),
+            s.gain.tobytes(), repr(config), grid, scene.model)
+
+
+def compiled_simulator(scene: Scene, config: SolverConfig, ts_ms=None):
+    """jit-compiled `simulate(x, material, loading, ts)` for this scene's topology (cached).
+
+    `ts_ms` (default the scene's sample times) fixes the step count of the fixed-step solver;
+    the compiled function must then be called with those sample times.
+    """
+    ts_ms = scene.sample_times if ts_ms is None else np.asarray(ts_ms)
+    key = compile_key(scene, config, "sim", ts_ms)
+    if key not in _COMPILED:
+        _COMPILED[key] = jax.jit(make_simulator(scene.lattice, scene.supports, config, ts_ms,
+                                                model=scene.model))
+    return _COMPILED[key]
+
+
+@dataclass(frozen=True)
+class SceneRun:
+    """Result of `simulate_scene`.
+
+    Attributes:
+        trajectory: SI trajectory on the dynamic window; t starts at 0 at the window start.
+        solution: internal-units solution (for further metrics).
+        metrics: JSON-ready metrics (SI).
+        wall_s: wall time of the solve (compile included on a first call), s.
+    """
+
+    trajectory: Trajectory
+    solution: Solution
+    metrics: dict
+    wall_s: float
+
+
+def to_trajectory(sol: Solution, t0_ms: float = 0.0, ts_ms=None) -> Trajectory:
+    """Convert an internal solution to an SI float64 `Trajectory`, time shifted by `t0_ms`.
+
+    `ts_ms` gives the exact requested sample times (the solver may have run in float32).
+    """
+    ts = np.asarray(sol.ts if ts_ms is None else ts_ms, np.float64)
+    q = np.array(sol.q, np.float64)
+    q[..., :2] /= units.MM_PER_M
+    qdot = np.array(sol.qdot, np.float64)
+    qdot[..., 2] *= units.MS_PER_S  # rad/ms -> rad/s; mm/ms == m/s already
+    return Trajectory(t=units.time_to_si(ts - t0_ms), q=q, qdot=qdot)
+
+
+def scene_metrics(scene: Scene, sol: Solution) -> dict:
+    """The summary metrics of spec 8 for every target region of the scene (SI)."""
+    n_t = scene.n_samples
+    ke = np.asarray(block_kinetic_energy(sol))
+    total = ke.sum(axis=1)
+    out = {
+        "t_f_s": units.time_to_si(scene.window),
+        "n_samples": n_t,
+        "total_ke_mean_J": units.energy_to_si(float(total.mean())),
+        "total_ke_max_J": units.energy_to_si(float(total.max())),
+        "targets": {},
+    }
+    for name, ids in scene.targets.items():
+        j = float(region_energy(sol, ids))
+        out["targets"][name] = {
+            "units": [int(b) for b in ids],
+            "ke_mean_J": units.energy_to_si(j / n_t),
+            "ke_integral_Js": units.energy_to_si(j) * units.time_to_si(scene.window) / (n_t - 1),
+            "ratio_to_rest": float(region_energy_ratio(sol, ids)),
+        }
+        if scene.spin_point is not None:
+            lm = float(angular_momentum(sol, ids, scene.spin_point))
+            out["targets"][name]["angular_momentum_sum_kgm2_s"] = units.angular_momentum_to_si(lm)
+    first = next(iter(scene.targets))
+    out["target_blocks"] = out["targets"][first]["units"]
+    out["target_ke_mean_J"] = out["targets"][first]["ke_mean_J"]
+    line = row_units(scene.lattice, scene.line_row)
+    out["line"] = {
+        "row": scene.line_row,
+        "units": [int(b) for b in line],
+        "peak_ke_J": [units.energy_to_si(float(v)) for v in peak_energy_along_units(sol, line)],
+    }
+    return out
+
+
+def solver_stats(sol: Solution) -> dict:
+    return {"num_steps": int(sol.num_steps), "num_accepted_steps": int(sol.num_accepted),
+            "num_rejected_steps": int(sol.num_rejected)}
+
+
+def _simulate(scene: Scene, config: SolverConfig, ts_ms=None, loading=None):
+    ts_ms = scene.sample_times if ts_ms is None else ts_ms
+    sim = compiled_simulator(scene, config, ts_ms)
+    start = time.perf_counter()
+    sol = sim(jnp.asarray(scene.design), scene.material, loading or scene.loading,
+              jnp.asarray(ts_ms))
+    sol = jax.block_until_ready(sol)
+    return check_solution(sol, config), time.perf_counter() - start
+
+
+_CHOICES: dict[tuple, Choice] = {}
+
+
+def default_choice(scene: Scene) -> Choice:
+    """The automatic configuration for this scene and design (cached per process)."""
+    key = compile_key(scene, SolverConfig(), "choice", np.zeros(0)) + (
+        scene.design.tobytes(), float(scene.loading.strain), repr(scene.material))
+    if key not in _CHOICES:
+        _CHOICES[key] = choose_config(scene)
+    return _CHOICES[key]
+
+
+def _run_with_policy(scene: Scene, config: SolverConfig | None, ts_ms=None, loading=None):
+    """Solve with `config`, or with the automatic choice, its re-solves (`policy.next_config`) and
+    its fallback when None. Returns (solution, wall s, final config, reasons, re-solves), the
+    re-solves being the reasons of every solve after the first."""
+    if config is not None:
+        sol, wall = _simulate(scene, config, ts_ms, loading)
+        return sol, wall, config, ("configuration given by the caller",), ()
+    choice = default_choice(scene)
+    cfg, resolves, wall = choice.config, (), 0.0
+    try:
+        while True:
+            sol, w = _simulate(scene, cfg, ts_ms, loading)
+            wall += w
+            nxt = next_config(cfg, solve_health(sol, np), scene)
+            if nxt is None:
+                return sol, wall, cfg, choice.reasons + resolves, resolves
+            cfg, resolves = nxt[0], resolves + (nxt[1],)
+    except SimulationError as exc:
+        fb, reason = fallback_config()
+        sol, w = _simulate(scene, fb, ts_ms, loading)
+        resolves += (f"{reason} ({exc})",)
+        return sol, wall + w, fb, choice.reasons + resolves, resolves
+
+
+def simulate_scene(scene: Scene, config: SolverConfig | None = None) -> SceneRun:
+    """Forward-simulate a scene on its dynamic window; raises `SimulationError` on failure.
+
+    `config=None` uses the automatic per-scene choice (`policy.choose_config`, with fallback to
+    the adaptive solver); `SolverConfig()` is the full reference model. `metrics["solver"]`
+    says which configuration gave the result (`choice`: why) and `resolves`: the reasons of the
+    solves the policy made after its first.
+    """
+    sol, wall, config, reasons, resolves = _run_with_policy(scene, config)
+    metrics = scene_metrics(scene, sol)
+    metrics["solver"] = solver_stats(sol)
+    metrics["solver"].update(config_summary(config))
+    metrics["solver"]["choice"] = list(reasons)
+    metrics["solver"]["resolves"] = list(resolves)
+    return SceneRun(trajectory=to_trajectory(sol, scene.window_start, scene.sample_times),
+                    solution=sol,
+                    metrics=metrics, wall_s=wall)
+
+
+def config_summary(config: SolverConfig) -> dict:
+    """JSON-ready description of a solver configuration."""
+    out = {"solver": type(config.solver).__name__, "linearized": config.linearized,
+           "use_contact": config.use_contact, "dtype": config.dtype}
+    if is_fixed_step(config.solver):
+        out.update(config.solver.summary())
+    else:
+        out.update(rtol=config.rtol, atol=config.atol, adjoint=type(config.adjoint).__name__,
+                   max_steps=config.max_steps)
+    return out
+
+
+INPUT_DT_S = 1e-4  # the engine interpolates inputs linearly: resample finer than this
+
+
+def smooth_input(t_s, u_m) -> tuple[np.ndarray, np.ndarray]:
+    """A sampled input record made smooth for the engine's linear interpolation: records coarser
+    than `INPUT_DT_S` (camera-rate tracking, 1 kHz joint states) are resampled on a cubic
+    spline, whose velocity is continuous where a polyline's jumps at every sample."""
+    from scipy.interpolate import CubicSpline
+
+    t, u = np.asarray(t_s, np.float64), np.asarray(u_m, np.float64)
+    t, keep = np.unique(t, return_index=True)
+    u = u[keep]
+    if t.size < 4 or np.median(np.diff(t)) <= INPUT_DT_S:
+        return t, u
+    fine = np.linspace(t[0], t[-1], int(np.ceil((t[-1] - t[0]) / INPUT_DT_S)) + 1)
+    return fine, CubicSpline(t, u)(fine)
+
+
+def measured_loading(scene: Scene, input_t_s, input_u_m, stage_t_s=None,
+                     stage_closing_m=None) -> Loading:
+    """The `Loading` of a measured experiment (SI in, validated): the shaker displacement into
+    the specimen and the total stage closing (m) at times (s), linearly interpolated; no stage
+    record holds the stages at zero.
+
+    Raises:
+        ValueError: arrays of unequal length, not 1-D or shorter than 2.
+    """
+    it, iu = np.asarray(input_t_s, np.float64), np.asarray(input_u_m, np.float64)
+    if it.shape != iu.shape or it.ndim != 1 or it.size < 2:
+        raise ValueError("input_t_s and input_u_m must be 1-D arrays of the same length (>= 2)")
+    if stage_t_s is None:
+        st, sc = np.array([0.0, 1.0]), np.zeros(2)
+    else:
+        st = units.time_from_si(np.asarray(stage_t_s, np.float64))
+        sc = units.length_from_si(np.asarray(stage_closing_m, np.float64))
+        if st.shape != sc.shape or st.ndim != 1 or st.size < 2:
+            raise ValueError("stage_t_s and stage_closing_m must be 1-D arrays of equal length >= 2")
+    return Loading(
+        waveform="measured", amplitude=0.0, frequency=scene.loading.frequency, delay=0.0,
+        pulse_start=0.0, strain=0.0, stage_height=scene.loading.stage_height,
+        measured_t=jnp.asarray(units.time_from_si(it)), measured_u=jnp.asarray(units.length_from_si(iu)),
+        stage_t=jnp.asarray(st), stage_closing=jnp.asarray(sc),
+    )
+
+
+def simulate_rig(scene: Scene, times_s, input_t_s, input_u_m, stage_t_s=None, stage_closing_m=None,
+                 config: SolverConfig | None = None) -> Trajectory:
+    """Simulate the specimen under measured shaker and stage motion, from rest at t = 0.
+
+    Args:
+        scene: the specimen scene (its supports say which units the shaker and stages drive).
+        times_s: [n_t] increasing output times, s (> 0).
+        input_t_s, input_u_m: [n] measured shaker displacement into the specimen (m) at times (s);
+            linearly interpolated, held constant outside the record.
+        stage_t_s, stage_closing_m: [m] measured total closing of the two stage rows (m), half per
+            row; None holds the stages at zero (or is ignored in a scene without stages).
+        config: solver configuration; None for the automatic choice (with fallback).
+
+    Returns:
+        SI `Trajectory` at `times_s` (time axis unchanged).
+    """
+    times_ms = units.time_from_si(np.asarray(times_s, np.float64))
+    if times_ms.ndim != 1 or times_ms.size < 2 or np.any(np.diff(times_ms) <= 0) or times_ms[0] < 0:
+        raise ValueError("times_s must be an increasing 1-D array of non-negative times")
+    loading = measured_loading(scene, input_t_s, input_u_m, stage_t_s, stage_closing_m)
+    sol = _run_with_policy(scene, config, times_ms, loading)[0]
+    return to_trajectory(sol, 0.0, times_ms)
+
+
+def make_objective(scene: Scene, config: SolverConfig | None = None, weights=None):
+    """Factory: `(value_and_grad, value)` of the scene's objective, each `x -> ...`.
+
+    `value_and_grad(x) -> ((J, aux), dJ/dx)` and `value(x) -> (J, aux)`. J (mJ, or g mm^2/ms for
+    spin) is the weighted sum of the target-region energies J_Omega (spec 8; default weights 1
+    for a single target, (0.5, 0.5) for two), or the angular momentum J_L for spin scenes. `aux`
+    holds the solver result code, step count and void margin, so that failures can be reported
+    after the jitted call (see `checked`). With a given `config` both functions are jitted as
+    they are. `config=None` uses the automatic per-scene choice and repeats an evaluation with
+    the configuration `policy.next_config` names (contact once a void reached the cutoff; half
+    the step or Dopri8 once the barrier outgrew the fixed step or the work-energy balance
+    drifted; each compiled on first need), so the result always
+    equals the full model's; on a reported failure, retry with `policy.fallback_config()`. Each
+    call starts where the previous one ended while that was in contact (`policy.start_config`).
+    """
+    if config is not None:
+        return _jitted_objective(scene, config, weights)
+    programs: dict = {}
+    last: dict = {"config": None, "health": None}
+
+    def pick(i, x):
+        choice = default_choice(scene).config
+        cfg = start_config(choice, last["config"], last["health"], scene)
+        while True:
+            key = repr(cfg)
+            if key not in programs:
+                programs[key] = _jitted_objective(scene, cfg, weights)
+            out = programs[key][i](x)
+            aux = out[0][1] if i == 0 else out[1]
+            nxt = next_config(cfg, aux, scene)
+            if nxt is None:
+                last.update(config=cfg, health=aux)
+                return out
+            cfg = nxt[0]
+
+    return (lambda x: pick(0, x)), (lambda x: pick(1, x))
+
+
+def _jitted_objective(scene: Scene, config: SolverConfig, weights):
+    sim = make_simulator(scene.lattice, scene.supports, config, scene.sample_times,
+                         model=scene.model)
+    names = list(scene.targets)
+    if weights is None:
+        weights = [1.0 / len(names)] * len(names) if len(names) > 1 else [1.0]
+    if len(weights) != len(names):
+        raise ValueError(f"{len(names)} targets ({names}) need as many weights, got {weights}")
+    ts = jnp.asarray(scene.sample_times)
+
+    def objective(x):
+        sol = sim(x, scene.material, scene.loading, ts)
+        if scene.spin_point is not None:
+            value = objective_term("angular_momentum", sol, scene.targets[names[0]],
+                                   scene.spin_point)
+        else:
+            value = sum(w * objective_term("kinetic_energy", sol, scene.targets[n])
+                        for w, n in zip(weights, names))
+        return value, solve_health(sol)
+
+    return jax.jit(jax.value_and_grad(objective, has_aux=True)), jax.jit(objective)
+
+
+def checked(value_aux, config: SolverConfig | None = None):
+    """Raise `SimulationError` if an objective evaluation's aux (`simulate.solve_health`, plus
+    anything else) reports a failure or the value is not finite."""
+    (value, aux) = value_aux[0] if isinstance(value_aux[0], tuple) else value_aux
+    err = simulation_error(aux, config or SolverConfig())
+    if err is None and not np.isfinite(float(value)):
+        err = SimulationError("non-finite objective value")
+    if err is not None:
+        raise err
+    return value_aux
+
+
+__all__ = ["SceneRun", "simulate_scene", "simulate_rig", "make_objective", "checked", "to_trajectory",
+           "scene_metrics", "compiled_simulator"]

@@ -1,0 +1,306 @@
+"""Time integration (the one owner of diffrax): design + load -> sampled trajectory.
+
+`make_simulator(lattice, supports, config)` returns a pure, jittable and differentiable
+`simulate(x, material, loading, ts)`; solver failures are returned as a status code alongside the
+solution (so value-and-gradient can run under jit) and turned into `SimulationError` by
+`check_solution`, never into silent NaNs.
+"""
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from design_engine._types import Array, DesignVector, Float, Int
+from design_engine.physics.dynamics import VELOCITY_SCALE, make_dynamics_args, make_full_state, make_rhs
+from design_engine.physics.energy import DEFAULT_MODEL, Model, followed_voids, make_energy
+from design_engine.solve.fixed_step import AbstractFixedStep, is_fixed_step, step_grid
+from design_engine.physics.geometry import block_geometry
+from design_engine.physics.lattice import Lattice
+from design_engine.physics.loading import Loading, Supports, make_prescribed
+from design_engine.physics.material import Material
+from design_engine.physics.statics import EquilibriumError, check_equilibrium, make_static_solver
+
+
+class SolverConfig(eqx.Module):
+    """Integrator settings.
+
+    Attributes:
+        solver: a diffrax solver object (default Dormand-Prince 5(4), as the reference), or a
+            fixed-step scheme (an `AbstractFixedStep`: `FixedStepVerlet`, one force evaluation
+            per step; `ImplicitNewmark`, implicit; both need the time grid up front).
+        rtol, atol: tolerances on the state (positions mm, velocities mm/s; spec 6.5).
+        max_steps: step budget; exceeding it is reported as an error.
+        adjoint: gradient method (default: discretise-then-optimise with recursive checkpointing).
+        dt0: initial step (ms) or None for the Hairer-Norsett-Wanner heuristic.
+        linearized: use the linearised strain measures (spec 5.2).
+        use_contact: include the contact barrier (spec 5.3).
+        progress: show a tqdm progress bar (forward runs only).
+        dtype: floating type of the solve, "float64" (default) or "float32" (inputs are cast;
+            outputs come back in that type).
+        stretch_scale: factor on the ligament stretch stiffness (model variant): the stiff
+            stretch mode sets the explicit step limit while a pulse barely excites it, so a
+            softer stretch allows larger steps at an error that the work-precision chart shows.
+    """
+
+    solver: diffrax.AbstractSolver | AbstractFixedStep = diffrax.Dopri5()
+    rtol: float = eqx.field(static=True, default=1e-8)
+    atol: float = eqx.field(static=True, default=1e-4)
+    max_steps: int = eqx.field(static=True, default=200_000)
+    adjoint: diffrax.AbstractAdjoint = diffrax.RecursiveCheckpointAdjoint()
+    dt0: float | None = eqx.field(static=True, default=None)
+    linearized: bool = eqx.field(static=True, default=False)
+    use_contact: bool = eqx.field(static=True, default=True)
+    progress: bool = eqx.field(static=True, default=False)
+    dtype: str = eqx.field(static=True, default="float64")
+    stretch_scale: float = eqx.field(static=True, default=1.0)
+
+
+class Solution(eqx.Module):
+    """Sampled solution in internal units.
+
+    Attributes:
+        ts: [n_t] sample times, ms.
+        q: [n_t, n_blocks, 3] (u mm, v mm, theta rad) of every block, prescribed DOFs included.
+        qdot: [n_t, n_blocks, 3] rates (mm/ms = m/s, rad/ms).
+        mass: [n_blocks] block masses, g.
+        inertia: [n_blocks] rotary inertias, g mm^2.
+        centroids: [n_blocks, 2] reference area centroids, mm.
+        result: diffrax result code (0 = success).
+        num_steps, num_accepted, num_rejected: solver statistics.
+        min_void_margin: smallest unwrapped void angle minus the contact asymptote over the samples,
+            rad; negative means a unit passed through the contact barrier (a failed step).
+        static_residual: max |dE/dq_f| of the static pre-compression the solve started from
+            (N, N mm; 0 without one); above `statics` tolerance the start was no equilibrium.
+        energy_error: a fixed-step solve's work-energy drift relative to the energy it moved
+            (`fixed_step.energy_error`; 0 for an adaptive solve, whose controller bounds its
+            own error).
+    """
+
+    ts: Float[Array, " n_t"]
+    q: Float[Array, "n_t n_blocks 3"]
+    qdot: Float[Array, "n_t n_blocks 3"]
+    mass: Float[Array, " n_blocks"]
+    inertia: Float[Array, " n_blocks"]
+    centroids: Float[Array, "n_blocks 2"]
+    result: Int[Array, ""]
+    num_steps: Int[Array, ""]
+    num_accepted: Int[Array, ""]
+    num_rejected: Int[Array, ""]
+    min_void_margin: Float[Array, ""]
+    static_residual: Float[Array, ""]
+    energy_error: Float[Array, ""]
+
+
+# result code of a fixed-step solve reported not converged (diffrax's meaning)
+NOT_CONVERGED = int(diffrax.RESULTS.nonlinear_max_steps_reached._value)
+MAX_STEPS_REACHED = int(diffrax.RESULTS.max_steps_reached._value)
+
+
+class SimulationError(RuntimeError):
+    """The solver failed (step budget, non-finite state); the message names the cause."""
+
+
+class StepBudgetError(SimulationError):
+    """The solve used its whole step budget (`SolverConfig.max_steps`) before the window ended."""
+
+
+def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = SolverConfig(),
+                   time_grid: np.ndarray | None = None, model: Model = DEFAULT_MODEL):
+    """Factory: `simulate(x, material, loading, ts, initial=None) -> Solution` (pure; jit/grad/vmap).
+
+    Args:
+        lattice, supports, config: static set-up.
+        time_grid: [n_t] the sample times (ms) the fixed-step solver will be called with; it fixes
+            the (static) number of steps. Not needed by the adaptive solvers.
+
+    Args of the returned function:
+        x: [n_design] design vector, mm.
+        material: `Material`.
+        loading: `Loading`.
+        ts: [n_t] increasing sample times, ms; the solve runs from t = 0.
+        initial: optional (q_f, qdot_f) free-DOF state at t = 0 (default: rest, in the reference
+            state, or for a static pre-compression (`loading.is_static`) in the equilibrium
+            under the closed stages, solved in float64 with the model's energy and
+            differentiated by the implicit function theorem, `statics.make_static_solver`).
+    """
+    energy_fn = make_energy(lattice, linearized=config.linearized, use_contact=config.use_contact,
+                            model=model)
+    rhs = make_rhs(supports, energy_fn, VELOCITY_SCALE)
+    full = make_full_state(supports)
+    _, prescribed = make_prescribed(supports)
+    free = np.asarray(supports.free)
+    constrained = np.asarray(supports.constrained)
+    n_free, nb = free.size, lattice.n_blocks
+    bb = np.asarray(lattice.bond_blocks)
+    fixed = is_fixed_step(config.solver)
+    if fixed:
+        if time_grid is None:
+            raise ValueError("the fixed-step solver needs the time grid (time_grid=) up front")
+        grid = step_grid(time_grid, config.solver.max_dt)
+        integrate = config.solver.make_integrator(grid, bb, free, 3 * nb)
+    else:
+        term = diffrax.ODETerm(rhs)
+        controller = diffrax.PIDController(rtol=config.rtol, atol=config.atol)
+        meter = diffrax.TqdmProgressMeter() if config.progress else diffrax.NoProgressMeter()
+
+    def solve_adaptive(args, y0, ts):
+        sol = diffrax.diffeqsolve(
+            term, config.solver, t0=jnp.zeros((), ts.dtype), t1=ts[-1], dt0=config.dt0, y0=y0,
+            args=args, saveat=diffrax.SaveAt(ts=ts), stepsize_controller=controller,
+            adjoint=config.adjoint, max_steps=config.max_steps, throw=False, progress_meter=meter,
+        )
+        ys = sol.ys
+        stats = (jnp.asarray(sol.result._value, jnp.int32), sol.stats["num_steps"],
+                 sol.stats["num_accepted_steps"], sol.stats["num_rejected_steps"])
+        return ys[:, :n_free], ys[:, n_free:] / VELOCITY_SCALE, stats, jnp.zeros((), ys.dtype)
+
+    def solve_fixed(args, y0, ts):
+        def force(qf, t):
+            # one pass gives the force on the free units, the energy and, from the reactions
+            # of the prescribed units, the power their motion puts in (the ledger's inputs)
+            potential, grad = jax.value_and_grad(
+                lambda q: energy_fn(q, args.bonds, args.material))(full(qf, t, args.loading))
+            grad = grad.reshape(-1)
+            power = jnp.dot(grad[constrained], prescribed(t, args.loading)[1])
+            return -grad[free], (potential, power)
+
+        q0, v0 = y0[:n_free], y0[n_free:] / VELOCITY_SCALE
+        n = jnp.asarray(grid.n_steps)
+        qs, vs, converged, drift = integrate(force, args.inv_mass, args.damping, (q0, v0), ts)
+        result = jnp.where(converged, 0, NOT_CONVERGED).astype(jnp.int32)
+        return qs, vs, (result, n, n, jnp.asarray(0)), drift
+
+    dtype = jnp.dtype(config.dtype)
+
+    def cast(tree, to=dtype):
+        """Floating leaves of `tree` as `to`; the rest unchanged."""
+        def leaf(a):
+            if isinstance(a, float) or (hasattr(a, "dtype") and jnp.issubdtype(a.dtype, jnp.floating)):
+                return jnp.asarray(a, to)
+            return a
+
+        return jax.tree_util.tree_map(leaf, tree)
+
+    static_solvers = []  # built on the first static pre-compression (a Hessian colouring)
+
+    def static_start(x, material, loading):
+        if not static_solvers:
+            static_solvers.append(make_static_solver(lattice, supports,
+                                                     use_contact=config.use_contact,
+                                                     linearized=config.linearized, model=model))
+        q_f, info = static_solvers[0](*cast((x, material, loading), jnp.float64), 0.0)
+        return (q_f, jnp.zeros_like(q_f)), info["gradient_norm"]
+
+    def simulate(x: DesignVector, material: Material, loading: Loading, ts, initial=None) -> Solution:
+        if config.stretch_scale != 1.0:
+            material = eqx.tree_at(lambda m: m.k_stretch, material,
+                                   material.k_stretch * config.stretch_scale)
+        residual = jnp.zeros(())
+        if initial is None and loading.is_static:
+            initial, residual = static_start(x, material, loading)
+        x, material, loading, ts, initial = cast((x, material, loading, ts, initial))
+        geom = block_geometry(lattice, x)
+        args = make_dynamics_args(lattice, supports, geom, material, loading)
+        if initial is None:  # every task starts at rest in the reference configuration
+            y0 = jnp.zeros(2 * n_free, dtype=ts.dtype)
+        else:  # (q_f [n_free] mm/rad, qdot_f [n_free] mm/ms, rad/ms)
+            y0 = jnp.concatenate([initial[0], VELOCITY_SCALE * initial[1]])
+        qf, vf, (result, steps, accepted, rejected), drift = (
+            solve_fixed if fixed else solve_adaptive)(args, y0, ts)
+        q = jax.vmap(lambda qq, t: full(qq, t, loading))(qf, ts)
+        qc_dot = jax.vmap(lambda t: prescribed(t, loading)[1])(ts)
+        v_all = jnp.zeros((ts.shape[0], 3 * nb), vf.dtype)
+        v_all = v_all.at[:, free].set(vf).at[:, constrained].set(qc_dot)
+        voids = followed_voids(args.bonds.void_ref, q, bb)
+        return Solution(
+            ts=ts,
+            q=q,
+            qdot=v_all.reshape(ts.shape[0], nb, 3),
+            mass=material.density * geom.areas,
+            inertia=material.density * geom.polar_moments,
+            centroids=geom.centroids,
+            result=result,
+            num_steps=steps,
+            num_accepted=accepted,
+            num_rejected=rejected,
+            min_void_margin=jax.lax.stop_gradient(jnp.min(voids) - material.contact_min),
+            static_residual=jax.lax.stop_gradient(residual),
+            energy_error=jax.lax.stop_gradient(drift),
+        )
+
+    return simulate
+
+
+def solve_health(sol: Solution, xp=jnp) -> dict:
+    """Scalars that judge a solve (`health_failure`), cheap to return from a jitted or vmapped
+    call: result code, steps, whether the state stayed finite, the largest displacement (mm) and
+    rotation (rad), the void margin (rad), the static start's residual (N, N mm), the smallest
+    rotary inertia (g mm^2) and the fixed step's work-energy drift (relative). `xp=np` computes
+    them on the host for a solution already out of a jitted call (no op-by-op dispatch)."""
+    q, qdot = xp.asarray(sol.q), xp.asarray(sol.qdot)
+    return {"result": sol.result, "num_steps": sol.num_steps,
+            "finite": xp.all(xp.isfinite(q)) & xp.all(xp.isfinite(qdot)),
+            "max_disp": xp.max(xp.abs(q[..., :2])), "max_rot": xp.max(xp.abs(q[..., 2])),
+            "void_margin": sol.min_void_margin, "static_residual": sol.static_residual,
+            "min_inertia": xp.min(xp.asarray(sol.inertia)), "energy_error": sol.energy_error}
+
+
+def health_failure(health: dict, config: SolverConfig) -> str | None:
+    """Why a solve failed, from its `solve_health` scalars (one line), or None if it did not."""
+    msg = failure_message(int(health["result"]), config)
+    if msg is None and not bool(health["finite"]):
+        hint = config.solver.unstable_hint() if is_fixed_step(config.solver) else ""
+        msg = f"non-finite state during the solve{hint}"
+    if msg is None and (float(health["max_disp"]) > 1e4 or float(health["max_rot"]) > 1e2):
+        msg = ("the state diverged (displacements above 10 m or rotations above 100 rad): the "
+               "step is above the stability limit")
+    if msg is None and config.use_contact and float(health["void_margin"]) < 0.0:
+        msg = ("a unit passed through the contact barrier (void angle below the asymptote by "
+               f"{np.degrees(-float(health['void_margin'])):.2g} deg): the step was too large for "
+               "the contact stiffness; use the adaptive solver or a smaller step")
+    if msg is None:
+        try:
+            check_equilibrium({"gradient_norm": health["static_residual"]})
+        except EquilibriumError as exc:
+            msg = str(exc)
+    return msg
+
+
+def simulation_error(health: dict, config: SolverConfig) -> SimulationError | None:
+    """The error a solve with these `solve_health` scalars raises (`health_failure`), or None."""
+    msg = health_failure(health, config)
+    if msg is None:
+        return None
+    return (StepBudgetError if int(health["result"]) == MAX_STEPS_REACHED else SimulationError)(msg)
+
+
+def failure_message(result: int, config: SolverConfig) -> str | None:
+    """Human-readable cause of a non-zero diffrax result code, or None for success."""
+    if int(result) == 0:
+        return None
+    if int(result) == MAX_STEPS_REACHED:
+        return (f"the solver hit its step budget (max_steps={config.max_steps}); the scene is too "
+                "stiff for the explicit solver at this tolerance, or the state blew up")
+    if int(result) == NOT_CONVERGED and is_fixed_step(config.solver):
+        return config.solver.unconverged_message()
+    for name in ("successful", "singular", "breakdown", "divergence", "nonfinite_input",
+                 "event_occurred", "discrete_terminating_event_occurred"):
+        item = getattr(diffrax.RESULTS, name, None)
+        if item is not None and int(item._value) == int(result):
+            return f"the solver failed: {name.replace('_', ' ')}"
+    return f"the solver failed (diffrax result code {int(result)})"
+
+
+def check_solution(sol: Solution, config: SolverConfig) -> Solution:
+    """Raise `SimulationError` naming the cause if the solve failed (`health_failure`)."""
+    err = simulation_error(solve_health(sol, np), config)
+    if err is not None and str(err).startswith("non-finite state"):
+        bad = ~np.isfinite(np.asarray(sol.q)) | ~np.isfinite(np.asarray(sol.qdot))
+        k = int(np.argmax(bad.reshape(bad.shape[0], -1).any(axis=1)))
+        err = SimulationError(str(err).replace("during the solve",
+                                               f"from t = {float(sol.ts[k]):.4g} ms on"))
+    if err is not None:
+        raise err
+    return sol

@@ -1,0 +1,1 @@
+"""Sweeps over many runs: Pareto fronts and the Pareto sweep, robustness maps, Dask."""

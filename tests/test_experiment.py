@@ -25,6 +25,7 @@ class FakeRig:
         self._recorder: dict = {}
         self._stage, self._t_set, self._t_cam = "idle", None, None
         self.lose_frames = lose_frames
+        self.simulated_clock = True
         self.shaker_fault_text, self.shaker_fault_at = "", math.inf
         self._compensated_at = math.inf
         self.compensation_outcome = (True, "compensation done: 3 drives (within the tolerances)")
@@ -319,3 +320,29 @@ def test_the_drive_is_compensated_before_the_recording_starts():
     with pytest.raises(RigError, match="^shaker: compensation failed: stopped before it ended$"):
         Experiment(plan, rig).run()
     assert "set_strain" not in rig.names()
+
+
+def test_on_the_system_clock_nothing_moves_before_the_device_samples_are_recorded():
+    rig = FakeRig(PLAN)
+    rig.simulated_clock = False
+    recorder_start = rig.recorder_start
+
+    def start_without_device_samples():  # the recorder has not discovered a device node
+        recorder_start()
+        rig._recorder["counts"] = {DEVICE_TOPICS[1]: 3}
+
+    rig.recorder_start = start_without_device_samples
+    with pytest.raises(RigError, match="the recorder to receive the shaker's and the stage's "
+                                       "samples"):
+        Experiment(PLAN, rig).run()
+    assert "set_strain" not in rig.names()
+    rig = FakeRig(PLAN)
+    rig.simulated_clock = False
+    recorder_start = rig.recorder_start
+
+    def start_with_device_samples():
+        recorder_start()
+        rig._recorder["counts"] = {t: 1 for t in DEVICE_TOPICS}
+
+    rig.recorder_start = start_with_device_samples
+    assert Experiment(PLAN, rig).run()["frames"] == 41

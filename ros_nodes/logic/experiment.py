@@ -34,7 +34,12 @@ class RigError(RuntimeError):
 
 class RigPort(Protocol):
     """What the procedure needs from the rig. Calls that wait for an answer raise `RigError`
-    on timeout; `(accepted, message)` pairs carry a device's refusal and its reason."""
+    on timeout; `(accepted, message)` pairs carry a device's refusal and its reason.
+
+    `simulated_clock`: the rig runs on the simulated time it publishes (False: the system
+    clock, on which the device nodes sample from their start)."""
+
+    simulated_clock: bool
 
     def now(self) -> float:
         """Wall time (monotonic), s."""
@@ -221,6 +226,14 @@ class Experiment:
         self.until(lambda: port.recorder().get("recording") and
                    port.recorder().get("matched", True),
                    "the recorder to start and match every topic", 30.0)
+        if not port.simulated_clock:
+            # on the system clock the devices sample from their start: the recorder must hold
+            # their samples before anything moves. `matched` covers the topics the recorder has
+            # discovered; with one process per node it had once not yet discovered the shaker
+            # node (DDS discovery under load) and recorded none of its motion
+            self.until(lambda: all(port.recorder().get("counts", {}).get(t, 0) > 0
+                                   for t in DEVICE_TOPICS),
+                       "the recorder to receive the shaker's and the stage's samples", 30.0)
         timings = {"startup": port.now() - w0}
 
         w = port.now()

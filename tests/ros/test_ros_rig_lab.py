@@ -88,13 +88,20 @@ def test_ctrl_c_stops_every_device_and_keeps_the_recording(tmp_path, emu, lab_en
     # to both emulated axes after their move) and the camera's stream
     assert "[shaker]: stop (rig stop)" in text and "[camera]: rig stop: the camera stops " \
         "streaming" in text
+    _stages_stopped_and_recording_kept(emu, out, min_frames=50)
+
+
+def _stages_stopped_and_recording_kept(emu, out, min_frames: int) -> None:
+    """Both emulated stages told to stop after their move, the run `interrupted` (its last
+    phases stop, aborted) and its MCAP complete (summary and footer) with the frames counted."""
     moved = max(i for i, m in enumerate(emu.received) if "move abs" in m)
     assert {"/1 1 stop", "/2 1 stop"} <= set(emu.received[moved:])
     run = json.loads((out / "run.json").read_text())
     assert run["status"] == "interrupted"
     assert [p["phase"] for p in run["phases"]][-2:] == ["stop", "aborted"]
-    _, msgs = read_mcap(out / "recording.mcap")  # a complete file: summary and footer
-    assert len(msgs[T.IMAGE.name]) == run["recording"]["topics"][T.IMAGE.name]["count"] > 50
+    _, msgs = read_mcap(out / "recording.mcap")
+    count = run["recording"]["topics"][T.IMAGE.name]["count"]
+    assert len(msgs[T.IMAGE.name]) == count > min_frames
     assert msgs[T.RIG_STOP.name] and msgs[T.SHAKER_JOINTS.name]
 
 
@@ -116,8 +123,6 @@ def test_a_stop_signal_with_one_process_per_node_stops_every_device(tmp_path, em
     # answered: no "did not stop"), both emulated stages, the camera's stream
     assert "stop (rig stop)" in logs["shaker"] and "did not stop" not in logs["shaker"]
     assert "rig stop: the camera stops streaming" in logs["camera"]
-    moved = max(i for i, m in enumerate(emu.received) if "move abs" in m)
-    assert {"/1 1 stop", "/2 1 stop"} <= set(emu.received[moved:])
     # then every node process went down on its own (no escalation to SIGTERM/SIGKILL)
     assert "did not stop on" not in text
     pids = [int(x.split("(pid ")[1].rstrip(")\n")) for x in text.splitlines() if "(pid " in x]
@@ -125,12 +130,7 @@ def test_a_stop_signal_with_one_process_per_node_stops_every_device(tmp_path, em
     for pid in pids:
         with pytest.raises(ProcessLookupError):
             os.kill(pid, 0)
-    run = json.loads((out / "run.json").read_text())
-    assert run["status"] == "interrupted"
-    assert [p["phase"] for p in run["phases"]][-2:] == ["stop", "aborted"]
-    _, msgs = read_mcap(out / "recording.mcap")  # a complete file: summary and footer
-    assert len(msgs[T.IMAGE.name]) == run["recording"]["topics"][T.IMAGE.name]["count"] > 20
-    assert msgs[T.RIG_STOP.name] and msgs[T.SHAKER_JOINTS.name]
+    _stages_stopped_and_recording_kept(emu, out, min_frames=20)
 
 
 @pytest.fixture

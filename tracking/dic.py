@@ -26,6 +26,7 @@ import numpy as np
 
 from metarig.polygon import area_centroids
 from tracking.calibration import Calibration
+from tracking.checks import Pieces, piece_deviation, rigid_fit, split_refs
 from tracking.icgn import icgn
 from tracking.kernels import bspline_coefficients
 from tracking.reference import RefSet, build_refs, replace_refs
@@ -66,6 +67,16 @@ class DICConfig:
         verify_px, verify_rad: a pose registered against a refreshed reference must agree this
             well (largest subset-point shift, px; rotation, rad) with the reference image's own
             subset where that registers poorly, else the unit is lost (`track_frame`).
+        check_pieces: every pose is checked by cutting its unit's subset into this many pieces
+            along its long axis and registering each on its own (`tracking.checks`); 0: no check.
+        check_sigmas, check_floor_px, check_max_px: a piece whose centroid lands further
+            from where the unit's pose puts it than check_sigmas of its standard error (at
+            the unit's correlation), bounded to [check_floor_px, check_max_px], fails the pose:
+            the unit is searched again from its pieces' motion, and lost if that fails too.
+            The upper bound keeps a poor fit from excusing itself: a wrong pose correlates
+            worse, which widens every standard error; 0.25 px at a piece is ~30 mrad on a
+            sliver whose pieces lie 9 px from its centre. A piece too small for it (check_sigmas
+            of its standard error at a near-perfect fit beyond it) is bounded by that instead.
         sigma_floor_px: systematic error of every subset point's registered position that
             noise does not explain (interpolation), px: added to each pose's standard error in
             quadrature (`pose_sigma`).
@@ -95,6 +106,10 @@ class DICConfig:
     acquire_neighbours: int = 4
     verify_px: float = 0.5
     verify_rad: float = 0.01
+    check_pieces: int = 2
+    check_sigmas: float = 5.0
+    check_floor_px: float = 0.1
+    check_max_px: float = 0.25
     sigma_floor_px: float = 0.005
     sigma_blur_share: float = 0.006
 
@@ -103,6 +118,9 @@ class DICConfig:
             raise ValueError("need 0 <= zncc_lost <= zncc_reacquire <= 1")
         if self.margin_px < 0 or self.max_iter < 1 or self.tol_px <= 0:
             raise ValueError("margin_px >= 0, max_iter >= 1 and tol_px > 0 are required")
+        if self.check_pieces == 1 or self.check_pieces < 0:
+            raise ValueError(f"check_pieces must be 0 (no check) or >= 2, got "
+                             f"{self.check_pieces}")
 
 
 @dataclass(frozen=True, slots=True)
@@ -149,6 +167,8 @@ class TrackerState:
         acquired: the first frame was registered against the reference (`acquire_frame`).
         refs0: the reference image's own subsets (poses are from them; refreshed references
             are checked against them every frame), None to skip that check.
+        pieces, pieces0: the subsets of `refs` and `refs0` cut into pieces for the check of
+            every pose (`DICConfig.check_pieces`), None without it.
     """
 
     refs: RefSet
@@ -162,6 +182,8 @@ class TrackerState:
     shape: tuple[int, int]
     acquired: bool = False
     refs0: RefSet | None = None
+    pieces: Pieces | None = None
+    pieces0: Pieces | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -243,10 +265,12 @@ def init_state(tracker: DICTracker, reference: np.ndarray) -> TrackerState:
         log.warning("%d of %d units cannot be tracked (outside the frame or too small): %s",
                     int(unusable.sum()), n, np.flatnonzero(unusable)[:20].tolist())
     nan2 = np.full((n, 2), np.nan)
+    parts = tracker.cfg.check_pieces
+    pieces = split_refs(refs, parts) if parts else None
     return TrackerState(
         refs=refs, ref_alpha=np.zeros(n), ref_t=np.zeros((n, 2)), alpha=np.zeros(n),
         t=np.zeros((n, 2)), prev_alpha=np.full(n, np.nan), prev_t=nan2, lost=unusable,
-        shape=prep.img.shape, refs0=refs,
+        shape=prep.img.shape, refs0=refs, pieces=pieces, pieces0=pieces,
     )
 
 
@@ -354,6 +378,9 @@ def track_frame(
     if state.refs0 is not None:
         ok, new_alpha, new_t, src_zncc, checked = _verify_against_reference(
             tracker, state, prep, ok, new_alpha, new_t, zncc)
+    if state.pieces is not None:
+        ok, new_alpha, new_t, src_zncc = _check_by_pieces(tracker, state, prep, ok, checked,
+                                                          new_alpha, new_t, src_zncc)
     src_refs = [(refs, ok & ~checked, src_zncc), (state.refs0, ok & checked, src_zncc)]
     prev_alpha = np.where(ok & ~state.lost, state.alpha, np.nan)
     prev_t = np.where((ok & ~state.lost)[:, None], state.t, np.nan)
@@ -412,6 +439,64 @@ def _verify_against_reference(tracker: DICTracker, state: TrackerState, prep: Pr
     return ok, alpha, t, zncc, checked
 
 
+def _check_by_pieces(tracker: DICTracker, state: TrackerState, prep: PreparedFrame,
+                     ok: np.ndarray, checked: np.ndarray, alpha: np.ndarray, t: np.ndarray,
+                     zncc: np.ndarray):
+    """Check every good pose with its unit's pieces (`tracking.checks`), each against the
+    reference it was registered with (the reference image's where `checked`). A unit whose
+    pieces disagree is registered again from their own rigid motion; if its pieces disagree
+    with that too, or it correlates below `zncc_lost`, it is lost.
+
+    Returns (ok, alpha, t, zncc): the flags, poses (from the reference image, px, rad) and
+    correlations after the check."""
+    cfg = tracker.cfg
+    ok, alpha, t, zncc = ok.copy(), alpha.copy(), t.copy(), zncc.copy()
+    zero_a, zero_t = np.zeros_like(state.ref_alpha), np.zeros_like(state.ref_t)
+    for refs, pieces, ra, rt, sel in (
+        (state.refs, state.pieces, state.ref_alpha, state.ref_t, ok & ~checked),
+        (state.refs0, state.pieces0, zero_a, zero_t, ok & checked),
+    ):
+        idx = np.flatnonzero(sel)
+        if idx.size == 0:
+            continue
+        a_rel, w_rel = alpha[idx] - ra[idx], t[idx] - rt[idx]
+        check = _pieces_agree(tracker, prep, pieces, idx, a_rel, w_rel, zncc[idx])
+        bad = ~check[0]
+        if not bad.any():
+            continue
+        redo = idx[bad]
+        a0, w0 = rigid_fit(pieces.offset[pieces.index(redo)], check[1][bad])
+        r = icgn(prep.coef, refs, redo, a0, w0, cfg.max_iter, cfg.tol_px, cfg.max_move_px)
+        good = r.inside & (np.nan_to_num(r.zncc, nan=-1.0) >= cfg.zncc_lost)
+        if good.any():
+            good[good] = _pieces_agree(tracker, prep, pieces, redo[good], r.alpha[good],
+                                       r.w[good], r.zncc[good])[0]
+        fixed = redo[good]
+        alpha[fixed], t[fixed] = ra[fixed] + r.alpha[good], rt[fixed] + r.w[good]
+        zncc[fixed] = r.zncc[good]
+        gone = redo[~good]  # lost: they keep their last good pose, as any lost unit
+        ok[gone], alpha[gone], t[gone] = False, state.alpha[gone], state.t[gone]
+        log.debug("%d poses failed their pieces' check: %d found again, %d flagged lost",
+                  redo.size, fixed.size, redo.size - fixed.size)
+    return ok, alpha, t, zncc
+
+
+def _pieces_agree(tracker: DICTracker, prep: PreparedFrame, pieces: Pieces, idx: np.ndarray,
+                  alpha: np.ndarray, w: np.ndarray,
+                  zncc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(agree [k], moved [k, parts, 2]): whether every piece of units `idx` lands within
+    the bound of where their poses (alpha [k], w [k, 2] from the pieces' reference, at
+    correlation zncc [k]) put it (units whose pieces cannot be registered pass: nothing to
+    check them with), and where each piece's centroid registered, px."""
+    cfg = tracker.cfg
+    pc = piece_deviation(prep.coef, pieces, idx, alpha, w, zncc, cfg.max_iter,
+                         PIECE_TOL_SHARE * cfg.check_floor_px, cfg.max_move_px,
+                         lambda rs, i, z: pose_sigma(rs, i, z, cfg.prefilter_sigma_px))
+    upper = np.maximum(cfg.check_max_px, cfg.check_sigmas * pc.sigma_fit)
+    bound = np.clip(cfg.check_sigmas * pc.sigma, cfg.check_floor_px, upper)
+    return ~pc.checkable | np.all(pc.deviation <= bound, axis=1), pc.moved
+
+
 def pose_sigma(refs: RefSet, idx: np.ndarray, zncc: np.ndarray,
                prefilter_sigma_px: float = 0.0, floor_px=0.0) -> np.ndarray:
     """Standard errors [k, 3] of the registered (wx px, wy px, alpha rad) of units `idx`.
@@ -435,9 +520,7 @@ def pose_sigma(refs: RefSet, idx: np.ndarray, zncc: np.ndarray,
         / np.maximum(n - 3.0, 1.0)
     diag = np.diagonal(refs.hinv[idx], axis1=1, axis2=2)
     noise2 = noise_correlation_factor(prefilter_sigma_px) ** 2 * var_i[:, None] * diag
-    r2 = (refs.mask[idx] * (refs.dx[idx].astype(np.float64) ** 2
-                            + refs.dy[idx].astype(np.float64) ** 2)).sum(axis=1) \
-        / np.maximum(n, 1.0)
+    r2 = refs.r2[idx]
     floor2 = np.asarray(floor_px, np.float64)[..., None] ** 2 * np.stack([np.ones_like(r2), np.ones_like(r2),
                                            1.0 / np.maximum(r2, 1.0)], axis=-1)
     return SIGMA_SCALE * np.sqrt(noise2 + floor2)
@@ -581,8 +664,15 @@ def _update_references(
     ref_alpha, ref_t = state.ref_alpha.copy(), state.ref_t.copy()
     ref_alpha[idx], ref_t[idx] = state.alpha[idx], state.t[idx]
     log.debug("reference updated for %d units", idx.size)
+    pieces = state.pieces
+    if pieces is not None:
+        cut = split_refs(sub, pieces.parts)
+        pidx = pieces.index(idx).ravel()
+        offset = pieces.offset.copy()
+        offset[pidx] = cut.offset
+        pieces = Pieces(replace_refs(pieces.refs, pidx, cut.refs), offset, pieces.parts)
     return replace(state, refs=replace_refs(state.refs, idx, sub), ref_alpha=ref_alpha,
-                   ref_t=ref_t)
+                   ref_t=ref_t, pieces=pieces)
 
 
 SMALL_UNIT_MARGIN_PX = 1.5
@@ -623,3 +713,6 @@ def settings_for_units(polygons_m: np.ndarray, m_per_px: float,
         return cfg
     return replace(cfg, margin_px=min(cfg.margin_px, SMALL_UNIT_MARGIN_PX),
                    min_points=min(cfg.min_points, SMALL_UNIT_MIN_POINTS))
+# the pieces of `DICConfig.check_pieces` converge to this share of the check's floor (px): the
+# check compares them with a bound of at least the floor, so finer would only cost time
+PIECE_TOL_SHARE = 0.1

@@ -30,6 +30,7 @@ class RefSet:
         mask: [n, M] float32 1 for real points, 0 for padding.
         count: [n] int number of subset points (0: unit unusable).
         rmax: [n] largest distance of a subset point from the centre, px.
+        r2: [n] mean squared distance of the subset points from the centre, px^2.
         patch: [n, P, P] float32 reference pixels around the centre (for coarse search).
         patch_corner: [n, 2] int (col, row) of patch[0, 0] in the reference frame.
         tpl_half: [n] int half-size of the search template that fits inside the subset.
@@ -47,6 +48,7 @@ class RefSet:
     mask: np.ndarray
     count: np.ndarray
     rmax: np.ndarray
+    r2: np.ndarray
     patch: np.ndarray
     patch_corner: np.ndarray
     tpl_half: np.ndarray
@@ -164,7 +166,9 @@ def build_refs(
     sumj = jac64.sum(axis=2)
     sumjf = np.einsum("nim,nm->ni", jac64, ft.astype(np.float64))
     count = np.where(usable, count, 0)
-    rmax = np.sqrt(dx.astype(np.float64) ** 2 + dy.astype(np.float64) ** 2).max(axis=1)
+    d2 = dx.astype(np.float64) ** 2 + dy.astype(np.float64) ** 2
+    rmax = np.sqrt(d2.max(axis=1))
+    r2 = d2.sum(axis=1) / cnt  # padding is at the centre (0)
     tpl_half = np.maximum(np.floor(np.clip(rin, 0, None) / np.sqrt(2.0)).astype(np.int64) - 1, 0)
     ph = patch_half if patch_half is not None else int(np.ceil(max(rin.max(), 1.0))) + 2
     corner = np.rint(centres_px).astype(np.int64) - ph
@@ -177,7 +181,7 @@ def build_refs(
     return RefSet(
         centre_px=np.asarray(centres_px, np.float64).copy(),
         dx=dx, dy=dy, ft=ft, df=df, jac=jac, hinv=hinv, sumj=sumj, sumjf=sumjf, mask=mask, count=count, rmax=rmax,
-        patch=patch, patch_corner=corner, tpl_half=tpl_half,
+        r2=r2, patch=patch, patch_corner=corner, tpl_half=tpl_half,
     )
 
 
@@ -201,3 +205,4 @@ def replace_refs(refs: RefSet, idx: np.ndarray, new: RefSet) -> RefSet:
         a[idx] = new_a
         out[name] = a
     return RefSet(**out)
+

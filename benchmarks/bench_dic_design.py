@@ -15,7 +15,13 @@ also counted without the second kind of flag (`wrong_not_lost`); 99th-percentile
 rotation error over the unflagged unit-frames and over all tracked ones [<= 0.1 px, <= 3 mrad];
 lost unit-frames and uncertain ones, slender units (no search template fits inside them) counted
 separately [<= 2 %]; the share of true errors within 2 stated standard errors [about 95 %];
-tracking speed [>= 20 frames/s on 2 cores]; with the machine and its load.
+tracking speed [>= 20 frames/s on 2 cores]; with the machine and its load. Also the share of
+each component's error variance that is white from frame to frame (the rest is each unit's
+constant, mostly the reference image's noise), against `comparison.metrics.FRAME_NOISE_SHARE`.
+
+The reference image averages `--reference-frames` frames at rest (default: the rig's,
+`hardware_sim.camera.REFERENCE_FRAMES`); it is rendered for each count once, beside the
+footage (`reference-N.png`), so counts compare on the same frames.
 
 Writes `<out>/bench_dic_design.json` and, with `--results DIR`, a copy there. Prints a table.
 `--design periodic` films the scene's periodic focusing design instead (squares, no slivers):
@@ -50,15 +56,7 @@ def film_design(folder: Path, fps: float, m_per_px: float, duration_s: float, se
                 design: str):
     """Render the frames (PNG) and the reference image; returns (truth q [n_t, n, 3] at the
     stamps, stamps s, polygons m, calibration)."""
-    from hardware_sim import camera as cam
-    from hardware_sim.rig import (
-        MotionRecord,
-        capture_times,
-        centred_origin,
-        exposure_motion,
-        film,
-        reference_frame,
-    )
+    from hardware_sim.rig import MotionRecord, capture_times, centred_origin, exposure_motion, film
     from hardware_sim.specimen import SpecimenConfig, build
     from tracking.calibration import Calibration
 
@@ -74,11 +72,8 @@ def film_design(folder: Path, fps: float, m_per_px: float, duration_s: float, se
     w = int(np.ceil((hi[0] - lo[0]) / m_per_px)) + 80  # room for the driven edge's 7.5 mm
     h = int(np.ceil((hi[1] - lo[1]) / m_per_px)) + 40
     origin = centred_origin(specimen.polygons_m, w, h, m_per_px)
-    ccfg = cam.CameraConfig(width_px=w, height_px=h, fps=fps, m_per_px=m_per_px,
-                            origin_px=origin, supersample=2, exposure_samples=3,
-                            noise_std=0.01, lighting_gradient=0.15, seed=seed)
+    ccfg = camera_config(w, h, origin, fps, m_per_px, seed)
     folder.mkdir(parents=True, exist_ok=True)
-    cv2.imwrite(str(folder.parent / "reference.png"), reference_frame(specimen, ccfg, seed))
     stamps, truth = [], []
     for k, (t, frame, q) in enumerate(film(specimen, ccfg, traj, np.random.default_rng(seed))):
         cv2.imwrite(str(folder / f"{k:05d}.png"), frame)
@@ -86,6 +81,36 @@ def film_design(folder: Path, fps: float, m_per_px: float, duration_s: float, se
         truth.append(q)
     calib = Calibration(fps=fps, m_per_px=m_per_px, origin_px=origin, y_up=True)
     return np.array(truth), np.array(stamps), specimen.polygons_m, calib
+
+
+def camera_config(width_px: int, height_px: int, origin_px, fps: float, m_per_px: float,
+                  seed: int):
+    """The rig camera's defaults at this scale (1 % read noise, 15 % lighting gradient)."""
+    from hardware_sim import camera as cam
+
+    return cam.CameraConfig(width_px=width_px, height_px=height_px, fps=fps, m_per_px=m_per_px,
+                            origin_px=tuple(origin_px), supersample=2, exposure_samples=3,
+                            noise_std=0.01, lighting_gradient=0.15, seed=seed)
+
+
+def reference(out: Path, frames: int, polygons: np.ndarray, origin_px, fps: float,
+              m_per_px: float, seed: int) -> Path:
+    """The footage's reference image averaged over `frames` frames at rest (rendered once)."""
+    from hardware_sim.camera import reference_image
+
+    path = out / f"reference-{frames}.png"
+    if not path.exists():
+        h, w = cv2.imread(str(next((out / "frames").glob("*.png"))), cv2.IMREAD_UNCHANGED).shape
+        ccfg = camera_config(w, h, origin_px, fps, m_per_px, seed)
+        cv2.imwrite(str(path), reference_image(ccfg, polygons, seed, frames))
+    return path
+
+
+def white_share(e: np.ndarray) -> list[float]:
+    """Share of the error variance (e [n_t, n, 3], NaN where lost) left once each unit's mean
+    error is taken away, per component: the part white from frame to frame."""
+    dev = e - np.nanmean(e, axis=0, keepdims=True)
+    return [float(np.nanmean(dev[..., i] ** 2) / np.nanmean(e[..., i] ** 2)) for i in range(3)]
 
 
 def main(argv=None) -> int:
@@ -96,12 +121,20 @@ def main(argv=None) -> int:
     p.add_argument("--duration-s", type=float, default=0.1)
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--reference-frames", type=int, default=None,
+                   help="frames at rest the reference image averages (default: the rig's)")
     p.add_argument("--design", default=str(DESIGN),
                    help="design file of the sample, or `periodic` for the scene's periodic design "
                         "(the results file is then bench_dic_periodic.json)")
     args = p.parse_args(argv)
     if args.design != "periodic" and not Path(args.design).is_file():
         p.error(f"{args.design}: no such design file")
+    from hardware_sim.camera import REFERENCE_FRAMES
+    from comparison.metrics import FRAME_NOISE_SHARE
+
+    n_ref = REFERENCE_FRAMES if args.reference_frames is None else args.reference_frames
+    if n_ref < 1:
+        p.error("--reference-frames must be >= 1")
     from tracking.batch import track_source
     from tracking.dic import DICTracker, init_state, settings_for_units
     from tracking.frame_sources import open_source
@@ -122,13 +155,14 @@ def main(argv=None) -> int:
         np.savez(truth_file, q=truth, t=stamps, polygons_m=polygons,
                  origin_px=np.asarray(calib.origin_px))
     cfg = settings_for_units(polygons, mpp)
-    ref = cv2.imread(str(args.out / "reference.png"), cv2.IMREAD_UNCHANGED)
+    ref_path = reference(args.out, n_ref, polygons, calib.origin_px, fps, mpp, args.seed)
+    ref = cv2.imread(str(ref_path), cv2.IMREAD_UNCHANGED)
     tr = DICTracker(polygons, calib, cfg)
     slender = init_state(tr, ref).refs.tpl_half < MIN_TEMPLATE_HALF
     load0 = os.getloadavg()
     t0 = time.perf_counter()
     traj, _ = track_source(open_source(frames), polygons, calib, cfg, workers=args.workers,
-                           reference=str(args.out / "reference.png"))
+                           reference=str(ref_path))
     wall = time.perf_counter() - t0
     lost = traj.lost
     e = traj.q - truth
@@ -145,6 +179,7 @@ def main(argv=None) -> int:
         "machine": describe(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "design": _shown(args.design), "frames": int(traj.n_t),
         "units": int(traj.n_units), "slender_units": int(slender.sum()),
+        "reference_frames": n_ref,
         "settings": {"margin_px": cfg.margin_px, "min_points": cfg.min_points,
                      "prefilter_sigma_px": cfg.prefilter_sigma_px,
                      "sigma_floor_px": cfg.sigma_floor_px,
@@ -160,6 +195,10 @@ def main(argv=None) -> int:
             pos_px / np.maximum(sig_px, 1e-12), rot / traj.sigma[..., 2])[wrong])[:20]],
         "p99_position_px": float(np.percentile(pos_px[trusted], 99)),
         "p99_rotation_mrad": float(np.percentile(rot[trusted], 99) * 1e3),
+        "p99_rotation_mrad_slender": float(np.percentile(rot[:, slender][trusted[:, slender]],
+                                                         99) * 1e3) if slender.any() else None,
+        "p99_rotation_mrad_other": float(np.percentile(rot[:, ~slender][trusted[:, ~slender]],
+                                                       99) * 1e3),
         "p99_position_px_all_tracked": float(np.percentile(pos_px[ok], 99)),
         "p99_rotation_mrad_all_tracked": float(np.percentile(rot[ok], 99) * 1e3),
         "lost_share": float(lost.mean()),
@@ -170,6 +209,7 @@ def main(argv=None) -> int:
         else 0.0,
         "uncertain_share_other": float(uncertain[:, ~slender].mean()),
         "within_2_sigma": [float(np.mean(z[..., i][ok] < 2.0)) for i in range(3)],
+        "white_share": white_share(e), "frame_noise_share": FRAME_NOISE_SHARE,
         "frames_per_s": float(traj.n_t / wall), "workers": args.workers,
         "load_average_1min": {"before": load0[0], "after": os.getloadavg()[0]},
     }
@@ -181,6 +221,9 @@ def main(argv=None) -> int:
             ("  wrong and not lost (sigma not counted)", res["wrong_not_lost"]),
             ("p99 position error, px (<= 0.1)", f"{res['p99_position_px']:.3f}"),
             ("p99 rotation error, mrad (<= 3)", f"{res['p99_rotation_mrad']:.2f}"),
+            ("  rotation, slender / other units, mrad",
+             " / ".join("-" if v is None else f"{v:.2f}" for v in
+                        (res["p99_rotation_mrad_slender"], res["p99_rotation_mrad_other"]))),
             ("  all tracked: px / mrad", f"{res['p99_position_px_all_tracked']:.3f} / "
                                         f"{res['p99_rotation_mrad_all_tracked']:.2f}"),
             ("lost unit-frames (<= 2 %)", f"{100 * res['lost_share']:.2f} %"),
@@ -191,6 +234,8 @@ def main(argv=None) -> int:
              f"{100 * res['uncertain_share_other']:.2f} %"),
             ("within 2 sigma x / y / theta (~95 %)",
              " / ".join(f"{100 * v:.1f}" for v in res["within_2_sigma"])),
+            (f"white share x / y / theta ({FRAME_NOISE_SHARE})",
+             " / ".join(f"{v:.2f}" for v in res["white_share"])),
             ("tracking speed, frames/s (>= 20)", f"{res['frames_per_s']:.1f}")]
     for name, v in rows:
         print(f"{name:<46}{v!s:>16}")

@@ -91,13 +91,12 @@ def film(specimen: Specimen, cfg: cam.CameraConfig, traj, rng: np.random.Generat
         yield float(traj.t[k + 1]), frame, traj.q[k + 1]
 
 
-def reference_frame(specimen: Specimen, cfg: cam.CameraConfig, seed: int) -> np.ndarray:
-    """The unloaded specimen at rest (uint8 [H, W]), with the speckle that `film` draws from
-    `np.random.default_rng(seed)`: the image a lab takes before the stages close."""
-    rng = np.random.default_rng(seed)
-    textures = cam.make_speckle_textures(specimen.polygons_m, cfg, rng)
-    return cam.render_frame(cfg, specimen.polygons_m, np.zeros((specimen.polygons_m.shape[0], 3)),
-                            textures, rng)
+def reference_frame(specimen: Specimen, cfg: cam.CameraConfig, seed: int,
+                    frames: int = cam.REFERENCE_FRAMES) -> np.ndarray:
+    """The unloaded specimen at rest (uint8 [H, W]), averaged over `frames` frames, with the
+    speckle that `film` draws from `np.random.default_rng(seed)`: the image a lab takes before
+    the stages close (`hardware_sim.camera.reference_image`)."""
+    return cam.reference_image(cfg, specimen.polygons_m, seed, frames)
 
 
 def centred_origin(polygons_m: np.ndarray, width_px: int, height_px: int,

@@ -118,6 +118,9 @@ class CameraNodeConfig:
                                    "under load cannot start the capture early", -1.0, 1e9)
     supersample: int = param(2, "sim: sub-pixel samples per pixel side", 1, 8)
     seed: int = param(0, "seed of noise and speckle", 0, 2**31 - 1)
+    snapshot_frames: int = param(8, "frames at rest that `~/snapshot` averages into the "
+                                 "reference image (the reference's read noise is in every "
+                                 "tracked pose; 1: a single frame)", 1, 256)
     hardware: str = param("sim", "camera backend: the frames `source` names, or the [camera] of "
                           "lab_file (a pylon or GenICam camera; a 'sim' entry keeps `source`)",
                           choices=HARDWARE)

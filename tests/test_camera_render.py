@@ -6,8 +6,10 @@ import pytest
 from hardware_sim.camera import (
     CameraConfig,
     SpeckleTextures,
+    average_frames,
     lighting_field,
     make_speckle_textures,
+    reference_image,
     render_frame,
     sample_to_pixel,
     square_lattice_polygons,
@@ -161,3 +163,25 @@ def test_lattice_frame_renders_fast_enough():
     assert time.perf_counter() - t0 < 5.0
     px = sample_to_pixel(cfg, area_centroids(polys))
     assert px[:, 0].min() > 0 and px[:, 0].max() < 640 and px[:, 1].min() > 0
+
+
+def test_the_reference_snapshot_averages_frames_at_rest():
+    # the snapshot of the unloaded sample: its read noise falls as 1 / sqrt(frames) (plus the
+    # rounding back to 8 bits, 1/sqrt(12) grey level); one frame is the single snapshot itself
+    cfg, poly, tex = _one_unit(ss=2)
+    noisy = CameraConfig(**{**{f: getattr(cfg, f) for f in cfg.__slots__}, "noise_std": 0.02})
+    clean = reference_image(cfg, poly, seed=5, frames=1).astype(float)
+    rng = np.random.default_rng(5)
+    single = render_frame(noisy, poly, np.zeros((1, 3)),
+                          make_speckle_textures(poly, noisy, rng), rng)
+    np.testing.assert_array_equal(reference_image(noisy, poly, seed=5, frames=1), single)
+    for n in (4, 16):
+        ref = reference_image(noisy, poly, seed=5, frames=n)
+        assert ref.dtype == np.uint8 and ref.shape == clean.shape
+        expected = np.sqrt((0.02 * 255) ** 2 / n + 1 / 12)
+        assert abs(np.std(ref[:5] - clean[:5]) / expected - 1) < 0.15  # flat background rows
+    frames = [np.full((2, 3), v, np.uint16) for v in (1000, 1001, 1003)]
+    avg = average_frames(frames)
+    assert avg.dtype == np.uint16 and np.all(avg == 1001)  # 1001.33 rounded
+    with pytest.raises(ValueError):
+        average_frames([frames[0], frames[0].astype(np.uint8)])

@@ -5,7 +5,8 @@ Interfaces (node name `camera`):
 - services `~/start` / `~/stop` (std_srvs/Trigger): replay sources stream from start; the
   simulated camera captures between start and stop and then downloads the footage (see below).
 - topic `/rig/stop` (std_msgs/Empty): a lab camera's stream stops (as `~/stop`).
-- service `~/snapshot` (std_srvs/Trigger): one frame now on `/camera/reference_image` (latched),
+- service `~/snapshot` (std_srvs/Trigger): the mean of the next `snapshot_frames` frames (default
+  8: the reference's read noise is in every tracked pose) on `/camera/reference_image` (latched),
   the tracker's reference; the sequencer takes it before the stages close (simulated: the
   specimen at rest, refused once the stages have moved).
 - `/camera/image_raw` (sensor_msgs/Image mono8/mono16) + `/camera/camera_info`, same stamps;
@@ -407,14 +408,20 @@ class CameraNode(Node):
             self._lab_stop(Trigger.Response())
 
     def _lab_snapshot(self, res):
+        from hardware_sim.camera import average_frames
+
         if self._camera is None:
             return self._lab_refuse(res, self._lab_error)
         timeout_s = self._params.config.grab_timeout_s
+        n = self._params.config.snapshot_frames
         if self._stream is not None and self._stream.running:
-            got = self._stream.next_frame(timeout_s)
-            if got is None:
-                return self._lab_refuse(res, f"no streamed frame within {timeout_s:g} s")
-            ns, image = got
+            images = []
+            for _ in range(n):
+                got = self._stream.next_frame(timeout_s)
+                if got is None:
+                    return self._lab_refuse(res, f"no streamed frame within {timeout_s:g} s")
+                ns, image = got
+                images.append(image)
         else:
             try:
                 if camera_settings(self._params.config, self._section).trigger == "hardware":
@@ -422,20 +429,27 @@ class CameraNode(Node):
                                                  "from the stream: start it first")
                 settings = self._lab_configure()
                 self._camera.start()
+                frames = []
                 try:
-                    if settings.trigger == "software":
-                        self._camera.trigger()
-                    frame = self._camera.grab(timeout_s)
+                    for _ in range(n):
+                        if settings.trigger == "software":
+                            self._camera.trigger()
+                        frame = self._camera.grab(timeout_s)
+                        if frame is None:
+                            break
+                        frames.append(frame)
                 finally:
                     self._camera.stop()
             except (ValueError, RuntimeError) as e:
                 return self._lab_refuse(res, str(e))
             except Exception as e:  # noqa: BLE001 - vendor exceptions: one line
                 return self._lab_refuse(res, f"{self._camera.identity}: {one_line(e)}")
-            if frame is None:
+            if len(frames) < n:
                 return self._lab_refuse(res, f"{self._camera.identity} gave no frame within "
                                              f"{timeout_s:g} s")
-            ns, image = self._host_to_ros(FrameStamper().stamp(frame)), frame.image
+            ns = self._host_to_ros(FrameStamper().stamp(frames[-1]))
+            images = [f.image for f in frames]
+        image = average_frames(images)
         enc = ImageEncoder(image.shape[0], image.shape[1], image.dtype,
                            self._params.config.frame_id)
         self._reference.publish(enc.encode(ns, image))
@@ -457,7 +471,8 @@ class CameraNode(Node):
             res.success, res.message = False, ("refused: the simulated camera can only take the "
                                                "unloaded specimen (before the stages move)")
         else:
-            frame = reference_frame(self._specimen, self._camera_config(), cfg.seed)
+            frame = reference_frame(self._specimen, self._camera_config(), cfg.seed,
+                                    cfg.snapshot_frames)
             self._reference.publish(self._enc_for(frame).encode(
                 self.get_clock().now().nanoseconds, frame))
             res.success, res.message = True, "reference image published"

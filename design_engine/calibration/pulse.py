@@ -11,11 +11,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from design_engine.physics.material import Material
-from design_engine.physics.material_file import SI_UNITS
 from design_engine.calibration.fit import (CalibrationError, Fit, check_damping_names,
                                            check_fit_names, derived_damping, make_fitted_material,
                                            run_fit, start_damping_ratio)
+from design_engine.physics.material import Material
+from design_engine.physics.material_file import SI_UNITS
 
 # --- pulse experiments ------------------------------------------------------------------------
 
@@ -217,9 +217,9 @@ def fit_pulse(scene, frame_t_s, tracked_q, valid, input_t_s, input_u_m, stage_t_
     noise); `extra["stderr_statistical"]` keeps the cluster-robust part and
     `extra["model_error"]` the figures.
     """
-    from design_engine.solve.fixed_step import is_fixed_step
+    from design_engine.solve.driver import PolicyFailed, solve_with_policy
     from design_engine.solve.run import measured_loading
-    from design_engine.solve.simulate import make_simulator
+    from design_engine.solve.simulate import SimulationError, make_simulator
 
     names = check_fit_names(list(fit), PULSE_PARAMS, "pulse")
     check_damping_names(names)
@@ -284,16 +284,23 @@ def fit_pulse(scene, frame_t_s, tracked_q, valid, input_t_s, input_u_m, stage_t_
         out.extra["window_fits"] = fits[:-1]
         return out, simulate
 
-    automatic = config is None
-    config = config or pulse_config(scene)
     t0 = time.perf_counter()
-    try:
+    if config is not None:
         out, simulate = continuation(config)
-    except CalibrationError:  # not finite at the start (fixed step unstable in contact)
-        if not automatic or not is_fixed_step(config.solver):
-            raise
-        config = contact_forward_config()
-        out, simulate = continuation(config)
+    else:  # under the policy driver: a fit that fails (not finite at the start: a fixed step
+        # unstable in contact) is redone with Dopri8 in forward mode
+        def solve(cfg):
+            try:
+                return continuation(cfg), None
+            except CalibrationError as exc:
+                raise SimulationError(str(exc)) from None
+
+        try:
+            done = solve_with_policy(scene, pulse_config(scene), solve,
+                                     fallback=contact_forward_config())
+        except PolicyFailed as exc:
+            raise CalibrationError(str(exc)) from None
+        (out, simulate), config = done.result, done.config
     # the fitted and the start curves: one compiled program for both (called as it is, each
     # call traced the whole solve op by op, which cost more than the fit's own iterations)
     simulate = jax.jit(simulate)

@@ -32,16 +32,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from design_engine.solve.policy import (STABILITY_SAFETY, choose_config, contact_config, fallback_config,
-                                initial_vector, make_frequency_estimator, next_config,
-                                start_config)
-from design_engine.solve.fixed_step import is_fixed_step
-from design_engine.physics.modal import prestressed_state
 from design_engine.design.objectives import objective_term
+from design_engine.design.task import OPTIMISER_SCALE, Task
+from design_engine.design.task_schema import Term
+from design_engine.physics.modal import prestressed_state
+from design_engine.solve.driver import PolicyFailed, solve_with_policy
+from design_engine.solve.fixed_step import is_fixed_step
+from design_engine.solve.policy import (STABILITY_SAFETY, choose_config, contact_config,
+                                        initial_vector, make_frequency_estimator)
 from design_engine.solve.run import checked, compile_key, config_summary
-from design_engine.solve.simulate import (SimulationError, Solution, SolverConfig, StepBudgetError,
-                                   make_simulator, solve_health)
-from design_engine.design.task import OPTIMISER_SCALE, Task, Term
+from design_engine.solve.simulate import (SimulationError, Solution, SolverConfig, make_simulator,
+                                          solve_health)
 
 STEP_RECHECK = 0.8  # re-choose the fixed step above this fraction of the stability limit
 STEP_CHECK_ITERATIONS = 30  # warm-started power iterations per evaluation
@@ -247,48 +248,42 @@ class TaskEvaluator:
     def _solve_scene(self, name: str, x: np.ndarray, events: list[str]):
         st = self._state[name]
         scene = self.task.scenes[name]
-        config, why = st.config, list(st.reasons)
         if self.forced is not None:
+            config, why = st.config, list(st.reasons)
             try:
                 value, grad, terms, _ = self._solve(name, config, x)
             except SimulationError as exc:
                 raise EvaluationFailed(f"{name}: {exc}") from None
             return value, grad, terms, self._record(config, why)
-        try:
+
+        def check():
             self._check_step(name, x, events)
-            config, why = st.config, list(st.reasons)
-            start = start_config(config, st.last_config, st.last_health, scene)
-            if start != config:
-                config = start
-                why.append("the previous design needed contact: started with its configuration")
+            return st.config
+
+        def solve(config):
             value, grad, terms, aux = self._solve(name, config, x)
-            while (nxt := next_config(config, aux, scene)) is not None:
-                config, reason = nxt
-                why.append(reason)
-                events.append(f"{name}: {reason}")
-                value, grad, terms, aux = self._solve(name, config, x)
-            st.start_state = np.asarray(aux["start_state"])
-            st.last_config, st.last_health = config, {k: np.asarray(v) for k, v in aux.items()
-                                                      if k != "start_state"}
-            return value, grad, terms, self._record(config, why)
-        except SimulationError as exc:
-            if isinstance(exc, StepBudgetError) and not is_fixed_step(config.solver):
-                raise EvaluationFailed(
-                    f"{name}: {exc}; over the evaluation's step budget (budget.max_solve_steps): "
-                    "the design counts as failed, with no fallback") from None
-            fb, reason = fallback_config()
-            if config == fb:
-                fb, reason = SolverConfig(), "retried with the reference Dopri5 configuration"
-            events.append(f"{name}: {exc}; {reason}")
-            try:
-                value, grad, terms, aux = self._solve(name, fb, x)
-            except SimulationError as exc2:
-                raise EvaluationFailed(f"{name}: {exc}; the fallback failed too: {exc2}") from None
-            # the next step check measures at this design's start state (a resumed run's
-            # evaluator starts from the initial design's, where a far design's stiffness can
-            # be indefinite)
-            st.start_state = np.asarray(aux["start_state"])
-            return value, grad, terms, self._record(fb, why + [reason])
+            return (value, grad, terms, aux), aux
+
+        def log(step):
+            events.append(f"{name}: {step.error}; {step.reason}" if step.error
+                          else f"{name}: {step.reason}")
+
+        try:
+            out = solve_with_policy(scene, st.config, solve, check=check,
+                                    previous=(st.last_config, st.last_health),
+                                    budget_fails_at_once=True, on_step=log)
+        except PolicyFailed as exc:
+            raise EvaluationFailed(f"{name}: {exc}") from None
+        value, grad, terms, aux = out.result
+        # the next step check measures at this design's start state (after a fallback too: a
+        # resumed run's evaluator starts from the initial design's, where a far design's
+        # stiffness can be indefinite)
+        st.start_state = np.asarray(aux["start_state"])
+        why = list(st.reasons) + [s.reason for s in out.steps[1:]]
+        if not out.fell_back:
+            st.last_config, st.last_health = out.config, {
+                k: np.asarray(v) for k, v in aux.items() if k != "start_state"}
+        return value, grad, terms, self._record(out.config, why)
 
     def evaluate(self, x: np.ndarray) -> Evaluation:
         """Value and gradient of the scalarised objective at design `x` [n_design] (mm).

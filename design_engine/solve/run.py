@@ -11,16 +11,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from design_engine.solve.policy import (Choice, choose_config, fallback_config, next_config,
-                                start_config)
-from design_engine.physics.loading import Loading
 from design_engine.design.objectives import (angular_momentum, block_kinetic_energy, objective_term,
-                                      peak_energy_along_units, region_energy, region_energy_ratio)
+                                             peak_energy_along_units, region_energy,
+                                             region_energy_ratio)
+from design_engine.physics.loading import Loading
 from design_engine.physics.regions import row_units
 from design_engine.physics.scenes import Scene
+from design_engine.solve.driver import solve_with_policy
 from design_engine.solve.fixed_step import is_fixed_step
+from design_engine.solve.policy import Choice, choose_config
 from design_engine.solve.simulate import (SimulationError, Solution, SolverConfig, check_solution,
-                                    make_simulator, simulation_error, solve_health)
+                                          make_simulator, simulation_error, solve_health)
 from metarig.trajectory import Trajectory
 from design_engine.physics import units
 
@@ -142,27 +143,23 @@ def default_choice(scene: Scene) -> Choice:
 
 
 def _run_with_policy(scene: Scene, config: SolverConfig | None, ts_ms=None, loading=None):
-    """Solve with `config`, or with the automatic choice, its re-solves (`policy.next_config`) and
-    its fallback when None. Returns (solution, wall s, final config, reasons, re-solves), the
-    re-solves being the reasons of every solve after the first."""
+    """Solve with `config`, or with the automatic choice under the policy driver
+    (`driver.solve_with_policy`: re-solves and fallback) when None. Returns (solution, wall s,
+    final config, reasons, re-solves), the re-solves being the reasons of every solve after the
+    first."""
     if config is not None:
         sol, wall = _simulate(scene, config, ts_ms, loading)
         return sol, wall, config, ("configuration given by the caller",), ()
     choice = default_choice(scene)
-    cfg, resolves, wall = choice.config, (), 0.0
-    try:
-        while True:
-            sol, w = _simulate(scene, cfg, ts_ms, loading)
-            wall += w
-            nxt = next_config(cfg, solve_health(sol, np), scene)
-            if nxt is None:
-                return sol, wall, cfg, choice.reasons + resolves, resolves
-            cfg, resolves = nxt[0], resolves + (nxt[1],)
-    except SimulationError as exc:
-        fb, reason = fallback_config()
-        sol, w = _simulate(scene, fb, ts_ms, loading)
-        resolves += (f"{reason} ({exc})",)
-        return sol, wall + w, fb, choice.reasons + resolves, resolves
+    walls = []
+
+    def solve(cfg):
+        sol, w = _simulate(scene, cfg, ts_ms, loading)
+        walls.append(w)
+        return sol, solve_health(sol, np)
+
+    out = solve_with_policy(scene, choice.config, solve)
+    return out.result, sum(walls), out.config, choice.reasons + out.resolves, out.resolves
 
 
 def simulate_scene(scene: Scene, config: SolverConfig | None = None) -> SceneRun:
@@ -273,12 +270,13 @@ def make_objective(scene: Scene, config: SolverConfig | None = None, weights=Non
     for a single target, (0.5, 0.5) for two), or the angular momentum J_L for spin scenes. `aux`
     holds the solver result code, step count and void margin, so that failures can be reported
     after the jitted call (see `checked`). With a given `config` both functions are jitted as
-    they are. `config=None` uses the automatic per-scene choice and repeats an evaluation with
-    the configuration `policy.next_config` names (contact once a void reached the cutoff; half
-    the step or Dopri8 once the barrier outgrew the fixed step or the work-energy balance
-    drifted; each compiled on first need), so the result always
-    equals the full model's; on a reported failure, retry with `policy.fallback_config()`. Each
-    call starts where the previous one ended while that was in contact (`policy.start_config`).
+    they are. `config=None` runs each call under the policy driver (`driver.solve_with_policy`):
+    the automatic per-scene choice, repeated with the configuration `policy.next_config` names
+    (contact once a void reached the cutoff; half the step or Dopri8 once the barrier outgrew
+    the fixed step or the work-energy balance drifted; each compiled on first need), so the
+    result always equals the full model's; a failed solve is retried with the fallback, and a
+    failed fallback raises `SimulationError`. Each call starts where the previous one ended
+    while that was in contact (`policy.start_config`).
     """
     if config is not None:
         return _jitted_objective(scene, config, weights)
@@ -286,19 +284,19 @@ def make_objective(scene: Scene, config: SolverConfig | None = None, weights=Non
     last: dict = {"config": None, "health": None}
 
     def pick(i, x):
-        choice = default_choice(scene).config
-        cfg = start_config(choice, last["config"], last["health"], scene)
-        while True:
+        def solve(cfg):
             key = repr(cfg)
             if key not in programs:
                 programs[key] = _jitted_objective(scene, cfg, weights)
             out = programs[key][i](x)
-            aux = out[0][1] if i == 0 else out[1]
-            nxt = next_config(cfg, aux, scene)
-            if nxt is None:
-                last.update(config=cfg, health=aux)
-                return out
-            cfg = nxt[0]
+            value_aux = out[0] if i == 0 else out
+            checked(value_aux, cfg)
+            return out, value_aux[1]
+
+        outcome = solve_with_policy(scene, default_choice(scene).config, solve,
+                                    previous=(last["config"], last["health"]))
+        last.update(config=outcome.config, health=outcome.health)
+        return outcome.result
 
     return (lambda x: pick(0, x)), (lambda x: pick(1, x))
 

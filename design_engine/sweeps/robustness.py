@@ -10,12 +10,13 @@ last chunk is padded).
 The metric is R = J_target / J_rest (`objectives.region_energy_ratio`, both sums of the kinetic
 energy over the same samples; the rest includes the clamped units (zero) and the driven units).
 
-Solver policy, per point (as `run.simulate_scene` with the automatic choice): the batch runs with
-`run.default_choice(scene)`; a point that `auto.next_config` sends on (voids reached the contact
-cutoff, the barrier outgrew the fixed step or the work-energy balance drifted) is re-run,
-batched with the other such points, with the configuration it names, and a point whose solve
-failed (result code, non-finite or diverged state) with `auto.fallback_config()`. A point that
-fails with every configuration is NaN in the map and listed with its reason. `robustness_chunk` evaluates a list of points from plain data (design vector, lattice
+Solver policy, per point (the one policy driver's `driver.decide`, as `run.simulate_scene`
+applies it to one solve): the batch runs with `run.default_choice(scene)`; a point whose result
+the policy rejects (voids reached the contact cutoff, the barrier outgrew the fixed step or the
+work-energy balance drifted) is re-run, batched with the other such points, with the
+configuration it names, and a point whose solve failed (result code, non-finite or diverged
+state) with the fallback. A point that fails with every configuration is NaN in the map and
+listed with its reason. `robustness_chunk` evaluates a list of points from plain data (design vector, lattice
 description) so that chunks can be sent to other processes (Dask workers).
 
 Units: the public functions take and return SI (Hz, m, J, s); internally mm, ms, mJ.
@@ -32,14 +33,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from design_engine.design.objectives import region_energy, region_energy_ratio
 from design_engine.physics import units
-from design_engine.solve.policy import choose_config, fallback_config, next_config
 from design_engine.physics.lattice import lattice_from_description
 from design_engine.physics.loading import Loading
-from design_engine.design.objectives import region_energy, region_energy_ratio
-from design_engine.solve.run import compile_key, config_summary, default_choice
 from design_engine.physics.scenes import Scene, build_scene
-from design_engine.solve.simulate import SolverConfig, health_failure, make_simulator, solve_health
+from design_engine.solve.driver import PolicyFailed, decide
+from design_engine.solve.policy import choose_config, fallback_config
+from design_engine.solve.run import compile_key, config_summary, default_choice
+from design_engine.solve.simulate import (SimulationError, SolverConfig, health_failure,
+                                          make_simulator, solve_health)
 
 log = logging.getLogger("metarig.robustness")
 
@@ -233,7 +236,7 @@ def evaluate_points(scene: Scene, points, *, f_min_hz: float, chunk: int | None 
         points: [n, 2] (frequency Hz, amplitude m).
         f_min_hz: frequency the timing is tied to (the grid's lowest, also for a sub-list).
         chunk: grid points per vmap batch (default `default_chunk()`).
-        choice: `auto.Choice` to start from (default `run.default_choice(scene)`).
+        choice: `policy.Choice` to start from (default `run.default_choice(scene)`).
         progress: called with the number of points whose result became final.
 
     Returns:
@@ -258,8 +261,9 @@ def evaluate_points(scene: Scene, points, *, f_min_hz: float, chunk: int | None 
     configs: list[dict] = []
     tried: list[set[str]] = [set() for _ in range(n)]  # configurations each point has seen
     # (configuration, reasons, points) still to solve; a point that fails goes to the fallback,
-    # a point `auto.next_config` sends on goes to the configuration it names (as simulate_scene)
+    # a point `policy.next_config` sends on goes to the configuration it names (as simulate_scene)
     queue = [(choice.config, list(choice.reasons), list(range(n)))]
+    fallback = fallback_config()[0]
     todo: list[int] = []
     first = True
     while queue:
@@ -274,17 +278,21 @@ def evaluate_points(scene: Scene, points, *, f_min_hz: float, chunk: int | None 
             for k, i in enumerate(points[start:start + len(res["ratio"])]):
                 point = {name: v[k] for name, v in res.items()}
                 msg = _failure(config, point)
-                nxt = None
-                if msg is None:
-                    nxt = next_config(config, point, scene)
-                else:
-                    nxt = fallback_config()
+                try:
+                    nxt = (decide(config, scene, health=point) if msg is None else
+                           decide(config, scene, error=SimulationError(msg),
+                                  fallen_back=config == fallback))
+                except PolicyFailed:  # the fallback itself failed
+                    notes[i] = f"{configs[idx]['solver']['solver']}: {msg}"
+                    todo.append(i)
+                    continue
                 if nxt is not None:
-                    notes[i] = f"{configs[idx]['solver']['solver']}: {msg or nxt[1]}"
-                    if repr(nxt[0]) in tried[i]:  # nothing new left to try for this point
+                    notes[i] = f"{configs[idx]['solver']['solver']}: {msg or nxt.reason}"
+                    if repr(nxt.config) in tried[i]:  # nothing new left to try for this point
                         todo.append(i)
                     else:
-                        groups.setdefault(repr(nxt[0]), (nxt[0], [nxt[1]], []))[2].append(i)
+                        groups.setdefault(repr(nxt.config),
+                                          (nxt.config, [nxt.reason], []))[2].append(i)
                     continue
                 ratio[i] = float(res["ratio"][k])
                 energy[i] = float(res["target_energy"][k])

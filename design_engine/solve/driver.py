@@ -1,0 +1,168 @@
+"""The one driver of the solver policy: solve, judge, re-solve or fall back, and say why.
+
+Every user of the policy (a forward run of a scene, an objective for an optimiser, a task's
+evaluator, the pulse calibration's fits, and, point by point, the batched robustness map) goes
+through `decide` (what to do after a solve) and, for one solve at a time, `solve_with_policy`
+(the loop around it). The decisions themselves live in `policy` (`start_config`, `next_config`,
+`fallback_config`); this module only sequences them:
+
+1. start with the caller's configuration, or with the one the previous evaluation ended with
+   while that was in contact (`policy.start_config`, optimisers only);
+2. after a solve that did not fail, `policy.next_config` says whether the result stands or which
+   configuration solves again (contact, half the step, Dopri8);
+3. after a solve that failed (`SimulationError`), the fallback solves once
+   (`policy.fallback_config`; the reference Dopri5 when the fallback itself failed), except
+   that an adaptive solve which used up its step budget fails at once when the caller asks so
+   (an optimiser steps back rather than grinding on a near-singular contact);
+4. a fallback that fails too raises.
+
+What happened comes back as a typed record (`Outcome`, a tuple of `Step`), not as strings.
+"""
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Generic, TypeVar
+
+from design_engine.physics.scenes import Scene
+from design_engine.solve.fixed_step import is_fixed_step
+from design_engine.solve.policy import fallback_config, next_config, start_config
+from design_engine.solve.simulate import SimulationError, SolverConfig, StepBudgetError
+
+R = TypeVar("R")
+
+START = "start"  # the configuration the solve starts with
+CONTINUED = "continued"  # the previous evaluation's configuration, kept while in contact
+RESOLVE = "resolve"  # `policy.next_config` rejected the last result
+FALLBACK = "fallback"  # the last solve failed
+REFERENCE_RETRY = "retried with the reference Dopri5 configuration"
+CONTINUED_REASON = "the previous design needed contact: started with its configuration"
+
+
+@dataclass(frozen=True)
+class Step:
+    """One configuration the driver solved with, and why."""
+
+    kind: str  # START, CONTINUED, RESOLVE or FALLBACK
+    config: SolverConfig
+    reason: str
+    error: str = ""  # for FALLBACK: the failure of the solve before
+
+
+@dataclass(frozen=True)
+class Outcome(Generic[R]):
+    """A solve under the policy: its result, the configuration that counted and every step."""
+
+    result: R
+    health: dict | None  # `simulate.solve_health` of the counted solve (None if not given)
+    steps: tuple[Step, ...]
+
+    @property
+    def config(self) -> SolverConfig:
+        return self.steps[-1].config
+
+    @property
+    def resolves(self) -> tuple[str, ...]:
+        """The reasons of every solve after the first (re-solves and fallbacks)."""
+        return tuple(f"{s.reason} ({s.error})" if s.error else s.reason
+                     for s in self.steps if s.kind in (RESOLVE, FALLBACK))
+
+    @property
+    def fell_back(self) -> bool:
+        return self.steps[-1].kind == FALLBACK
+
+
+class PolicyFailed(SimulationError):
+    """Every configuration the policy allowed failed (or the step budget was used up with
+    `budget_fails_at_once`). `steps` says what was tried."""
+
+    def __init__(self, message: str, steps: tuple[Step, ...], budget: bool = False):
+        super().__init__(message)
+        self.steps = steps
+        self.budget = budget
+
+
+def decide(config: SolverConfig, scene: Scene, *, health: dict | None = None,
+           error: SimulationError | None = None, fallen_back: bool = False,
+           budget_fails_at_once: bool = False,
+           fallback: SolverConfig | None = None) -> Step | None:
+    """What follows a solve with `config`: None when its result stands, else the next `Step`.
+
+    Give `health` (`simulate.solve_health`) after a solve that did not fail, `error` after one
+    that did. `fallback` replaces `policy.fallback_config()` (a caller whose derivatives need
+    another adjoint). Raises `PolicyFailed` when nothing may follow a failure (a fallback that
+    failed, or a used-up step budget under `budget_fails_at_once`).
+    """
+    if error is None:
+        if health is None:
+            return None
+        nxt = next_config(config, health, scene)
+        return None if nxt is None else Step(RESOLVE, nxt[0], nxt[1])
+    if fallen_back:
+        raise PolicyFailed(f"the fallback failed too: {error}", ())
+    if (budget_fails_at_once and isinstance(error, StepBudgetError)
+            and not is_fixed_step(config.solver)):
+        raise PolicyFailed(f"{error}; over the evaluation's step budget "
+                           "(budget.max_solve_steps): the design counts as failed, with no "
+                           "fallback", (), budget=True)
+    fb, reason = fallback_config()
+    fb = fallback or fb
+    if config == fb:
+        fb, reason = SolverConfig(), REFERENCE_RETRY
+    return Step(FALLBACK, fb, reason, str(error))
+
+
+def solve_with_policy(scene: Scene, config: SolverConfig,
+                      solve: Callable[[SolverConfig], tuple[R, dict | None]], *,
+                      check: Callable[[], SolverConfig] | None = None,
+                      previous: tuple[SolverConfig | None, dict | None] | None = None,
+                      budget_fails_at_once: bool = False,
+                      fallback: SolverConfig | None = None,
+                      on_step: Callable[[Step], None] | None = None) -> Outcome[R]:
+    """Solve under the policy, starting from `config` (the choice for this scene).
+
+    `solve(config) -> (result, health)` runs one solve and raises `SimulationError` on failure;
+    `health` (`simulate.solve_health` scalars, or None to skip the judging) feeds
+    `policy.next_config`. `check() -> config`, when given, re-checks the configuration before
+    the first solve (an optimiser's fixed-step check); its `SimulationError` counts as a failed
+    solve. `previous` = (config, health) the caller's last evaluation ended with (optimisers:
+    `policy.start_config` may continue with it). `fallback` replaces the policy's fallback
+    configuration. `on_step` sees each step after the first as it is taken (event logs).
+    Raises `PolicyFailed` when every allowed configuration failed.
+    """
+    pending = None
+    if check is not None:
+        try:
+            config = check()
+        except SimulationError as exc:
+            pending = exc
+    steps = [Step(START, config, "")]
+    if pending is None and previous is not None:
+        start = start_config(config, previous[0], previous[1], scene)
+        if start != config:
+            steps.append(Step(CONTINUED, start, CONTINUED_REASON))
+    while True:
+        cfg, fallen_back = steps[-1].config, steps[-1].kind == FALLBACK
+        if pending is None:
+            try:
+                result, health = solve(cfg)
+            except SimulationError as exc:
+                pending = exc
+        if pending is not None:
+            try:
+                step = decide(cfg, scene, error=pending, fallen_back=fallen_back,
+                              budget_fails_at_once=budget_fails_at_once, fallback=fallback)
+            except PolicyFailed as failed:
+                message = f"{steps[-1].error}; {failed}" if fallen_back else str(failed)
+                raise PolicyFailed(message, tuple(steps), failed.budget) from None
+            pending = None
+        else:
+            # a fallback's result stands: it is the reference the others are judged against
+            step = None if fallen_back else decide(cfg, scene, health=health)
+            if step is None:
+                return Outcome(result, health, tuple(steps))
+        steps.append(step)
+        if on_step is not None:
+            on_step(step)
+
+
+__all__ = ["Outcome", "PolicyFailed", "Step", "decide", "solve_with_policy"]

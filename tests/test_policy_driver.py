@@ -1,0 +1,133 @@
+"""The one policy driver (`solve.driver`): what it solves with, in which order, and what it says.
+
+The solves here are stand-ins that return chosen health figures or raise, so that every branch
+of the sequencing is reached in milliseconds; the decisions themselves are the real policy's
+(`policy.next_config`, `policy.start_config`, `policy.fallback_config`) on a real scene. The
+five users run real solves through it in test_stability, test_design, test_robustness and
+test_calibrate.
+"""
+
+import pytest
+
+from design_engine.physics.scenes import build_scene
+from design_engine.solve.driver import (CONTINUED, FALLBACK, REFERENCE_RETRY, RESOLVE, START,
+                                        PolicyFailed, decide, solve_with_policy)
+from design_engine.solve.fixed_step import FixedStepVerlet
+from design_engine.solve.policy import ENERGY_TOLERANCE, contact_config, fallback_config
+from design_engine.solve.simulate import SimulationError, SolverConfig, StepBudgetError
+
+VERLET = SolverConfig(solver=FixedStepVerlet(max_dt=0.01), use_contact=False)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return build_scene("focusing-24x16", nx=4, ny=3)
+
+
+def healthy(scene, **over):
+    """Health of a solve that stayed clear of contact and kept its energy balance (units of
+    unbounded inertia: the contact barrier's frequency never outgrows a step)."""
+    span = float(scene.material.contact_cutoff - scene.material.contact_min)
+    return {"void_margin": 2.0 * span, "energy_error": 0.0, "min_inertia": float("inf"), **over}
+
+
+class Script:
+    """A stand-in solve: answers each call with the next entry (health dict or exception)."""
+
+    def __init__(self, *answers):
+        self.answers, self.calls = list(answers), []
+
+    def __call__(self, config):
+        self.calls.append(config)
+        answer = self.answers.pop(0)
+        if isinstance(answer, Exception):
+            raise answer
+        return f"result {len(self.calls)}", answer
+
+
+def test_a_result_that_stands_is_returned_after_one_solve(scene):
+    solve = Script(healthy(scene))
+    out = solve_with_policy(scene, VERLET, solve)
+    assert solve.calls == [VERLET] and out.result == "result 1"
+    assert [s.kind for s in out.steps] == [START] and out.resolves == () and not out.fell_back
+
+
+def test_voids_at_the_cutoff_are_re_solved_with_contact_at_the_same_step(scene):
+    solve = Script(healthy(scene, void_margin=0.0), healthy(scene))
+    seen = []
+    out = solve_with_policy(scene, VERLET, solve, on_step=seen.append)
+    assert [s.kind for s in out.steps] == [START, RESOLVE] and seen == [out.steps[1]]
+    assert out.config.use_contact and out.config.solver == VERLET.solver
+    assert "contact cutoff" in out.resolves[0] and out.result == "result 2"
+
+
+def test_a_drifting_fixed_step_is_refined_then_handed_to_dopri8(scene):
+    drift = healthy(scene, energy_error=0.1 * ENERGY_TOLERANCE * 1e3)  # far beyond refining
+    out = solve_with_policy(scene, VERLET, Script(drift, healthy(scene)))
+    assert out.config == contact_config() and "Dopri8" in out.resolves[0]
+    small = healthy(scene, energy_error=2 * ENERGY_TOLERANCE)  # refining is predicted to pass
+    out = solve_with_policy(scene, VERLET, Script(small, small, healthy(scene)))
+    assert [s.kind for s in out.steps] == [START, RESOLVE, RESOLVE]
+    assert out.steps[1].config.solver.refined and out.steps[1].config.solver.max_dt == 0.005
+    assert out.config == contact_config()  # a refined step rejected again: Dopri8
+
+
+def test_a_failed_solve_falls_back_once_and_the_fallback_result_stands(scene):
+    in_contact = healthy(scene, void_margin=0.0)  # would be re-solved, were it not the fallback
+    solve = Script(SimulationError("went non-finite"), in_contact)
+    out = solve_with_policy(scene, VERLET, solve)
+    assert out.fell_back and out.config == fallback_config()[0] and len(solve.calls) == 2
+    assert out.steps[-1].error == "went non-finite"
+    assert out.resolves == (f"{fallback_config()[1]} (went non-finite)",)
+
+
+def test_a_failed_fallback_raises_with_both_reasons_and_every_step(scene):
+    solve = Script(SimulationError("first"), SimulationError("second"))
+    with pytest.raises(PolicyFailed) as info:
+        solve_with_policy(scene, VERLET, solve)
+    assert str(info.value) == "first; the fallback failed too: second"
+    assert [s.kind for s in info.value.steps] == [START, FALLBACK] and not info.value.budget
+
+
+def test_the_fallback_of_the_fallback_configuration_is_the_reference(scene):
+    step = decide(contact_config(), scene, error=SimulationError("x"))
+    assert step.kind == FALLBACK and step.config == SolverConfig() and step.reason == REFERENCE_RETRY
+    own = SolverConfig(rtol=1e-9)
+    assert decide(VERLET, scene, error=SimulationError("x"), fallback=own).config == own
+
+
+def test_a_used_up_step_budget_fails_at_once_only_when_asked_and_only_for_adaptive(scene):
+    adaptive = contact_config()
+    with pytest.raises(PolicyFailed) as info:
+        solve_with_policy(scene, adaptive, Script(StepBudgetError("20000 steps")),
+                          budget_fails_at_once=True)
+    assert info.value.budget and "step budget" in str(info.value)
+    out = solve_with_policy(scene, adaptive, Script(StepBudgetError("20000 steps"),
+                                                    healthy(scene)))
+    assert out.fell_back  # not asked: the fallback runs
+    out = solve_with_policy(scene, VERLET, Script(StepBudgetError("n"), healthy(scene)),
+                            budget_fails_at_once=True)
+    assert out.fell_back  # a fixed step's count is not a budget
+
+
+def test_a_failed_check_counts_as_a_failed_solve(scene):
+    def check():
+        raise SimulationError("no stable fixed step")
+
+    solve = Script(healthy(scene))
+    out = solve_with_policy(scene, VERLET, solve, check=check)
+    assert solve.calls == [fallback_config()[0]] and out.steps[-1].error == "no stable fixed step"
+    checked = SolverConfig(solver=FixedStepVerlet(max_dt=0.004), use_contact=False)
+    out = solve_with_policy(scene, VERLET, Script(healthy(scene)), check=lambda: checked)
+    assert out.config == checked
+
+
+def test_an_evaluation_after_one_in_contact_starts_with_contact(scene):
+    contact = SolverConfig(solver=VERLET.solver, use_contact=True, dtype="float64")
+    solve = Script(healthy(scene, void_margin=0.0))
+    out = solve_with_policy(scene, VERLET, solve,
+                            previous=(contact, healthy(scene, void_margin=0.0)))
+    assert solve.calls == [contact] and [s.kind for s in out.steps] == [START, CONTINUED]
+    out = solve_with_policy(scene, VERLET, Script(healthy(scene)),
+                            previous=(contact, healthy(scene)))  # left contact: the choice
+    assert out.config == VERLET

@@ -1,5 +1,6 @@
 """The design loop: tasks from presets and files, MMA runs, failures, checkpoint and exact resume."""
 
+import dataclasses
 import json
 import math
 import re
@@ -9,13 +10,13 @@ import numpy as np
 import pytest
 
 from design_engine.design.constraints import (ConstraintLimits, active_constraint_masks,
-                                       make_constraints, make_sparse_constraints)
+                                              make_constraints, make_sparse_constraints)
 from design_engine.design.design_io import load_design
-from design_engine.physics.lattice import periodic_design, quads
-from design_engine.design.optimize import ResumeError, run_design
-from design_engine.solve.simulate import SimulationError
-from design_engine.design.task import TaskError, load_task, preset_names, preset_path
 from design_engine.design.evaluator import TaskEvaluator
+from design_engine.design.optimize import ResumeError, run_design
+from design_engine.design.task import TaskError, load_task, preset_names, preset_path
+from design_engine.physics.lattice import periodic_design, quads
+from design_engine.solve.simulate import SimulationError
 
 SMALL = {"size": (8, 6)}
 
@@ -162,8 +163,8 @@ def test_sparse_constraint_jacobian_equals_the_dense_one():
 
 def test_wide_voids_are_not_taken_for_units_through_the_barrier():
     """A void wider than 180 deg is signed negative; it must not count as a barrier crossing."""
-    from design_engine.solve.run import simulate_scene
     from design_engine.physics.scenes import build_scene
+    from design_engine.solve.run import simulate_scene
 
     from design_engine.solve.simulate import SolverConfig
 
@@ -373,8 +374,8 @@ def test_an_adaptive_solve_over_the_step_budget_fails_the_design_at_once(make_ta
     evaluation straight away: no fallback to a slower solver (which would grind on the same
     stiffness), so the optimiser steps back. The budget is a task-file key, recorded with the
     configuration; within it the same solve stands."""
-    from design_engine.solve.policy import contact_config
     from design_engine.design.evaluator import EvaluationFailed
+    from design_engine.solve.policy import contact_config
 
     path = tmp_path / "budget.toml"
     path.write_text(preset_path("splitting").read_text().replace(
@@ -385,7 +386,8 @@ def test_an_adaptive_solve_over_the_step_budget_fails_the_design_at_once(make_ta
     tight, roomy = make_task(3, max_solve_steps=40), make_task(3)
     for task in (tight, roomy):
         ev = TaskEvaluator(task)
-        ev._state["pulse"].config = contact_config()  # as deep in contact: adaptive Dopri8
+        # as deep in contact: adaptive Dopri8
+        ev._state["pulse"] = dataclasses.replace(ev._state["pulse"], config=contact_config())
         if task is tight:
             with pytest.raises(EvaluationFailed) as err:
                 ev.evaluate(task.initial_design)
@@ -407,12 +409,15 @@ def test_the_fixed_step_follows_the_design(make_task):
     st = evaluator._state["pulse"]
     assert st.config.solver.max_dt == pytest.approx(0.6 * 2.0 / st.omega, rel=1e-6)
     # as if the optimiser had made the units lighter: the step now sits at 0.95 x the limit
-    st.config = SolverConfig(solver=FixedStepVerlet(max_dt=0.95 * 2.0 / st.omega),
-                             use_contact=False, dtype="float32")
+    evaluator._state["pulse"] = dataclasses.replace(st, config=SolverConfig(
+        solver=FixedStepVerlet(max_dt=0.95 * 2.0 / st.omega), use_contact=False,
+        dtype="float32"))
     out = evaluator.evaluate(task.initial_design)
     assert any("re-chosen" in e for e in out.events)
+    st = evaluator._state["pulse"]  # each evaluation leaves a new state
     assert st.config.solver.max_dt == pytest.approx(0.6 * 2.0 / st.omega, rel=1e-3)
     again = evaluator.evaluate(task.initial_design + 0.01)  # within the limit: no new step
+    st = evaluator._state["pulse"]
     assert not again.events
     assert evaluator.compilations <= 1  # the re-chosen step equals the first: same program
     # the warm-started estimate agrees with a cold 300-iteration power iteration
@@ -436,7 +441,7 @@ def test_a_fixed_step_that_would_shrink_past_a_quarter_gives_way_to_dopri8(make_
     monkeypatch.setattr(evaluator, "_frequency", lambda *a, **k: (5.0 * omega, st.vector))
     out = evaluator.evaluate(task.initial_design)
     assert any("adaptive Dopri8 from here on" in e for e in out.events)
-    assert st.config == contact_config()
+    assert evaluator._state["pulse"].config == contact_config()
     assert out.solver["pulse"]["config"]["solver"] == "Dopri8"
 
 
@@ -452,6 +457,7 @@ def test_a_design_without_a_positive_frequency_gets_the_fallback(make_task, monk
     out = evaluator.evaluate(task.initial_design)
     assert any("no stable fixed step" in e and "fell back" in e for e in out.events)
     assert out.solver["pulse"]["config"]["solver"] == "Dopri8" and math.isfinite(out.value)
+    st = evaluator._state["pulse"]
     assert st.omega == omega
     assert st.start_state is not None and np.all(np.isfinite(st.start_state))  # measured there
 

@@ -67,7 +67,13 @@ _PROGRAMS: dict[tuple, object] = {}
 
 
 class EvaluationFailed(RuntimeError):
-    """Every configuration failed for this design; the message says why."""
+    """Every configuration failed for this design; the message says why. `state` is the scene's
+    state to keep (its step check stands), `events` what happened before the failure."""
+
+    def __init__(self, message: str, state=None, events=()):
+        super().__init__(message)
+        self.state = state
+        self.events = tuple(events)
 
 
 @dataclass(frozen=True)
@@ -91,8 +97,11 @@ class Evaluation:
     sim_s: float = 0.0
 
 
-@dataclass
-class _SceneState:
+@dataclass(frozen=True)
+class SceneState:
+    """What the evaluator carries for one scene from one evaluation to the next; each
+    evaluation returns a new one (`dataclasses.replace`)."""
+
     config: SolverConfig
     reasons: tuple[str, ...]
     omega: float | None = None
@@ -115,10 +124,10 @@ class TaskEvaluator:
         self.max_solve_steps = task.budget.max_solve_steps
         self.compilations = 0
         self._estimators: dict[str, object] = {}
-        self._state: dict[str, _SceneState] = {}
+        self._state: dict[str, SceneState] = {}
         for name, scene in task.scenes.items():
             if config is not None:
-                self._state[name] = _SceneState(config, ("configuration given by the caller",))
+                self._state[name] = SceneState(config, ("configuration given by the caller",))
                 continue
             omega, vec, state = None, None, None
             if scene.loading.strain == 0.0 or scene.loading.is_static:
@@ -126,9 +135,9 @@ class TaskEvaluator:
                     state = prestressed_state(scene.with_design(task.initial_design))
                 omega, vec = self._frequency(name, task.initial_design, None, state)
             choice = choose_config(scene, omega=omega, state=state)  # no second static solve
-            self._state[name] = _SceneState(choice.config, choice.reasons, omega, vec, state)
-            if is_fixed_step(choice.config.solver):
-                self._state[name].first_dt = choice.config.solver.max_dt
+            first_dt = choice.config.solver.max_dt if is_fixed_step(choice.config.solver) else 0.0
+            self._state[name] = SceneState(choice.config, choice.reasons, omega, vec, state,
+                                           first_dt=first_dt)
 
     # --- compiled pieces -------------------------------------------------------------------
 
@@ -203,11 +212,12 @@ class TaskEvaluator:
 
     # --- the policy ------------------------------------------------------------------------
 
-    def _check_step(self, name: str, x: np.ndarray, events: list[str]) -> None:
-        st = self._state[name]
+    def _check_step(self, name: str, st: SceneState, x: np.ndarray) -> tuple[SceneState, str]:
+        """The scene's state after re-checking its fixed step against design `x` (and the
+        event to log, or ""); raises `SimulationError` when no stable fixed step exists."""
         solver = st.config.solver
         if not (is_fixed_step(solver) and solver.stability_limited):
-            return
+            return st, ""
         # at the state the last solve started from (rest, or the static pre-compression of the
         # previous design: an optimiser's step moves it little)
         omega, vector = self._frequency(name, x, st.vector, st.start_state)
@@ -216,49 +226,55 @@ class TaskEvaluator:
             # the design is damaged): no stable fixed step exists; this design gets the fallback
             raise SimulationError(f"the highest natural frequency of this design came out "
                                   f"{omega:g} rad/ms: no stable fixed step")
-        st.omega, st.vector = omega, vector
-        limit = 2.0 / st.omega
+        st = dataclasses.replace(st, omega=omega, vector=vector)
+        limit = 2.0 / omega
         dt = solver.max_dt
-        if dt > STEP_RECHECK * limit:
-            new_dt = STABILITY_SAFETY * limit
-            if new_dt < MIN_STEP_FRACTION * st.first_dt:
-                # the contact barrier sets that frequency: a fixed step would need many times
-                # the steps (and the memory of their reverse pass); the adaptive solver places
-                # small steps only where the barrier is stiff
-                st.config, st.last_config = contact_config(), None
-                events.append(
-                    f"{name}: highest natural frequency rose to "
-                    f"{st.omega / (2 * np.pi) * 1e3:.0f} Hz; a fixed step of {new_dt * 1e3:.1f} us "
-                    f"would be below {MIN_STEP_FRACTION:g} x the first one "
-                    f"({st.first_dt * 1e3:.1f} us): adaptive Dopri8 from here on")
-                st.reasons = st.reasons + ("the contact barrier raised the highest natural "
-                                           "frequency: adaptive Dopri8",)
-                return
-            st.config = SolverConfig(solver=solver.with_max_dt(new_dt),
-                                     use_contact=st.config.use_contact, dtype=st.config.dtype)
-            st.last_config = None  # its step is the old one
-            events.append(
-                f"{name}: highest natural frequency rose to {st.omega / (2 * np.pi) * 1e3:.0f} Hz; "
-                f"fixed step {dt * 1e3:.1f} us was {dt / limit:.2f} x the stability limit, "
-                f"re-chosen to {new_dt * 1e3:.1f} us")
-            st.reasons = st.reasons[:1] + (
-                f"fixed-step Verlet, dt = {new_dt * 1e3:.1f} us = {STABILITY_SAFETY:g} x the "
-                "stability limit of the current design",) + st.reasons[2:]
+        if dt <= STEP_RECHECK * limit:
+            return st, ""
+        new_dt = STABILITY_SAFETY * limit
+        hz = omega / (2 * np.pi) * 1e3
+        if new_dt < MIN_STEP_FRACTION * st.first_dt:
+            # the contact barrier sets that frequency: a fixed step would need many times the
+            # steps (and the memory of their reverse pass); the adaptive solver places small
+            # steps only where the barrier is stiff
+            return dataclasses.replace(
+                st, config=contact_config(), last_config=None,
+                reasons=st.reasons + ("the contact barrier raised the highest natural frequency: "
+                                      "adaptive Dopri8",)), (
+                f"{name}: highest natural frequency rose to {hz:.0f} Hz; a fixed step of "
+                f"{new_dt * 1e3:.1f} us would be below {MIN_STEP_FRACTION:g} x the first one "
+                f"({st.first_dt * 1e3:.1f} us): adaptive Dopri8 from here on")
+        # reasons[1] is the choice's line about the step (`policy.choose_config`)
+        step_reason = (f"fixed-step Verlet, dt = {new_dt * 1e3:.1f} us = {STABILITY_SAFETY:g} x "
+                       "the stability limit of the current design")
+        return dataclasses.replace(
+            st, config=SolverConfig(solver=solver.with_max_dt(new_dt),
+                                    use_contact=st.config.use_contact, dtype=st.config.dtype),
+            last_config=None,  # its step is the old one
+            reasons=st.reasons[:1] + (step_reason,) + st.reasons[2:]), (
+            f"{name}: highest natural frequency rose to {hz:.0f} Hz; fixed step "
+            f"{dt * 1e3:.1f} us was {dt / limit:.2f} x the stability limit, re-chosen to "
+            f"{new_dt * 1e3:.1f} us")
 
-    def _solve_scene(self, name: str, x: np.ndarray, events: list[str]):
-        st = self._state[name]
+    def _solve_scene(self, name: str, st: SceneState, x: np.ndarray):
+        """One scene's value, gradient and terms at `x` under the policy: returns them with the
+        record of the configuration that counted, the events and the scene's next state.
+        Raises `EvaluationFailed` (with the state to keep) when every configuration failed."""
         scene = self.task.scenes[name]
         if self.forced is not None:
-            config, why = st.config, list(st.reasons)
             try:
-                value, grad, terms, _ = self._solve(name, config, x)
+                value, grad, terms, _ = self._solve(name, st.config, x)
             except SimulationError as exc:
                 raise EvaluationFailed(f"{name}: {exc}") from None
-            return value, grad, terms, self._record(config, why)
+            return value, grad, terms, self._record(st.config, list(st.reasons)), [], st
+
+        events: list[str] = []
+        checked = [st]  # the state after the step check (kept even when the design fails)
 
         def check():
-            self._check_step(name, x, events)
-            return st.config
+            checked[0], event = self._check_step(name, st, x)
+            events.extend([event] if event else [])
+            return checked[0].config
 
         def solve(config):
             value, grad, terms, aux = self._solve(name, config, x)
@@ -273,17 +289,18 @@ class TaskEvaluator:
                                     previous=(st.last_config, st.last_health),
                                     budget_fails_at_once=True, on_step=log)
         except PolicyFailed as exc:
-            raise EvaluationFailed(f"{name}: {exc}") from None
+            raise EvaluationFailed(f"{name}: {exc}", checked[0], events) from None
+        st = checked[0]
         value, grad, terms, aux = out.result
+        why = list(st.reasons) + [s.reason for s in out.steps[1:]]
         # the next step check measures at this design's start state (after a fallback too: a
         # resumed run's evaluator starts from the initial design's, where a far design's
         # stiffness can be indefinite)
-        st.start_state = np.asarray(aux["start_state"])
-        why = list(st.reasons) + [s.reason for s in out.steps[1:]]
+        st = dataclasses.replace(st, start_state=np.asarray(aux["start_state"]))
         if not out.fell_back:
-            st.last_config, st.last_health = out.config, {
-                k: np.asarray(v) for k, v in aux.items() if k != "start_state"}
-        return value, grad, terms, self._record(out.config, why)
+            st = dataclasses.replace(st, last_config=out.config, last_health={
+                k: np.asarray(v) for k, v in aux.items() if k != "start_state"})
+        return value, grad, terms, self._record(out.config, why), events, st
 
     def evaluate(self, x: np.ndarray) -> Evaluation:
         """Value and gradient of the scalarised objective at design `x` [n_design] (mm).
@@ -297,7 +314,14 @@ class TaskEvaluator:
         for name in self.task.scenes:
             if not any(t.scene == name for t in self.task.terms):
                 continue
-            v, g, tm, s = self._solve_scene(name, np.asarray(x, np.float64), events)
+            try:
+                v, g, tm, s, ev, self._state[name] = self._solve_scene(
+                    name, self._state[name], np.asarray(x, np.float64))
+            except EvaluationFailed as exc:
+                if exc.state is not None:
+                    self._state[name] = exc.state
+                raise
+            events += ev
             value, grad = value + v, grad + g
             terms.update(tm)
             solver[name] = s

@@ -45,8 +45,8 @@ def main(argv=None) -> int:
     import jax.numpy as jnp
 
     import design_engine  # noqa: F401
-    from design_engine.solve.run import checked, compiled_simulator, default_choice, make_objective
     from design_engine.physics.scenes import build_scene
+    from design_engine.solve.run import checked, compiled_simulator, default_choice, make_objective
     from design_engine.solve.simulate import SolverConfig, check_solution
 
     args.out.mkdir(parents=True, exist_ok=True)

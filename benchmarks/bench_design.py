@@ -31,8 +31,8 @@ def main(argv=None) -> int:
     import jax
 
     import design_engine  # noqa: F401
-    from design_engine.design.run_outputs import write_outputs
     from design_engine.design.optimize import run_design
+    from design_engine.design.run_outputs import write_outputs
     from design_engine.design.task import load_task, preset_names
 
     args.out.mkdir(parents=True, exist_ok=True)

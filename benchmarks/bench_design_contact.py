@@ -40,8 +40,8 @@ def _task_file(out: Path, precompression: str) -> Path:
 
 def _true_objective(task_file: Path, x_mm, config) -> dict:
     """Scalarised objective (SI, as history.json) and its terms for design x with `config`."""
-    from design_engine.design.task import load_task
     from design_engine.design.evaluator import TaskEvaluator
+    from design_engine.design.task import load_task
 
     task = load_task(task_file)
     ev = TaskEvaluator(task, config=config).evaluate(x_mm)
@@ -61,11 +61,11 @@ def main(argv=None) -> int:
 
     import numpy as np
 
-    from design_engine.solve.policy import contact_config
-    from design_engine.design.optimize import resumable, run_design
-    from design_engine.studies.methods import baseline_method
-    from design_engine.design.task import load_task
     from design_engine.design.evaluator import TaskEvaluator
+    from design_engine.design.optimize import resumable, run_design
+    from design_engine.design.task import load_task
+    from design_engine.solve.policy import contact_config
+    from design_engine.studies.methods import baseline_method
 
     args.out.mkdir(parents=True, exist_ok=True)
     files = {m: _task_file(args.out, m) for m in ("static", "ramp")}

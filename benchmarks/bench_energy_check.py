@@ -69,11 +69,11 @@ def scenes(only: list[str] | None):
 
 def measure(scene) -> dict:
     """Reference, then each fixed-step configuration: J error, energy drift, barrier figures."""
-    from design_engine.solve.policy import contact_frequency, max_angular_frequency, next_config
+    from design_engine.physics.statics import equilibrium_state
     from design_engine.solve.fixed_step import FixedStepVerlet
+    from design_engine.solve.policy import contact_frequency, max_angular_frequency, next_config
     from design_engine.solve.run import simulate_scene
     from design_engine.solve.simulate import SimulationError, SolverConfig, solve_health
-    from design_engine.physics.statics import equilibrium_state
     from design_engine.studies.methods import reference_method
 
     state = equilibrium_state(scene) if scene.loading.is_static else None

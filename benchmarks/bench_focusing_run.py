@@ -124,9 +124,9 @@ def recheck(folder: Path, evals: int, count: int, rows: list[dict], save) -> lis
     configuration that counted and with tight Dopri8; rows already in `rows` are kept."""
     import diffrax
 
-    from design_engine.solve.simulate import SolverConfig
-    from design_engine.design.task import load_task
     from design_engine.design.evaluator import TaskEvaluator
+    from design_engine.design.task import load_task
+    from design_engine.solve.simulate import SolverConfig
 
     history = _evaluations(folder / "history.json")
     xs = np.load(folder / "checkpoint.npz")["x"]

@@ -43,9 +43,9 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
 
     import design_engine  # noqa: F401  (x64, cache)
-    from design_engine.solve.policy import contact_config
     from design_engine.design.design_io import load_design
     from design_engine.design.evaluator import TaskEvaluator
+    from design_engine.solve.policy import contact_config
 
     try:
         sweep = json.loads((args.sweep / "sweep.json").read_text())

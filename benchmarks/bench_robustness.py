@@ -32,8 +32,8 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, default=ROOT / "benchmarks/results/bench_robustness.json")
     args = p.parse_args(argv)
 
-    from design_engine.sweeps import robustness as rb
     from design_engine.design.design_io import load_design
+    from design_engine.sweeps import robustness as rb
 
     lattice, design_mm = load_design(args.design)
     scene = rb.design_scene(design_mm / 1e3, lattice.describe())

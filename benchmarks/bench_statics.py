@@ -38,13 +38,13 @@ import numpy as np
 
 from design_engine import build_scene
 from design_engine.physics import statics
-from design_engine.solve.policy import contact_config
 from design_engine.physics.energy import bond_geometry, make_energy
 from design_engine.physics.geometry import block_geometry
 from design_engine.physics.loading import make_prescribed
+from design_engine.physics.statics import make_sparse_hessian, make_static_solver
+from design_engine.solve.policy import contact_config
 from design_engine.solve.run import simulate_scene
 from design_engine.solve.simulate import SolverConfig, make_simulator
-from design_engine.physics.statics import make_sparse_hessian, make_static_solver
 
 OUT = Path(__file__).resolve().parent / "results" / "bench_statics.json"
 SCENE = "protection-24x18"

@@ -60,9 +60,9 @@ jax.config.update("jax_log_compiles", True)
 _lg = logging.getLogger("jax._src.dispatch"); _lg.addHandler(_Log()); _lg.propagate = False
 import jax.numpy as jnp
 import design_engine
+from design_engine.physics.scenes import build_scene
 from design_engine.solve.policy import contact_config
 from design_engine.solve.run import checked, make_objective, simulate_scene
-from design_engine.physics.scenes import build_scene
 %s
 t = time.perf_counter(); value = call(); first = time.perf_counter() - t
 steady = []

@@ -45,13 +45,13 @@ from design_engine.physics.lattice import kagome as kagome  # noqa: E402
 from design_engine.physics.lattice import periodic_design as periodic_design  # noqa: E402
 from design_engine.physics.lattice import quads as quads  # noqa: E402
 from design_engine.physics.material import Material as Material  # noqa: E402
+from design_engine.physics.scenes import PRESETS as PRESETS  # noqa: E402
+from design_engine.physics.scenes import Scene as Scene  # noqa: E402
+from design_engine.physics.scenes import build_scene as build_scene  # noqa: E402
 from design_engine.solve.run import SceneRun as SceneRun  # noqa: E402
 from design_engine.solve.run import make_objective as make_objective  # noqa: E402
 from design_engine.solve.run import simulate_rig as simulate_rig  # noqa: E402
 from design_engine.solve.run import simulate_scene as simulate_scene  # noqa: E402
-from design_engine.physics.scenes import PRESETS as PRESETS  # noqa: E402
-from design_engine.physics.scenes import Scene as Scene  # noqa: E402
-from design_engine.physics.scenes import build_scene as build_scene  # noqa: E402
 from design_engine.solve.simulate import SimulationError as SimulationError  # noqa: E402
 from design_engine.solve.simulate import SolverConfig as SolverConfig  # noqa: E402
 from metarig.trajectory import Trajectory as Trajectory  # noqa: E402

@@ -27,7 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-from design_engine.calibration.hinge import HINGE_HEADER, HINGE_TESTS, hinge_sample, make_hinge_forces
+from design_engine.calibration.hinge import (HINGE_HEADER, HINGE_TESTS, hinge_sample,
+                                             make_hinge_forces)
 from design_engine.calibration.oscillation import make_oscillation_model, oscillation_sample
 from metarig.trajectory import Trajectory
 

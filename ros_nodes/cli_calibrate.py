@@ -138,7 +138,8 @@ def read_oscillation_tracks(path: Path):
 
 
 def calibrate_oscillation(files, fit, material_path=None, progress=None):
-    from design_engine.calibration.oscillation import DEFAULT_OSC_FIT, fit_oscillation, oscillation_sample
+    from design_engine.calibration.oscillation import (DEFAULT_OSC_FIT, fit_oscillation,
+                                                       oscillation_sample)
 
     if len(files) != 1:
         raise InputError("give one free-oscillation tracks file")

@@ -9,18 +9,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from design_engine.physics.energy import (
-    DEFAULT_MODEL,
-    BondMeasures,
-    Model,
-    bond_geometry,
-    contact_law,
-    ligament_law,
-    make_bond_measures,
-    make_bond_terms,
-    make_energy,
-    void_stiffness,
-)
+from design_engine.physics.energy import (DEFAULT_MODEL, BondMeasures, Model, bond_geometry,
+                                          contact_law, ligament_law, make_bond_measures,
+                                          make_bond_terms, make_energy, void_stiffness)
 from design_engine.physics.geometry import block_geometry
 from design_engine.physics.lattice import periodic_design, quads
 from design_engine.physics.material import Material
@@ -151,9 +142,9 @@ def test_a_new_law_reaches_the_simulator_the_gradient_and_the_policy():
     """A scene carrying a model with the new ligament law: the policy measures its stiffer
     lattice (a smaller fixed step), the simulation differs from the default model's, and the
     gradient through it matches a central finite difference."""
+    from design_engine.physics.scenes import build_scene
     from design_engine.solve.policy import choose_config
     from design_engine.solve.run import checked, make_objective
-    from design_engine.physics.scenes import build_scene
 
     base = build_scene("focusing-24x16", nx=4, ny=3, amplitude_m=2e-3)
     new = dataclasses.replace(base, model=Model(ligament=hardening_ligament))

@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from design_engine.calibration.fit import CalibrationError, LARGE_SD, covariance, start_damping_ratio, to_si
+from design_engine.calibration.fit import (CalibrationError, LARGE_SD, covariance,
+                                           start_damping_ratio, to_si)
 from design_engine.calibration.hinge import fit_hinge, hinge_sample, read_hinge_file
 from design_engine.calibration.oscillation import fit_oscillation, log_decrement, oscillation_sample
 from design_engine.calibration.pulse import WINDOWS, fit_pulse, pose_weights, window_frames

@@ -16,7 +16,8 @@ from design_engine.physics.loading import Loading, Supports
 from design_engine.physics.material import Material
 from design_engine.physics.modal import modal_analysis
 from design_engine.physics.scenes import build_scene
-from design_engine.solve.simulate import SimulationError, SolverConfig, check_solution, make_simulator
+from design_engine.solve.simulate import (SimulationError, SolverConfig, check_solution,
+                                          make_simulator)
 
 
 @functools.lru_cache(maxsize=None)

@@ -13,8 +13,8 @@ import pytest
 import svgelements as se
 from ezdxf import recover as ezdxf_recover
 
-from design_engine.design.design_io import save_design
 from design_engine.commands.export import export_main
+from design_engine.design.design_io import save_design
 from design_engine.physics.lattice import periodic_design, quads, vertex_offsets
 
 # svgelements reports lengths in its pixels: its own inch per mm (0.0393701) at 96 per inch

@@ -7,9 +7,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from design_engine.design.constraints import (ConstraintLimits, angle_constraints, edge_constraints,
+                                              make_constraints)
 from design_engine.physics.angles import bond_angles
-from design_engine.design.constraints import ConstraintLimits, angle_constraints, edge_constraints, make_constraints
-from design_engine.physics.geometry import InvalidDesignError, block_geometry, check_design, polygon_properties
+from design_engine.physics.geometry import (InvalidDesignError, block_geometry, check_design,
+                                            polygon_properties)
 from design_engine.physics.lattice import kagome, periodic_design, quads, vertex_offsets
 
 

@@ -6,17 +6,18 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from design_engine.solve import implicit_step as im
-from design_engine.solve.policy import max_angular_frequency
 from design_engine.physics.dynamics import make_full_state
 from design_engine.physics.energy import bond_geometry, kinetic_energy, make_energy
-from design_engine.solve.fixed_step import FixedStepVerlet
 from design_engine.physics.geometry import block_geometry
-from design_engine.solve.implicit_step import ImplicitNewmark
 from design_engine.physics.loading import Loading
-from design_engine.solve.run import simulate_scene
 from design_engine.physics.scenes import build_scene
-from design_engine.solve.simulate import SimulationError, SolverConfig, check_solution, make_simulator
+from design_engine.solve import implicit_step as im
+from design_engine.solve.fixed_step import FixedStepVerlet
+from design_engine.solve.implicit_step import ImplicitNewmark
+from design_engine.solve.policy import max_angular_frequency
+from design_engine.solve.run import simulate_scene
+from design_engine.solve.simulate import (SimulationError, SolverConfig, check_solution,
+                                          make_simulator)
 from gradcheck import directional_check
 
 

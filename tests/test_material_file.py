@@ -9,21 +9,11 @@ import pytest
 
 from design_engine.physics.lattice import kagome, quads
 from design_engine.physics.material import Material
-from design_engine.physics.material_file import (
-    DEFAULT_PATH,
-    FORMAT,
-    SI_UNITS,
-    MaterialFileError,
-    default_material,
-    load_material,
-    load_material_file,
-    material_for_scene,
-    material_from_si,
-    material_to_si,
-    read_material_file,
-    save_material,
-    with_material,
-)
+from design_engine.physics.material_file import (DEFAULT_PATH, FORMAT, SI_UNITS, MaterialFileError,
+                                                 default_material, load_material,
+                                                 load_material_file, material_for_scene,
+                                                 material_from_si, material_to_si,
+                                                 read_material_file, save_material, with_material)
 
 FIELDS = [f.name for f in dataclasses.fields(Material)]
 

@@ -12,10 +12,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from design_engine.sweeps.pareto import dominates, front_indices, pareto_front
 from design_engine.commands.pareto import pareto_main
-from design_engine.sweeps.pareto_sweep import RunSpec, evaluations_on_disk, run_sweep
 from design_engine.design.task import TaskError, load_task
+from design_engine.sweeps.pareto import dominates, front_indices, pareto_front
+from design_engine.sweeps.pareto_sweep import RunSpec, evaluations_on_disk, run_sweep
 
 # 2 weights x 1 start x 2 evaluations: a run per worker of the test cluster, a killed run
 # resumes between its evaluations, a killed or stopped one-worker command has a run left, and

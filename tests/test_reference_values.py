@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from design_engine.solve.run import simulate_scene
 from design_engine.physics.scenes import build_scene
+from design_engine.solve.run import simulate_scene
 from design_engine.solve.simulate import SolverConfig
 
 FULL = SolverConfig()  # the reference configuration the anchors were produced with

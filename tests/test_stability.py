@@ -7,13 +7,13 @@ import numpy as np
 
 import pytest
 
-from design_engine.solve import run as run_mod
-from design_engine.solve.policy import (ENERGY_TOLERANCE, STABILITY_SAFETY, Choice, choose_config,
-                                contact_config, max_angular_frequency)
-from design_engine.solve.fixed_step import FixedStepVerlet
 from design_engine.physics.modal import modal_analysis
-from design_engine.solve.run import simulate_scene
 from design_engine.physics.scenes import build_scene
+from design_engine.solve import run as run_mod
+from design_engine.solve.fixed_step import FixedStepVerlet
+from design_engine.solve.policy import (ENERGY_TOLERANCE, STABILITY_SAFETY, Choice, choose_config,
+                                        contact_config, max_angular_frequency)
+from design_engine.solve.run import simulate_scene
 from design_engine.solve.simulate import SimulationError, SolverConfig
 from gradcheck import directional_check
 
@@ -130,7 +130,7 @@ def test_a_rejected_fixed_step_is_refined_once_when_that_can_pass_else_dopri8():
     to pass (dt x omega_c <= the limit, drift <= half the tolerance, Verlet being second order),
     else, and for a refined step rejected again, with Dopri8."""
     from design_engine.solve.policy import (CONTACT_STEP_LIMIT, ENERGY_TOLERANCE, REFINE,
-                                    contact_frequency, next_config, refined)
+                                            contact_frequency, next_config, refined)
 
     scene = build_scene("focusing-24x16", nx=8, ny=6, bias_angle_deg=44.0)
     mat = scene.material
@@ -311,8 +311,8 @@ def test_a_small_fixed_step_in_contact_is_accurate_or_rejected(jammed_sweep):
 
 @pytest.mark.slow
 def test_a_static_precompression_in_contact_starts_with_contact():
-    from design_engine.solve.policy import static_void_margin
     from design_engine.physics.modal import prestressed_state
+    from design_engine.solve.policy import static_void_margin
 
     scene = build_scene("protection-24x18", nx=12, ny=10, strain=0.05)
     span = float(scene.material.contact_cutoff - scene.material.contact_min)

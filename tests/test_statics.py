@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from design_engine import build_scene
-from design_engine.solve.simulate import SolverConfig, make_simulator
 from design_engine.physics.statics import (GRADIENT_TOL, EquilibriumError, check_equilibrium,
-                                   make_static_solver)
+                                           make_static_solver)
+from design_engine.solve.simulate import SolverConfig, make_simulator
 
 
 @pytest.fixture(scope="module")

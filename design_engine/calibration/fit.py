@@ -24,7 +24,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from design_engine.physics.lattice import Lattice
-from design_engine.physics.material import SI_POWER, Material, engine_to_si, reference_damping, si_to_engine
+from design_engine.physics.material import (SI_POWER, Material, engine_to_si, reference_damping,
+                                            si_to_engine)
 from design_engine.physics.material_file import SI_UNITS
 
 # SI -> internal factors of the fitted quantities that are not material fields: the damping

@@ -13,6 +13,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from design_engine.calibration.fit import (CalibrationError, Fit, STIFFNESSES, check_fit_names,
+                                           run_fit)
 from design_engine.physics.energy import bond_geometry, make_energy
 from design_engine.physics.geometry import block_geometry
 from design_engine.physics.lattice import Lattice, periodic_design, quads
@@ -20,8 +22,6 @@ from design_engine.physics.linalg import implicit_point, spd_solve
 from design_engine.physics.material import Material
 from design_engine.physics.material_file import SI_UNITS
 from design_engine.physics.regions import row_units
-from design_engine.calibration.fit import (CalibrationError, Fit, STIFFNESSES, check_fit_names,
-                                           run_fit)
 
 # --- hinge tests (spec 12.1) ----------------------------------------------------------------
 

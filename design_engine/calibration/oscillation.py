@@ -13,6 +13,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from design_engine.calibration.fit import (CalibrationError, Fit, check_damping_names,
+                                           check_fit_names, derived_damping, make_fitted_material,
+                                           run_fit, start_damping_ratio)
 from design_engine.physics.energy import bond_geometry, make_energy
 from design_engine.physics.geometry import block_geometry
 from design_engine.physics.lattice import Lattice, periodic_design, quads
@@ -20,9 +23,6 @@ from design_engine.physics.linalg import implicit_point, spd_solve
 from design_engine.physics.loading import CH_ZERO, Loading, Supports
 from design_engine.physics.material import Material
 from design_engine.physics.material_file import SI_UNITS
-from design_engine.calibration.fit import (CalibrationError, Fit, check_damping_names,
-                                           check_fit_names, derived_damping, make_fitted_material,
-                                           run_fit, start_damping_ratio)
 
 # --- free oscillation (spec 12.2) ------------------------------------------------------------
 

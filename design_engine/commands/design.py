@@ -60,10 +60,10 @@ def design_main(argv: list[str] | None = None) -> int:
     logging.getLogger("metarig").setLevel(logging.INFO)
 
     import design_engine  # noqa: F401  (x64, cache)
-    from design_engine.physics.geometry import InvalidDesignError
     from design_engine.design.optimize import ResumeError, read_record, run_design
-    from design_engine.solve.simulate import SimulationError
     from design_engine.design.task import TaskError, load_task
+    from design_engine.physics.geometry import InvalidDesignError
+    from design_engine.solve.simulate import SimulationError
 
     try:
         task = load_task(args.task, size=args.size, max_evals=args.max_evals,

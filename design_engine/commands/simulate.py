@@ -97,8 +97,8 @@ def _task(args, nx, ny, design):
 
 def task_summary(task, main_scene: str, main_solution, config) -> dict:
     """The task's objectives on the scene designs (other scenes simulated with `config`)."""
-    from design_engine.solve.run import simulate_scene
     from design_engine.design.evaluator import task_terms
+    from design_engine.solve.run import simulate_scene
 
     sols = {main_scene: main_solution}
     for t in task.terms:
@@ -227,8 +227,8 @@ def _block_ke_si(run) -> np.ndarray:
 
 def _plots(out: Path, scene, run, ke_j: np.ndarray) -> None:
     from design_engine.design.objectives import energy_components
-    from design_engine.solve.plots import plot_energy_components, plot_ke_map, plot_line_peaks
     from design_engine.physics.regions import row_units
+    from design_engine.solve.plots import plot_energy_components, plot_ke_map, plot_line_peaks
 
     traj = run.trajectory
     k_peak = int(np.argmax(ke_j.sum(axis=1)))

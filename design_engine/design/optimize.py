@@ -32,9 +32,9 @@ from pathlib import Path
 import numpy as np
 
 from design_engine.design.constraints import make_sparse_constraints
-from design_engine.physics.geometry import InvalidDesignError, check_design
-from design_engine.design.task import Task
 from design_engine.design.evaluator import EvaluationFailed, TaskEvaluator
+from design_engine.design.task import Task
+from design_engine.physics.geometry import InvalidDesignError, check_design
 
 log = logging.getLogger("metarig.design")
 

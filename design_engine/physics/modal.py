@@ -68,9 +68,9 @@ def prestressed_state(scene: Scene, config=None) -> np.ndarray:
     at t_c + t_d holds the small residual vibration of the ramp; the reference state for scenes
     without stages.
     """
+    from design_engine.physics.statics import EquilibriumError, equilibrium_state
     from design_engine.solve.run import compiled_simulator
     from design_engine.solve.simulate import SimulationError, SolverConfig, check_solution
-    from design_engine.physics.statics import EquilibriumError, equilibrium_state
 
     if scene.loading.strain <= 0.0:
         return np.zeros((scene.n_units, 3))

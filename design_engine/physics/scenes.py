@@ -13,7 +13,8 @@ import numpy as np
 from design_engine.physics.energy import DEFAULT_MODEL, Model
 from design_engine.physics.geometry import block_geometry, check_design
 from design_engine.physics.lattice import Lattice, kagome, periodic_design, quads
-from design_engine.physics.loading import CH_INPUT, CH_STAGE, CH_ZERO, PRECOMPRESSION, Loading, Supports
+from design_engine.physics.loading import (CH_INPUT, CH_STAGE, CH_ZERO, PRECOMPRESSION, Loading,
+                                           Supports)
 from design_engine.physics.material import Material, default_si
 from design_engine.physics.regions import corner_clamps, driven_units, row_units, window
 

@@ -37,7 +37,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from design_engine.physics.energy import DEFAULT_MODEL, Model, bond_geometry, followed_voids, make_energy
+from design_engine.physics.energy import (DEFAULT_MODEL, Model, bond_geometry, followed_voids,
+                                          make_energy)
 from design_engine.physics.geometry import block_geometry
 from design_engine.physics.lattice import Lattice
 from design_engine.physics.linalg import implicit_point

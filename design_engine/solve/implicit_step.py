@@ -24,15 +24,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from design_engine.solve.fixed_step import (
-    AbstractFixedStep,
-    Integrator,
-    StepGrid,
-    energy_error,
-    ledger_start,
-    ledger_step,
-    march,
-)
+from design_engine.solve.fixed_step import (AbstractFixedStep, Integrator, StepGrid, energy_error,
+                                            ledger_start, ledger_step, march)
 
 
 class ImplicitNewmark(AbstractFixedStep):

@@ -34,19 +34,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from design_engine.physics.dynamics import dof_masses
-from design_engine.physics.energy import (
-    DEFAULT_MODEL,
-    Model,
-    bond_geometry,
-    followed_voids,
-    make_energy,
-    void_stiffness,
-)
-from design_engine.solve.fixed_step import FixedStepVerlet, is_fixed_step
+from design_engine.physics.energy import (DEFAULT_MODEL, Model, bond_geometry, followed_voids,
+                                          make_energy, void_stiffness)
 from design_engine.physics.geometry import block_geometry
 from design_engine.physics.scenes import Scene
-from design_engine.solve.simulate import SimulationError, SolverConfig
 from design_engine.physics.statics import EquilibriumError, equilibrium_state
+from design_engine.solve.fixed_step import FixedStepVerlet, is_fixed_step
+from design_engine.solve.simulate import SimulationError, SolverConfig
 
 STABILITY_SAFETY = 0.6  # fraction of the Verlet stability limit 2 / omega_max
 # largest dt x omega_c (the contact barrier's own frequency at the deepest void) a fixed step

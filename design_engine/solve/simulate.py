@@ -13,14 +13,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from design_engine._types import Array, DesignVector, Float, Int
-from design_engine.physics.dynamics import VELOCITY_SCALE, make_dynamics_args, make_full_state, make_rhs
+from design_engine.physics.dynamics import (VELOCITY_SCALE, make_dynamics_args, make_full_state,
+                                            make_rhs)
 from design_engine.physics.energy import DEFAULT_MODEL, Model, followed_voids, make_energy
-from design_engine.solve.fixed_step import AbstractFixedStep, is_fixed_step, step_grid
 from design_engine.physics.geometry import block_geometry
 from design_engine.physics.lattice import Lattice
 from design_engine.physics.loading import Loading, Supports, make_prescribed
 from design_engine.physics.material import Material
 from design_engine.physics.statics import EquilibriumError, check_equilibrium, make_static_solver
+from design_engine.solve.fixed_step import AbstractFixedStep, is_fixed_step, step_grid
 
 
 class SolverConfig(eqx.Module):

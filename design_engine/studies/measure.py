@@ -7,8 +7,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from design_engine.solve.run import checked, compiled_simulator, make_objective
 from design_engine.physics.scenes import Scene
+from design_engine.solve.run import checked, compiled_simulator, make_objective
 from design_engine.solve.simulate import SolverConfig, check_solution
 from design_engine.studies.methods import rhs_evaluations
 

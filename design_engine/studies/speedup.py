@@ -23,8 +23,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from design_engine.solve.run import checked, default_choice, make_objective
 from design_engine.physics.scenes import build_scene
+from design_engine.solve.run import checked, default_choice, make_objective
 from design_engine.studies.measure import errors
 from design_engine.studies.methods import baseline_method, reference_method
 from metarig.readback import read_npz

@@ -11,19 +11,14 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from design_engine.solve.policy import (
-    contact_config,
-    contact_frequency,
-    max_angular_frequency,
-    next_config,
-    static_void_margin,
-)
+from design_engine.physics.scenes import build_scene
+from design_engine.physics.statics import EquilibriumError, equilibrium_state
 from design_engine.solve.fixed_step import FixedStepVerlet, is_fixed_step
 from design_engine.solve.implicit_step import ImplicitNewmark
+from design_engine.solve.policy import (contact_config, contact_frequency, max_angular_frequency,
+                                        next_config, static_void_margin)
 from design_engine.solve.run import simulate_scene
-from design_engine.physics.scenes import build_scene
 from design_engine.solve.simulate import SimulationError, SolverConfig, solve_health
-from design_engine.physics.statics import EquilibriumError, equilibrium_state
 from design_engine.studies.methods import reference_method
 
 

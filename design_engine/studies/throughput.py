@@ -12,18 +12,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from design_engine.solve.run import default_choice
 from design_engine.physics.scenes import build_scene
+from design_engine.solve.run import default_choice
 from design_engine.solve.simulate import make_simulator
 
 _COMPILE_PROBE = """
 import time, jax, jax.numpy as jnp
 t0 = time.perf_counter()
 import design_engine
-from design_engine.solve.run import make_objective
 from design_engine.physics.scenes import build_scene
-from design_engine.solve.simulate import SolverConfig
 from design_engine.solve.fixed_step import FixedStepVerlet
+from design_engine.solve.run import make_objective
+from design_engine.solve.simulate import SolverConfig
 scene = build_scene("focusing-24x16")
 vg, _ = make_objective(scene, SolverConfig(solver=FixedStepVerlet(max_dt={dt!r})))
 jax.block_until_ready(vg(jnp.asarray(scene.design)))

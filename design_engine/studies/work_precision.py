@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from design_engine.solve.policy import choose_config
 from design_engine.physics.scenes import build_scene
+from design_engine.solve.policy import choose_config
 from design_engine.studies.measure import errors, measure
 from design_engine.studies.methods import Method, reference_method, study_methods
 from metarig.readback import RESTORE, damaged, read_json, read_npz

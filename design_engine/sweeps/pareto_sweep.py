@@ -58,8 +58,8 @@ def run_one(spec: RunSpec, out: str) -> dict:
     Returns a small summary; everything that matters is in the run folder.
     """
     import design_engine  # noqa: F401  (x64, cache)
-    from design_engine.design.run_outputs import write_outputs
     from design_engine.design.optimize import resumable, run_design
+    from design_engine.design.run_outputs import write_outputs
 
     folder = Path(out) / "runs" / spec.name
     task = _task(spec)
@@ -150,8 +150,8 @@ def run_sweep(source: str, out: Path, weights: list[float], starts: list[float],
     """
     from distributed import wait
 
-    from design_engine.sweeps.distributed import dask_client
     from design_engine.design.optimize import read_record, resumable
+    from design_engine.sweeps.distributed import dask_client
 
     weights, starts = [float(w) for w in weights], [float(s) for s in starts]  # as sweep.json
     specs = [RunSpec(str(source), w, s, max_evals, size) for w in weights for s in starts]

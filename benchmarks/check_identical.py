@@ -78,11 +78,12 @@ def _digest(obj) -> str:
 
 
 def _strip_times(obj):
-    """History records without their wall-clock fields."""
+    """History records without their wall-clock fields (every `*_s` timing, dates, host)."""
     if isinstance(obj, dict):
         return {k: _strip_times(v) for k, v in obj.items()
-                if not any(w in k for w in ("wall", "time_s", "elapsed", "seconds", "started",
-                                            "finished", "date", "host", "load", "commit"))}
+                if not (k.endswith("_s") or any(w in k for w in (
+                    "wall", "elapsed", "seconds", "started", "finished", "date", "host", "load",
+                    "commit")))}
     if isinstance(obj, list):
         return [_strip_times(v) for v in obj]
     return obj
@@ -131,10 +132,14 @@ def fingerprint(src: Path, parts: list[str], work: Path | None = None) -> dict:
 def compare(a: dict, b: dict, noisy: set[str]) -> int:
     keys = sorted((set(a) | set(b)) - {"src"})
     differ = [k for k in keys if a.get(k) != b.get(k) and k not in noisy]
+    missing = [k for k in keys if k not in a or k not in b]
+    differ = [k for k in differ if k not in missing]
     for k in keys:
-        mark = "noisy" if k in noisy else ("same" if a.get(k) == b.get(k) else "DIFFERS")
+        mark = ("noisy" if k in noisy else "missing" if k in missing
+                else "same" if a.get(k) == b.get(k) else "DIFFERS")
         print(f"{mark:8} {k}")
-    print(f"{len(keys) - len(differ)} of {len(keys)} fingerprints identical"
+    print(f"{len(keys) - len(differ) - len(missing)} of {len(keys) - len(missing)} fingerprints "
+          "identical"
           + (f" ({len(noisy & set(keys))} wall-clock topics ignored)" if noisy else ""))
     return 1 if differ else 0
 

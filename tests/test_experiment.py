@@ -25,7 +25,7 @@ class FakeRig:
         self._recorder: dict = {}
         self._stage, self._t_set, self._t_cam = "idle", None, None
         self.lose_frames = lose_frames
-        self.simulated_clock = True
+        self.unsubscribed: set[str] = set()  # device topics the recorder has not subscribed to
         self.shaker_fault_text, self.shaker_fault_at = "", math.inf
         self._compensated_at = math.inf
         self.compensation_outcome = (True, "compensation done: 3 drives (within the tolerances)")
@@ -84,6 +84,9 @@ class FakeRig:
 
     def recorder(self):
         return self._recorder
+
+    def recorder_subscribed(self, topics):
+        return not self.unsubscribed & set(topics)
 
     # commands
     def set_strain(self, strain):
@@ -322,27 +325,22 @@ def test_the_drive_is_compensated_before_the_recording_starts():
     assert "set_strain" not in rig.names()
 
 
-def test_on_the_system_clock_nothing_moves_before_the_device_samples_are_recorded():
+def test_the_recorder_subscribes_to_the_device_motion_before_it_starts():
     rig = FakeRig(PLAN)
-    rig.simulated_clock = False
-    recorder_start = rig.recorder_start
-
-    def start_without_device_samples():  # the recorder has not discovered a device node
-        recorder_start()
-        rig._recorder["counts"] = {DEVICE_TOPICS[1]: 3}
-
-    rig.recorder_start = start_without_device_samples
-    with pytest.raises(RigError, match="the recorder to receive the shaker's and the stage's "
-                                       "samples"):
+    rig.unsubscribed = set(DEVICE_TOPICS[:1])  # the recorder has not discovered the shaker
+    with pytest.raises(RigError, match="^timed out waiting for the recorder to subscribe to the "
+                                       "shaker's and the stage's motion$"):
         Experiment(PLAN, rig).run()
-    assert "set_strain" not in rig.names()
+    assert "recorder_start" not in rig.names() and "set_strain" not in rig.names()
     rig = FakeRig(PLAN)
-    rig.simulated_clock = False
-    recorder_start = rig.recorder_start
+    steps = iter(range(50))
+    rig.unsubscribed = set(DEVICE_TOPICS)
 
-    def start_with_device_samples():
-        recorder_start()
-        rig._recorder["counts"] = {t: 1 for t in DEVICE_TOPICS}
+    def subscribed_after_a_while(topics):  # DDS discovery takes its time
+        if next(steps, None) is None:
+            rig.unsubscribed = set()
+        return not rig.unsubscribed & set(topics)
 
-    rig.recorder_start = start_with_device_samples
+    rig.recorder_subscribed = subscribed_after_a_while
     assert Experiment(PLAN, rig).run()["frames"] == 41
+    assert rig.names()[:2] == ["camera_snapshot", "recorder_start"]

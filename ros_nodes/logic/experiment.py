@@ -34,12 +34,7 @@ class RigError(RuntimeError):
 
 class RigPort(Protocol):
     """What the procedure needs from the rig. Calls that wait for an answer raise `RigError`
-    on timeout; `(accepted, message)` pairs carry a device's refusal and its reason.
-
-    `simulated_clock`: the rig runs on the simulated time it publishes (False: the system
-    clock, on which the device nodes sample from their start)."""
-
-    simulated_clock: bool
+    on timeout; `(accepted, message)` pairs carry a device's refusal and its reason."""
 
     def now(self) -> float:
         """Wall time (monotonic), s."""
@@ -92,6 +87,10 @@ class RigPort(Protocol):
     def stage_hold_time(self) -> float | None:
         """Simulated time of the stage sample at which the stages began to hold their target
         (None: not known)."""
+
+    def recorder_subscribed(self, topics: tuple[str, ...]) -> bool:
+        """Whether the recorder has a subscription on each of `topics` (it subscribes to a
+        topic once it has discovered a publisher of it)."""
 
     def recorder(self) -> dict:
         """The recorder's last status (`recording`, `matched`, `counts`, `last_stamp_s` per
@@ -219,6 +218,11 @@ class Experiment:
         if not ok:
             log.warning("no reference image of the unloaded sample (%s): poses will be tracked "
                         "from the first recorded frame, which is already pre-compressed", why)
+        # the recorder's `matched` covers the topics it has discovered: with one process per
+        # node under load it had once not yet discovered the shaker node when the run started,
+        # and recorded none of its motion
+        self.until(lambda: port.recorder_subscribed(DEVICE_TOPICS),
+                   "the recorder to subscribe to the shaker's and the stage's motion", 30.0)
         # the recording holds the whole test from rest: the stage closing as the stages made it
         # (the comparison and the simulated camera then start from the same history)
         port.recorder_start()
@@ -226,14 +230,6 @@ class Experiment:
         self.until(lambda: port.recorder().get("recording") and
                    port.recorder().get("matched", True),
                    "the recorder to start and match every topic", 30.0)
-        if not port.simulated_clock:
-            # on the system clock the devices sample from their start: the recorder must hold
-            # their samples before anything moves. `matched` covers the topics the recorder has
-            # discovered; with one process per node it had once not yet discovered the shaker
-            # node (DDS discovery under load) and recorded none of its motion
-            self.until(lambda: all(port.recorder().get("counts", {}).get(t, 0) > 0
-                                   for t in DEVICE_TOPICS),
-                       "the recorder to receive the shaker's and the stage's samples", 30.0)
         timings = {"startup": port.now() - w0}
 
         w = port.now()

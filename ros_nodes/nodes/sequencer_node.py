@@ -222,6 +222,10 @@ class SequencerNode(Node):
     def recorder(self) -> dict:
         return self.latest.get("recorder") or {}
 
+    def recorder_subscribed(self, topics: tuple[str, ...]) -> bool:
+        return all(any(i.node_name == "recorder" for i in self.get_subscriptions_info_by_topic(t))
+                   for t in topics)
+
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:
         for st in msg.status:
             if st.name == "stage" and st.message.startswith("holding") and self._hold_ns is None:

@@ -21,7 +21,8 @@ constant, mostly the reference image's noise), against `comparison.metrics.FRAME
 
 The reference image averages `--reference-frames` frames at rest (default: the rig's,
 `hardware_sim.camera.REFERENCE_FRAMES`); it is rendered for each count once, beside the
-footage (`reference-N.png`), so counts compare on the same frames.
+footage (`reference-N.png`), so counts compare on the same frames; another count than the
+rig's writes `..._refN.json`.
 
 Writes `<out>/bench_dic_design.json` and, with `--results DIR`, a copy there. Prints a table.
 `--design periodic` films the scene's periodic focusing design instead (squares, no slivers):
@@ -215,8 +216,9 @@ def main(argv=None) -> int:
     }
     for d in filter(None, (args.out, args.results)):
         d.mkdir(parents=True, exist_ok=True)
-        name = "bench_dic_periodic.json" if args.design == "periodic" else "bench_dic_design.json"
-        (d / name).write_text(json.dumps(res, indent=2))
+        name = "bench_dic_periodic" if args.design == "periodic" else "bench_dic_design"
+        suffix = "" if n_ref == REFERENCE_FRAMES else f"_ref{n_ref}"
+        (d / f"{name}{suffix}.json").write_text(json.dumps(res, indent=2))
     rows = [("unit-frames wrong without a flag (target 0)", res["wrong_without_flag"]),
             ("  wrong and not lost (sigma not counted)", res["wrong_not_lost"]),
             ("p99 position error, px (<= 0.1)", f"{res['p99_position_px']:.3f}"),

@@ -193,5 +193,6 @@ def test_shaker_compensates_its_drive_and_the_measured_peak_error_drops(ros_node
         assert r.accepted and "compensated drive" in r.message, r.message
         after = peak_error(r)
         assert abs(after) <= 0.005 and abs(after) < abs(before) / 10, (before, after)
+        print(f"measured peak error: {before:+.3%} as requested, {after:+.3%} compensated")
     finally:
         print(stop_process(proc))

@@ -40,9 +40,9 @@ def main(argv=None) -> int:
 
     import design_engine  # noqa: F401
     from design_engine.design.design_io import load_design
-    from design_engine.design.objectives import region_energy
     from design_engine.physics.scenes import build_scene
     from design_engine.solve.fixed_step import FixedStepVerlet
+    from design_engine.solve.objectives import region_energy
     from design_engine.solve.policy import max_angular_frequency
     from design_engine.solve.simulate import SimulationError, SolverConfig, make_simulator
 

@@ -106,7 +106,7 @@ def test_step_budget_exhaustion_is_reported_not_returned():
 
 
 def test_modes_about_a_precompressed_state_are_stable_and_shifted():
-    from design_engine.physics.modal import prestressed_state
+    from design_engine.solve.run import prestressed_state
 
     scene = build_scene("protection-24x18", nx=8, ny=8, strain=0.03)
     q = prestressed_state(scene)

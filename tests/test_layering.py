@@ -122,6 +122,27 @@ def _scanned() -> list[Path]:
     return [f for pkg in PACKAGES for f in _files(pkg)] + sorted((ROOT / "benchmarks").glob("*.py"))
 
 
+# the design engine's rooms, in import order: a room imports only the rooms before it (and the
+# package's own set-up); `commands/` is imported by the dispatcher only (above)
+ROOMS = ("physics", "solve", "design", "sweeps", "calibration", "studies", "commands")
+
+
+def test_the_engine_rooms_import_only_the_rooms_before_them():
+    assert {p.name for p in (ROOT / "design_engine").iterdir()
+            if p.is_dir() and (p / "__init__.py").exists()} == set(ROOMS)
+    bad = []
+    for f in _files("design_engine"):
+        parts = f.relative_to(ROOT / "design_engine").parts
+        if len(parts) < 2:
+            continue
+        room = parts[0]
+        for imp in _imports(f):
+            other = imp.split(".")[1] if imp.startswith("design_engine.") else None
+            if other in ROOMS and ROOMS.index(other) > ROOMS.index(room):
+                bad.append(f"design_engine/{'/'.join(parts)} ({room}) imports {imp}")
+    assert not bad, "\n".join(bad)
+
+
 def test_commands_are_leaves_and_logic_is_pure():
     """No module (benchmarks included) imports a command module but the dispatcher; a module
     that imports `ros_nodes.convert` imports ROS: only the nodes (and the offline comparison

@@ -21,9 +21,9 @@ import pytest
 
 from design_engine.commands.robustness import robustness_main
 from design_engine.design.design_io import save_design
-from design_engine.design.objectives import region_energy, region_energy_ratio
 from design_engine.physics.lattice import periodic_design, quads
 from design_engine.physics.scenes import build_scene
+from design_engine.solve.objectives import region_energy, region_energy_ratio
 from design_engine.solve.policy import Choice
 from design_engine.solve.run import compiled_simulator, default_choice, simulate_scene
 from design_engine.sweeps import robustness as rb

@@ -228,7 +228,7 @@ def jammed():
 
 @pytest.fixture(scope="module")
 def jammed_state(jammed):
-    from design_engine.physics.modal import prestressed_state
+    from design_engine.solve.run import prestressed_state
 
     return prestressed_state(jammed)
 
@@ -311,8 +311,8 @@ def test_a_small_fixed_step_in_contact_is_accurate_or_rejected(jammed_sweep):
 
 @pytest.mark.slow
 def test_a_static_precompression_in_contact_starts_with_contact():
-    from design_engine.physics.modal import prestressed_state
     from design_engine.solve.policy import static_void_margin
+    from design_engine.solve.run import prestressed_state
 
     scene = build_scene("protection-24x18", nx=12, ny=10, strain=0.05)
     span = float(scene.material.contact_cutoff - scene.material.contact_min)

@@ -220,14 +220,14 @@ def simulate_main(argv: list[str] | None = None) -> int:
 
 
 def _block_ke_si(run) -> np.ndarray:
-    from design_engine.design.objectives import block_kinetic_energy
+    from design_engine.solve.objectives import block_kinetic_energy
 
     return np.asarray(block_kinetic_energy(run.solution)) * 1e-3  # mJ -> J
 
 
 def _plots(out: Path, scene, run, ke_j: np.ndarray) -> None:
-    from design_engine.design.objectives import energy_components
     from design_engine.physics.regions import row_units
+    from design_engine.solve.objectives import energy_components
     from design_engine.solve.plots import plot_energy_components, plot_ke_map, plot_line_peaks
 
     traj = run.trajectory
@@ -257,7 +257,8 @@ def modes_main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     import design_engine  # noqa: F401
     from design_engine.physics.geometry import InvalidDesignError
-    from design_engine.physics.modal import modal_analysis, prestressed_state
+    from design_engine.physics.modal import modal_analysis
+    from design_engine.solve.run import prestressed_state
     from design_engine.solve.simulate import SimulationError
 
     try:

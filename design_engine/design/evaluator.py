@@ -32,14 +32,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from design_engine.design.objectives import objective_term
 from design_engine.design.task import OPTIMISER_SCALE, Task
 from design_engine.design.task_schema import Term
-from design_engine.physics.modal import prestressed_state
 from design_engine.solve.driver import PolicyFailed, solve_with_policy
 from design_engine.solve.fixed_step import is_fixed_step
+from design_engine.solve.objectives import objective_term
 from design_engine.solve.policy import (STABILITY_SAFETY, choose_config, contact_config,
                                         initial_vector, make_frequency_estimator)
+from design_engine.solve.run import prestressed_state
 from design_engine.solve.run import checked, compile_key, config_summary
 from design_engine.solve.simulate import (SimulationError, Solution, SolverConfig, make_simulator,
                                           solve_health)

@@ -94,10 +94,10 @@ def _plots(task, out: Path, result) -> None:
     import jax.numpy as jnp
 
     from design_engine.design.constraints import active_constraint_masks, make_sparse_constraints
-    from design_engine.design.objectives import block_kinetic_energy
     from design_engine.design.plots import (plot_active_constraints, plot_design_comparison,
                                             plot_history)
     from design_engine.physics.geometry import block_geometry
+    from design_engine.solve.objectives import block_kinetic_energy
     from design_engine.solve.run import simulate_scene
 
     plot_history(out / "history.png", result.evaluations, task.goal,

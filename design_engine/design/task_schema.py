@@ -29,10 +29,10 @@ import math
 from dataclasses import dataclass, replace
 
 from design_engine.design.constraints import ConstraintLimits
-from design_engine.design.objectives import QUANTITIES
 from design_engine.physics.lattice import Lattice
 from design_engine.physics.loading import PRECOMPRESSION
 from design_engine.physics.scenes import PRESETS
+from design_engine.solve.objectives import QUANTITIES
 
 FORMAT = "metarig-task/1"
 GOALS = ("max", "min")

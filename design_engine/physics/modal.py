@@ -57,31 +57,3 @@ def modal_analysis(scene: Scene, q_state: np.ndarray | None = None, *, linearize
     # rad/ms -> Hz; tiny negative eigenvalues of an unconstrained system are rigid-body modes
     freqs = np.sqrt(np.clip(w2, 0.0, None)) * 1e3 / (2.0 * np.pi)
     return Modes(frequencies_hz=freqs, shapes=phi, free=free, stiffness=k, masses=m)
-
-
-def prestressed_state(scene: Scene, config=None) -> np.ndarray:
-    """State [n_blocks, 3] (mm, rad) at the end of the scene's pre-compression, when the pulse
-    starts.
-
-    A static pre-compression (`loading.is_static`) gives the equilibrium under the closed stages
-    (`statics`); the two-stage ramp reaches it dynamically from rest (spec 7.4), so the state
-    at t_c + t_d holds the small residual vibration of the ramp; the reference state for scenes
-    without stages.
-    """
-    from design_engine.physics.statics import EquilibriumError, equilibrium_state
-    from design_engine.solve.run import compiled_simulator
-    from design_engine.solve.simulate import SimulationError, SolverConfig, check_solution
-
-    if scene.loading.strain <= 0.0:
-        return np.zeros((scene.n_units, 3))
-    if scene.loading.is_static:
-        try:
-            return equilibrium_state(scene)
-        except EquilibriumError as exc:
-            raise SimulationError(str(exc)) from None
-    config = config or SolverConfig()
-    ts = np.asarray([0.5 * scene.window_start, scene.window_start])
-    sim = compiled_simulator(scene, config, ts)
-    sol = check_solution(sim(jnp.asarray(scene.design), scene.material, scene.loading,
-                             jnp.asarray(ts)), config)
-    return np.asarray(sol.q[-1])

@@ -136,7 +136,7 @@ def choose_config(scene: Scene, *, full_model: bool = False,
 
     `omega` (rad/ms) is a measured highest natural frequency of the scene's design at the state
     the pulse starts from (`state` [n_blocks, 3], mm/rad: rest, or for a static pre-compression
-    the equilibrium, `modal.prestressed_state`); None measures it.
+    the equilibrium, `run.prestressed_state`); None measures it.
     """
     if full_model:
         return Choice(SolverConfig(), ("forced full model: Dopri5, rtol 1e-8, atol 1e-4, float64, "

@@ -11,19 +11,19 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from design_engine.design.objectives import (angular_momentum, block_kinetic_energy, objective_term,
-                                             peak_energy_along_units, region_energy,
-                                             region_energy_ratio)
+from design_engine.physics import units
 from design_engine.physics.loading import Loading
 from design_engine.physics.regions import row_units
 from design_engine.physics.scenes import Scene
 from design_engine.solve.driver import solve_with_policy
 from design_engine.solve.fixed_step import is_fixed_step
+from design_engine.solve.objectives import (angular_momentum, block_kinetic_energy, objective_term,
+                                            peak_energy_along_units, region_energy,
+                                            region_energy_ratio)
 from design_engine.solve.policy import Choice, choose_config
 from design_engine.solve.simulate import (SimulationError, Solution, SolverConfig, check_solution,
                                           make_simulator, simulation_error, solve_health)
 from metarig.trajectory import Trajectory
-from design_engine.physics import units
 
 _COMPILED: dict[tuple, object] = {}
 
@@ -160,6 +160,32 @@ def _run_with_policy(scene: Scene, config: SolverConfig | None, ts_ms=None, load
 
     out = solve_with_policy(scene, choice.config, solve)
     return out.result, sum(walls), out.config, choice.reasons + out.resolves, out.resolves
+
+
+def prestressed_state(scene: Scene, config=None) -> np.ndarray:
+    """State [n_blocks, 3] (mm, rad) at the end of the scene's pre-compression, when the pulse
+    starts.
+
+    A static pre-compression (`loading.is_static`) gives the equilibrium under the closed stages
+    (`statics`); the two-stage ramp reaches it dynamically from rest (spec 7.4), so the state
+    at t_c + t_d holds the small residual vibration of the ramp; the reference state for scenes
+    without stages.
+    """
+    from design_engine.physics.statics import EquilibriumError, equilibrium_state
+
+    if scene.loading.strain <= 0.0:
+        return np.zeros((scene.n_units, 3))
+    if scene.loading.is_static:
+        try:
+            return equilibrium_state(scene)
+        except EquilibriumError as exc:
+            raise SimulationError(str(exc)) from None
+    config = config or SolverConfig()
+    ts = np.asarray([0.5 * scene.window_start, scene.window_start])
+    sim = compiled_simulator(scene, config, ts)
+    sol = check_solution(sim(jnp.asarray(scene.design), scene.material, scene.loading,
+                             jnp.asarray(ts)), config)
+    return np.asarray(sol.q[-1])
 
 
 def simulate_scene(scene: Scene, config: SolverConfig | None = None) -> SceneRun:
@@ -336,5 +362,5 @@ def checked(value_aux, config: SolverConfig | None = None):
     return value_aux
 
 
-__all__ = ["SceneRun", "simulate_scene", "simulate_rig", "make_objective", "checked", "to_trajectory",
+__all__ = ["SceneRun", "prestressed_state", "simulate_scene", "simulate_rig", "make_objective", "checked", "to_trajectory",
            "scene_metrics", "compiled_simulator"]

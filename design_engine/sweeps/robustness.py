@@ -33,12 +33,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from design_engine.design.objectives import region_energy, region_energy_ratio
 from design_engine.physics import units
 from design_engine.physics.lattice import lattice_from_description
 from design_engine.physics.loading import Loading
 from design_engine.physics.scenes import Scene, build_scene
 from design_engine.solve.driver import PolicyFailed, decide
+from design_engine.solve.objectives import region_energy, region_energy_ratio
 from design_engine.solve.policy import choose_config, fallback_config
 from design_engine.solve.run import compile_key, config_summary, default_choice
 from design_engine.solve.simulate import (SimulationError, SolverConfig, health_failure,

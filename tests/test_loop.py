@@ -206,7 +206,8 @@ def test_loop_rrd_shows_the_rounds_side_by_side(tmp_path):
     of each per round, and the table of the rounds."""
     from rerun.chunk import RrdReader
 
-    from ros_nodes.logic.closed_loop import OBJECTIVE, write_loop_rrd
+    from ros_nodes.logic.closed_loop import OBJECTIVE
+    from ros_nodes.logic.loop_record import write_loop_rrd
 
     rng = np.random.default_rng(0)
     square = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float64) * 0.01
@@ -221,7 +222,8 @@ def test_loop_rrd_shows_the_rounds_side_by_side(tmp_path):
         (folder / "objective.json").write_text(json.dumps({"terms": {"t": {"ids": [4, 5]}}}))
         rounds.append({"round": k, "design_objective_J": 2e-6 * k, "predicted_objective_J": 1e-6,
                        "measured_objective_J": 1.1e-6 * k, "measured_over_predicted": 1.1 * k})
-    path = write_loop_rrd(tmp_path / "loop.rrd", tmp_path, rounds)
+    path = write_loop_rrd(tmp_path / "loop.rrd", rounds,
+                          {k: tmp_path / f"round-{k}" / OBJECTIVE for k in (1, 2)})
     reader = RrdReader(path)
     (recording,) = reader.recordings()
     chunks = reader.stream(store=recording).to_chunks()

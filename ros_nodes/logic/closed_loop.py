@@ -40,6 +40,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ros_nodes.logic.loop_objective import ObjectiveError, objective_of_run
+from ros_nodes.logic.loop_record import write_loop_rrd
+
 log = logging.getLogger("metarig.loop")
 
 STEP_DONE = "step.json"
@@ -178,98 +181,6 @@ def check_design_fits(path: Path, task) -> None:
                         f"{lattice.shape[1]} design, but task {task.name} is on a "
                         f"{task.lattice.kind} {task.lattice.shape[0]}x{task.lattice.shape[1]} "
                         "lattice (--size sets the task's)")
-
-
-# --- the objective, measured and predicted ------------------------------------------------------
-
-
-def objective_of_run(run_dir: Path, task, material: Path | None) -> tuple[dict, dict]:
-    """The task's objective on a rig run: measured (the tracked poses' velocities) and predicted
-    (the model, the run's nominal design with `material`, on the measured input), both through
-    the comparison's differentiating filter of the frames (`comparison.metrics.frame_rates`),
-    on the task's window and samples; and `predicted_full_band_J`, the model's objective from
-    its own rates (what the design engine optimises): motion faster than the camera resolves
-    is in it and not in the other two.
-
-    The window is placed on the measured pulse onset as the task's scene places it on its
-    pulse start; before the onset the sample is at rest (kinetic energy 0). Target units lost
-    by the tracker are left out of both (and counted).
-
-    Returns:
-        (the `objective.json` document, arrays for the Rerun recording: t_s [n_t] since the
-        onset, target_ke_measured_J / target_ke_predicted_J [n_t], polygons_m [n, nv, 2]).
-
-    Raises:
-        LoopError: the run cannot be read or compared, or its capture ends before the window.
-    """
-    from design_engine.physics.material_file import MaterialFileError, with_material
-    from ros_nodes.logic import comparison_run as run
-    from ros_nodes.logic.comparison_run import CompareError
-    from ros_nodes.logic.recording import RecordingError, read_recording
-    from ros_nodes.recorded_run import measured_poses, recorded_design
-
-    try:
-        rec = read_recording(run_dir)
-        scene, polygons = run.design_scene(recorded_design(rec, run_dir), where=str(rec.path))
-        if material is not None:
-            scene = with_material(scene, material)
-        tracked = measured_poses(rec, "dic", polygons, None, 1, False)
-        run.check_poses(scene, tracked.poses, where=str(rec.path))
-        ec = run.simulate_and_compare(scene, tracked.poses, tracked.t0_s, rec.shaker_t_s,
-                                      rec.shaker_u_m, rec.stage_t_s, rec.stage_closing_m,
-                                      rec.closing_speed_m_s, rec.stage_hold_s,
-                                      where=str(rec.path))
-    except (RecordingError, CompareError, MaterialFileError) as exc:
-        raise LoopError(f"objective of {run_dir}: {exc}") from None
-    c = ec.comparison
-    task_scene = next(iter(task.scenes.values()))
-    ld = task_scene.loading
-    t_task = (task_scene.sample_times - ld.pulse_start - ld.delay) / 1e3  # s since the pulse
-    if t_task[-1] > c.t[-1] + 1e-9:
-        raise LoopError(f"objective of {run_dir}: the capture ends {c.t[-1] * 1e3:.1f} ms after "
-                        f"the pulse onset, before the task's window ({t_task[-1] * 1e3:.1f} ms); "
-                        "give the rig a longer --record-s")
-    from comparison.metrics import kinetic_energy
-
-    keep = ec.measured.t >= c.metrics["onset_s"] - 1e-9  # the comparison's window
-    ke_full = kinetic_energy(ec.simulated_abs.qdot[keep], scene.unit_masses_kg(),
-                             scene.unit_inertias_kgm2())  # the engine's own rates, unfiltered
-    terms, lost = {}, set()
-    ke = {"measured": np.zeros_like(c.t), "predicted": np.zeros_like(c.t)}
-    measured = predicted = full_band = 0.0
-    for term in task.terms:
-        ids = np.asarray(task.targets[term.target])
-        used = ids[c.used[ids]]
-        lost.update(int(i) for i in ids[~c.used[ids]])
-        row = {"target": term.target, "weight": term.weight, "ids": [int(i) for i in ids],
-               "units_tracked": int(used.size)}
-        for side, field_ in (("measured", c.ke_exp), ("predicted", c.ke_sim)):
-            series = field_[:, used].sum(axis=1)
-            ke[side] += term.weight * series
-            row[f"{side}_J"] = float(np.mean(np.interp(t_task, c.t, series, left=0.0)))
-        row["predicted_full_band_J"] = float(np.mean(np.interp(
-            t_task, c.t, ke_full[:, used].sum(axis=1), left=0.0)))
-        terms[term.name] = row
-        measured += term.weight * row["measured_J"]
-        predicted += term.weight * row["predicted_J"]
-        full_band += term.weight * row["predicted_full_band_J"]
-    m = c.metrics
-    doc = {
-        "task": task.name, "goal": task.goal, "measured_J": measured, "predicted_J": predicted,
-        "measured_over_predicted": measured / predicted if predicted else float("nan"),
-        "predicted_full_band_J": full_band,
-        "unit": "J (mean kinetic energy of the target over the task's window, weighted sum of "
-                "the terms)",
-        "terms": terms, "target_units_lost": sorted(lost),
-        "window_s": [float(t_task[0]), float(t_task[-1])], "samples": int(t_task.size),
-        "model_material": str(material) if material is not None else "default",
-        "comparison": {k: m[k] for k in ("velocity_nrmse", "energy_map_correlation",
-                                         "target_peak_ke_rel_err", "lost_units") if k in m},
-        "onset_s": float(m["onset_s"]), "run": str(run_dir),
-    }
-    arrays = {"t_s": np.asarray(c.t, np.float64), "target_ke_measured_J": ke["measured"],
-              "target_ke_predicted_J": ke["predicted"], "polygons_m": np.asarray(polygons)}
-    return doc, arrays
 
 
 # --- materials between rounds -----------------------------------------------------------------
@@ -434,7 +345,10 @@ class _Round:
 
         def work(folder):
             folder.mkdir(parents=True, exist_ok=True)
-            doc, arrays = objective_of_run(run_dir, self.task, material)
+            try:
+                doc, arrays = objective_of_run(run_dir, self.task, material)
+            except ObjectiveError as exc:
+                raise LoopError(str(exc)) from None
             np.savez(folder / "target_ke.npz", **arrays)
             (folder / "objective.json").write_text(json.dumps(doc, indent=2))
             return None, {}
@@ -579,81 +493,6 @@ def run_loop(plan: LoopPlan) -> dict:
         "wall_s_this_invocation": round(time.perf_counter() - t0, 1),
     }
     (plan.out / SUMMARY_NAME).write_text(json.dumps(doc, indent=2))
-    write_loop_rrd(plan.out / RRD_NAME, plan.out, rounds)
+    write_loop_rrd(plan.out / RRD_NAME, rounds, {r["round"]: plan.out / f"round-{r['round']}" / OBJECTIVE
+                                                for r in rounds})
     return doc
-
-
-# --- the Rerun recording of the rounds ---------------------------------------------------------
-
-TIMELINE = "t"  # time since the pulse onset
-APPLICATION_ID = "metarig_loop"
-ROUND_ENTITY = "round-{k}"
-MM_PER_M = 1e3
-MEASURED_RGBA, PREDICTED_RGBA = (214, 39, 40, 255), (31, 119, 180, 255)
-OUTLINE_RGBA, TARGET_RGBA = (90, 90, 90, 255), (255, 0, 255, 255)
-
-
-def write_loop_rrd(path: Path, out: Path, rounds: list[dict]) -> Path:
-    """`loop.rrd`: per round side by side, its design (unit outlines, target units magenta)
-    over the target's kinetic energy measured and predicted on the rounds' shared time axis
-    (since the pulse onset); below them the objectives of every round as a table. Written to a
-    temporary file and renamed, so `path` is whole or absent."""
-    import rerun as rr
-    import rerun.blueprint as rrb
-
-    data, columns = {}, []
-    for r in rounds:
-        k = r["round"]
-        data[k] = (np.load(out / f"round-{k}" / OBJECTIVE / "target_ke.npz"),
-                   json.loads((out / f"round-{k}" / OBJECTIVE / "objective.json").read_text()))
-        root = ROUND_ENTITY.format(k=k)
-        columns.append(rrb.Vertical(
-            rrb.Spatial2DView(origin=f"{root}/design", name=f"round {k}: design"),
-            rrb.TimeSeriesView(origin=f"{root}/target_ke",
-                               name=f"round {k}: target kinetic energy [J]"),
-        ))
-    blueprint = rrb.Blueprint(
-        rrb.Vertical(rrb.Horizontal(*columns),
-                     rrb.TextDocumentView(origin="summary", name="rounds"), row_shares=[4, 1]),
-        rrb.BlueprintPanel(state="collapsed"), rrb.SelectionPanel(state="collapsed"),
-        rrb.TimePanel(timeline=TIMELINE, state="collapsed"), collapse_panels=False)
-    tmp = path.with_name(f".{path.name}.part")
-    rec = rr.RecordingStream(APPLICATION_ID)
-    rec.save(tmp, default_blueprint=blueprint)
-    try:
-        rec.log("summary", rr.TextDocument(loop_markdown(rounds),
-                                           media_type=rr.MediaType.MARKDOWN), static=True)
-        for k, (arrays, objective) in data.items():
-            root = ROUND_ENTITY.format(k=k)
-            poly = arrays["polygons_m"] * np.array([MM_PER_M, -MM_PER_M])  # Rerun: y down
-            strips = np.concatenate([poly, poly[:, :1]], axis=1).astype(np.float32)
-            colours = np.tile(np.array([OUTLINE_RGBA], np.uint8), (len(strips), 1))
-            for term in objective["terms"].values():
-                colours[np.asarray(term["ids"], np.int64)] = TARGET_RGBA
-            rec.log(f"{root}/design", rr.LineStrips2D(strips, colors=colours), static=True)
-            t = np.asarray(arrays["t_s"], np.float64)
-            for side, rgba in (("measured", MEASURED_RGBA), ("predicted", PREDICTED_RGBA)):
-                entity = f"{root}/target_ke/{side}"
-                rec.log(entity, rr.SeriesLines(names=side, colors=[rgba]), static=True)
-                rr.send_columns(entity, indexes=[rr.TimeColumn(TIMELINE, duration=t)],
-                                columns=rr.Scalars.columns(
-                                    scalars=np.asarray(arrays[f"target_ke_{side}_J"])),
-                                recording=rec)
-    finally:
-        rec.disconnect()  # flushes and writes the footer
-    tmp.replace(path)
-    return path
-
-
-def loop_markdown(rounds: list[dict]) -> str:
-    """The rounds' objectives as a markdown table."""
-    lines = ["| round | design objective (J) | predicted (J) | measured (J) | measured / "
-             "predicted |", "|---|---|---|---|---|"]
-    for r in rounds:
-        d = r["design_objective_J"]
-        lines.append(f"| {r['round']} | {d:.4g} | {r['predicted_objective_J']:.4g} | "
-                     f"{r['measured_objective_J']:.4g} | {r['measured_over_predicted']:.3f} |"
-                     if d is not None else
-                     f"| {r['round']} | - | {r['predicted_objective_J']:.4g} | "
-                     f"{r['measured_objective_J']:.4g} | {r['measured_over_predicted']:.3f} |")
-    return "\n".join(lines)

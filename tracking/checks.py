@@ -28,7 +28,7 @@ class Pieces:
         refs: [n * parts] pieces; unit b's are b * parts .. b * parts + parts - 1. A piece
             keeps its points' intensities and gradients; its centre is its own centroid, its
             intensities zero-mean over it and its Hessian its own. count 0: no check possible
-            (a unit with fewer than 3 x `parts` points, or a blank piece).
+            (a piece of fewer than `MIN_PIECE_POINTS` points, or a blank one).
         offset: [n * parts, 2] each piece's centroid from its unit's `centre_px`, px.
         parts: pieces per unit.
     """
@@ -62,9 +62,10 @@ def split_refs(refs: RefSet, parts: int = 2) -> Pieces:
     piece = np.where(mask, rank * parts // cnt, -1)
     src = np.repeat(np.arange(n), parts)
     pm = piece[src] == np.tile(np.arange(parts), n)[:, None]
-    usable = refs.count[src] >= 3 * parts
-    pm &= usable[:, None]
     k = pm.sum(1)
+    usable = np.repeat(np.min(k.reshape(n, parts), axis=1) >= MIN_PIECE_POINTS, parts)
+    pm &= usable[:, None]
+    k = np.where(usable, k, 0)
     # each piece's points to the front, in their original order
     order = np.argsort(~pm, axis=1, kind="stable")
     width = max(int(k.max()), 1)
@@ -87,7 +88,7 @@ def split_refs(refs: RefSet, parts: int = 2) -> Pieces:
     j64, f64 = jac.astype(np.float64), ft.astype(np.float64)
     hess = np.einsum("nim,njm->nij", j64, j64)
     df = np.sqrt((f64 * f64).sum(1))
-    usable &= (k >= 3) & (df > 1e-6)
+    usable &= df > 1e-6
     usable &= np.abs(np.linalg.det(np.where(usable[:, None, None], hess, np.eye(3)))) > 1e-12
     hess[~usable] = np.eye(3)
     hinv = np.linalg.inv(hess)
@@ -168,6 +169,10 @@ def piece_deviation(coef: np.ndarray, pieces: Pieces, units: np.ndarray, alpha: 
 
 # a near-perfect fit (what rendered speckle reaches at rest): `PieceCheck.sigma_fit`
 FIT_ZNCC = 0.999
+# fewer points than this, and a piece registers too loosely with three degrees of freedom to
+# vouch for its unit: its rotation is free and its translation follows it (the 14-point pieces
+# of the 10 px units of recordings/precompression-12x8 failed poses as good as their noise)
+MIN_PIECE_POINTS = 25
 
 
 def rigid_fit(offset: np.ndarray, moved: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

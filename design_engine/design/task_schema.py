@@ -250,16 +250,23 @@ def read_optimizer(doc: dict, where: str, algorithm: str | None) -> OptimizerSet
     return optimizer
 
 
+def named_tables(doc: dict, key: str, what: str, where: str, not_a_table: str):
+    """Yield (name, table, where) of each [key.NAME] table; at least one is required."""
+    tab = table(doc, key, where)
+    if not tab:
+        fail(f"{where}.{key}", f"define at least one {what}")
+    for name, t in tab.items():
+        w = f"{where}.{key}.{name}"
+        if not isinstance(t, dict):
+            fail(w, not_a_table)
+        yield name, t, w
+
+
 def read_targets(doc: dict, where: str, file_size, shape) -> dict:
     """[targets.NAME] -> name -> (window size, offset scaled to `shape`)."""
-    tgt_t = table(doc, "targets", where)
-    if not tgt_t:
-        fail(f"{where}.targets", "define at least one target")
     windows = {}
-    for tname, t in tgt_t.items():
-        w = f"{where}.targets.{tname}"
-        if not isinstance(t, dict):
-            fail(w, "must be a table with size and offset")
+    for tname, t, w in named_tables(doc, "targets", "target", where,
+                                    "must be a table with size and offset"):
         known(t, {"size", "offset"}, w)
         wh, off = pair(t, "size", w), pair(t, "offset", w, (0, 0))
         if min(wh) < 1:
@@ -271,14 +278,8 @@ def read_targets(doc: dict, where: str, file_size, shape) -> dict:
 def read_scenes(doc: dict, where: str, kind: str, file_size, shape) -> dict[str, tuple]:
     """[scenes.NAME] -> name -> (preset, keyword arguments of `scenes.build_scene` that the
     section sets; shifts scaled to `shape`)."""
-    scn_t = table(doc, "scenes", where)
-    if not scn_t:
-        fail(f"{where}.scenes", "define at least one scene")
     out = {}
-    for sname, s in scn_t.items():
-        w = f"{where}.scenes.{sname}"
-        if not isinstance(s, dict):
-            fail(w, "must be a table")
+    for sname, s, w in named_tables(doc, "scenes", "scene", where, "must be a table"):
         known(s, {"preset", "side", "shift", "strain", "amplitude_m", "frequency_hz", "periods",
                   "samples", "contact_deg", "precompression"}, w)
         preset = text(s, "preset", w, choices=tuple(PRESETS))

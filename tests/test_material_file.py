@@ -241,3 +241,25 @@ def test_rig_material_flag_reaches_the_camera_node(tmp_path):
     with pytest.raises(ValueError, match="k_bend"):
         _plan(_parser().parse_args(["--material", str(bad)]))
     assert _plan(_parser().parse_args([])).material == ""
+
+
+def test_a_material_file_is_validated_once_where_it_is_read(tmp_path, monkeypatch):
+    """The values are checked when the file is read (`MaterialValues`); scenes, the simulator's
+    material and the task take them as they are, and nobody can change them afterwards."""
+    from design_engine.physics import material_file as mf
+    from design_engine.physics.scenes import build_scene
+
+    path = _stiffer(tmp_path / "s.toml")
+    calls = []
+    real = mf.check_values
+    monkeypatch.setattr(mf, "check_values", lambda *a, **k: calls.append(a) or real(*a, **k))
+    given, _ = read_material_file(path)
+    assert isinstance(given, mf.MaterialValues) and len(calls) == 2  # the values, then complete
+    for name in ("focusing-24x16", "spin-24x16"):
+        scene = build_scene(name, nx=4, ny=3)
+        assert with_material(scene, given).material == material_for_scene(scene, given)[0]
+    assert len(calls) == 2  # nothing validated again downstream
+    with pytest.raises(TypeError, match="read-only"):
+        given["k_shear"] = 1.0
+    with pytest.raises(MaterialFileError, match="k_bend"):
+        material_for_scene(scene, {"k_bend": -1.0})  # a plain dict is validated where it comes in

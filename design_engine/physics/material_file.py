@@ -68,6 +68,40 @@ class MaterialFileError(ValueError):
     """A bad material file or value; the message is one line naming the file and/or the key."""
 
 
+class MaterialValues(dict):
+    """SI values that a material source gives explicitly (no defaults merged), validated once:
+    known keys, finite numbers, signs, the contact angles' order, and complete once merged with
+    the default file's values. Made only by `MaterialValues.checked` (which `read_material_file`
+    and `material_for_scene` call where the values come in); everything downstream takes it as
+    it is. Read-only."""
+
+    @classmethod
+    def checked(cls, values: dict[str, float]) -> "MaterialValues":
+        """Validated values (a `MaterialValues` is returned as it is); raises
+        `MaterialFileError` naming the key."""
+        if isinstance(values, MaterialValues):
+            return values
+        given = check_values(values)
+        merged = default_si()
+        merged.update(given)
+        check_values(merged, complete=True)
+        return cls._of_checked(given)
+
+    @classmethod
+    def _of_checked(cls, values: dict[str, float]) -> "MaterialValues":
+        out = cls()
+        dict.update(out, values)
+        return out
+
+    def __reduce__(self):  # copies and pickles (Dask) hold values that were validated already
+        return (MaterialValues._of_checked, (dict(self),))
+
+    def _read_only(self, *args, **kwargs):
+        raise TypeError("MaterialValues are read-only: make new ones with MaterialValues.checked")
+
+    __setitem__ = __delitem__ = update = pop = popitem = clear = setdefault = _read_only
+
+
 def _number(key: str, x, what: str = "value") -> float:
     if isinstance(x, bool) or not isinstance(x, (int, float)):
         raise MaterialFileError(f"{key}: {what} must be a number, got {x!r}")
@@ -122,10 +156,9 @@ def material_from_si(values: dict[str, float], lattice: Lattice | None = None) -
     `lattice` is needed only when damping comes from `damping_ratio` (then it is derived for
     that lattice kind). Raises `MaterialFileError` (one line naming the key) on bad values.
     """
-    given = check_values(values)
+    given = MaterialValues.checked(values)
     merged = default_si()  # an explicit damping coefficient wins over the (default) ratio
     merged.update(given)
-    merged = check_values(merged, complete=True)
     needs_ratio = "damping_u" not in merged or "damping_theta" not in merged
     if needs_ratio and lattice is None:
         raise MaterialFileError("damping_ratio: deriving damping from the ratio needs a lattice")
@@ -155,7 +188,8 @@ def _read(path: Path) -> dict:
 
 
 def read_material_file(path) -> tuple[dict[str, float], dict[str, float]]:
-    """(values, stderrs) given explicitly in a material file, SI, validated; no defaults merged.
+    """(values, stderrs) given explicitly in a material file, SI; no defaults merged. The values
+    are validated here, once (`MaterialValues`).
 
     Raises `MaterialFileError` (one line naming the file and the key) on a malformed file, wrong
     format, unknown key, wrong unit or bad value.
@@ -194,10 +228,7 @@ def read_material_file(path) -> tuple[dict[str, float], dict[str, float]]:
                 if s < 0:
                     raise MaterialFileError(f"{k}: stderr must be >= 0, got {s}")
                 stderr[k] = s
-        values = check_values(values)
-        merged = default_si()
-        merged.update(values)
-        check_values(merged, complete=True)
+        values = MaterialValues.checked(values)
     except MaterialFileError as e:
         raise MaterialFileError(f"{path}: {e}") from None
     return values, stderr
@@ -296,18 +327,22 @@ def material_for_scene(scene, source) -> tuple[Material, dict[str, float]]:
     angles: when the source sets neither, the scene's own (preset or task) angles are kept.
     """
     if isinstance(source, dict):
-        given = check_values(source)
+        try:
+            given = MaterialValues.checked(source)
+        except MaterialFileError as e:
+            raise MaterialFileError(f"material: {e}") from None
         where = "material"
     else:
         given, _ = read_material_file(source)
         where = str(source)
     cur = scene.material
     has_min, has_cut = "contact_min_deg" in given, "contact_cutoff_deg" in given
-    values = dict(given)
-    if has_min != has_cut:  # one angle given: the other is the scene's
-        other = "contact_cutoff_deg" if has_min else "contact_min_deg"
-        values[other] = math.degrees(cur.contact_cutoff if has_min else cur.contact_min)
+    values = given
     try:
+        if has_min != has_cut:  # one angle given: the other is the scene's (a new combination)
+            other = "contact_cutoff_deg" if has_min else "contact_min_deg"
+            values = MaterialValues.checked({**given, other: math.degrees(
+                cur.contact_cutoff if has_min else cur.contact_min)})
         m = material_from_si(values, scene.lattice)
     except MaterialFileError as e:
         raise MaterialFileError(f"{where}: {e}") from None

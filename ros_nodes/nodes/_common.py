@@ -42,6 +42,23 @@ LATCHED = qos_profile(topics.LATCHED)
 STREAM = qos_profile(topics.STREAM)
 CLOCK = qos_profile(topics.CLOCK_QOS)
 
+def take_queued(sub, limit: int) -> list[tuple]:
+    """What is still queued on subscription `sub` (at most `limit` messages, oldest first), as
+    its callback gets them (`(msg, info)`; bytes with `raw`). rclpy's executors take one
+    message per subscription per wait cycle; where a publisher sends bursts (a device node's
+    timer catching up on a busy host) faster than the cycles come, the subscription's
+    keep-last queue fills and overwrites its oldest messages. A callback that must miss
+    nothing takes the rest of the queue with this."""
+    out = []
+    with sub.handle:
+        while len(out) < limit:
+            item = sub.handle.take_message(sub.msg_type, sub.raw)
+            if item is None:
+                break
+            out.append(item)
+    return out
+
+
 def release_device(node, timer) -> None:
     """A device node going down (`close`): its sampling `timer` destroyed, then the work of
     its cleanup transition (the device brought to rest and released). Returns None, the

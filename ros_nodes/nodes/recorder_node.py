@@ -25,7 +25,7 @@ from ros_nodes import convert
 from ros_nodes import topics as T
 from ros_nodes.logic.cdr import string_text
 from ros_nodes.logic.recorder import McapRecorder, QueuedRecorder
-from ros_nodes.nodes._common import COMMAND, LATCHED, run_node
+from ros_nodes.nodes._common import COMMAND, LATCHED, run_node, take_queued
 from ros_nodes.nodes._params import TypedParams
 from ros_nodes.params import RecorderNodeConfig
 
@@ -141,7 +141,11 @@ class RecorderNode(Node):
             offered = [i.qos_profile for i in infos]
             reliable = all(q.reliability == ReliabilityPolicy.RELIABLE for q in offered)
             latched = all(q.durability == DurabilityPolicy.TRANSIENT_LOCAL for q in offered)
-            qos = QoSProfile(depth=1 if latched else self._params.config.queue_depth,
+            # never shallower than the publisher's queue where the topic table knows it (the
+            # joint states: 5 s at 1 kHz)
+            known = T.BY_NAME.get(topic)
+            depth = max(self._params.config.queue_depth, known.qos.depth if known else 0)
+            qos = QoSProfile(depth=1 if latched else depth,
                              reliability=ReliabilityPolicy.RELIABLE if reliable
                              else ReliabilityPolicy.BEST_EFFORT,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL if latched
@@ -179,6 +183,16 @@ class RecorderNode(Node):
         metadata = topic in METADATA_TOPICS
 
         def on_message(data: bytes, info) -> None:
+            receive(data, info)
+            # the executor hands over one message per wait cycle: take the rest of the queue
+            # now (one cycle over every node of the in-process lab rig took so long on a busy
+            # host that the shaker's 500 Hz samples overflowed the queue: thousands lost)
+            entry = self._subs.get(topic)
+            if entry is not None:
+                for more in take_queued(entry[2], entry[1].depth):
+                    receive(*more)
+
+        def receive(data: bytes, info) -> None:
             # hot path (up to ~1000 frames/s): stamp, enqueue, return; no decoding
             now = clock.now().nanoseconds
             seq = info.get("publication_sequence_number")

@@ -28,7 +28,9 @@ def _ns(msg) -> int:
 
 def test_an_experiment_on_the_emulated_lab_devices_is_recorded_and_read_back(
         tmp_path, emu, lab_env, start_node):
-    proc, lab, out = start_lab_rig(start_node, tmp_path, emu.port, lab_env, "--record-s", "0.5")
+    # a 2 s settle: the shaker publishes all along it (500 Hz), as in a real experiment
+    proc, lab, out = start_lab_rig(start_node, tmp_path, emu.port, lab_env, "--record-s", "0.5",
+                                   "--settle-s", "2")
     text, _ = proc.communicate(timeout=120)
     assert proc.returncode == 0, text[-3000:]
     assert "Traceback" not in text
@@ -64,6 +66,11 @@ def test_an_experiment_on_the_emulated_lab_devices_is_recorded_and_read_back(
     # the pulse the generator was given (its commanded motion: no sensor), 5 mm peak, in the
     # capture, sampled at 500 Hz
     shaker = [m for _, m in msgs[T.SHAKER_JOINTS.name]]
+    # every sample from the first recorded to the last: none lost on the way to the file
+    steps = np.diff([_ns(m) for m in shaker]) / 2e6
+    assert np.all(np.round(steps) == 1), f"{np.sum(np.round(steps) - 1):.0f} samples missing"
+    assert len(shaker) > 2.0 * 500 and run["recording"]["topics"][T.SHAKER_JOINTS.name][
+        "dropped"] == 0
     peak = max(shaker, key=lambda m: m.position[0])
     assert peak.position[0] == pytest.approx(0.005, rel=0.01)
     assert stamps[0] < _ns(peak) < stamps[-1]

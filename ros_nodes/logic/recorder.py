@@ -10,7 +10,10 @@ time.
 
 Loss detection, per topic (reported, never hidden):
 - publisher sequence numbers (DDS `publication_sequence_number`): a jump of k > 1 means k - 1
-  messages never arrived (exact when a topic has one publisher; per publisher otherwise);
+  messages never arrived (exact for a topic with one publisher; the numbers are per publisher
+  and a message does not say which publisher sent it, so a topic that has several
+  (`several_publishers`, e.g. `/diagnostics`) is not checked by sequence: `sequence_checked`
+  false in its report);
 - stamp steps: a step longer than `gap_factor` x the median period is a gap of
   round(step / period) - 1 missing samples (catches drops upstream of the publisher too);
 - stamps that go backwards are counted.
@@ -57,6 +60,7 @@ class TopicStats:
     missing_by_stamp: int = 0
     missing_by_sequence: int = 0
     queue_overflow: int = 0
+    sequence_checked: bool = True
     max_latency_ms: float = 0.0
     _deltas: list = field(default_factory=list, repr=False)
     _last_seq: int | None = field(default=None, repr=False)
@@ -142,6 +146,15 @@ class McapRecorder:
         st.count += 1
         st.bytes += len(cdr)
 
+    def several_publishers(self, topic: str) -> None:
+        """`topic` has (had) more than one publisher: its sequence numbers say nothing about
+        loss (two interleaved counts look like gaps and hide each other's real ones), so the
+        count so far is discarded and no more is kept."""
+        st = self.stats.get(topic)
+        if st is not None:
+            st.sequence_checked = False
+            st.missing_by_sequence = 0
+
     def note_overflow(self, topic: str, pub_seq: int | None = None) -> None:
         """Count a message that reached the recorder but was dropped before writing."""
         st = self.stats[topic]
@@ -150,7 +163,7 @@ class McapRecorder:
             self._track(st, None, 0, pub_seq)
 
     def _track(self, st: TopicStats, stamp: int | None, receive_ns: int, pub_seq) -> None:
-        if pub_seq is not None and pub_seq > 0:
+        if pub_seq is not None and pub_seq > 0 and st.sequence_checked:
             if st._last_seq is not None and pub_seq > st._last_seq + 1:
                 st.missing_by_sequence += pub_seq - st._last_seq - 1
             st._last_seq = pub_seq if st._last_seq is None else max(st._last_seq, pub_seq)

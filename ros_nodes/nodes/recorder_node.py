@@ -52,6 +52,7 @@ class RecorderNode(Node):
         self._latched: dict[str, tuple[bytes, int, int | None]] = {}
         self._qos: dict[str, QoSProfile] = {}
         self._registered: set[str] = set()  # topics whose channel is (being) registered
+        self._several: set[str] = set()  # topics seen with several publishers while recording
         self._report_pub = self.create_publisher(String, T.RECORDER_REPORT.name, LATCHED)
         self._status_pub = self.create_publisher(String, T.RECORDER_STATUS.name, COMMAND)
         # wall-clock timers: they must run while simulated time is paused
@@ -82,7 +83,7 @@ class RecorderNode(Node):
                                        "write_queue": cfg.write_queue}.items()})
         # receive callbacks only enqueue bytes; a writer thread owns the MCAP writer
         self._rec = QueuedRecorder(rec, cfg.write_queue)
-        self._registered = set()
+        self._registered, self._several = set(), set()
         self._discover()
         # latched topics (design, config, targets) seen before the start go in first
         for topic, (data, receive_ns, seq) in list(self._latched.items()):
@@ -94,6 +95,10 @@ class RecorderNode(Node):
         rec, self._rec = self._rec, None
         if rec is None:
             return None
+        try:  # a publisher that joined since the last discovery; the graph may be gone
+            self._note_publishers(rec)
+        except RuntimeError:  # rclpy's RCLError, InvalidHandle
+            pass
         report = rec.close()
         self._report_pub.publish(String(data=json.dumps(report)))
         lost = report["dropped"]
@@ -165,6 +170,16 @@ class RecorderNode(Node):
                 if entry is not None and topic not in self._registered:
                     self._registered.add(topic)
                     rec.call("add_topic", topic, entry[0], _qos_yaml(entry[1]))
+            self._note_publishers(rec)
+
+    def _note_publishers(self, rec: QueuedRecorder) -> None:
+        """Tell the recorder which topics have had several publishers (their sequence numbers
+        are per publisher, and a message does not say which one sent it)."""
+        for topic, entry in list(self._subs.items()):
+            if entry is not None and topic not in self._several and \
+                    self.count_publishers(topic) > 1:
+                self._several.add(topic)
+                rec.call("several_publishers", topic)
 
     def _write(self, rec: QueuedRecorder, topic: str, data: bytes, receive_ns: int, seq) -> None:
         if topic not in self._registered:

@@ -129,7 +129,7 @@ def fingerprint(src: Path, parts: list[str], work: Path | None = None) -> dict:
     return out
 
 
-def compare(a: dict, b: dict, noisy: set[str]) -> int:
+def compare(a: dict, b: dict, noisy: set[str], report: Path | None = None) -> int:
     keys = sorted((set(a) | set(b)) - {"src"})
     differ = [k for k in keys if a.get(k) != b.get(k) and k not in noisy]
     missing = [k for k in keys if k not in a or k not in b]
@@ -138,6 +138,13 @@ def compare(a: dict, b: dict, noisy: set[str]) -> int:
         mark = ("noisy" if k in noisy else "missing" if k in missing
                 else "same" if a.get(k) == b.get(k) else "DIFFERS")
         print(f"{mark:8} {k}")
+    if report is not None:
+        report.write_text(json.dumps({
+            "before": a.get("src"), "after": b.get("src"),
+            "verdict": {k: ("noisy" if k in noisy else "missing" if k in missing
+                            else "same" if a.get(k) == b.get(k) else "differs") for k in keys},
+            "identical": len(keys) - len(differ) - len(missing), "compared": len(keys) - len(missing),
+            "noisy": sorted(noisy & set(keys))}, indent=1) + "\n")
     print(f"{len(keys) - len(differ) - len(missing)} of {len(keys) - len(missing)} fingerprints "
           "identical"
           + (f" ({len(noisy & set(keys))} wall-clock topics ignored)" if noisy else ""))
@@ -152,6 +159,7 @@ def main(argv=None) -> int:
     p.add_argument("--work", type=Path, help="keep the runs' folders here (default: a "
                    "temporary folder, removed)")
     p.add_argument("--compare", nargs=2, type=Path, metavar=("BEFORE", "AFTER"))
+    p.add_argument("--report", type=Path, help="with --compare: write the verdicts as JSON")
     p.add_argument("--same-code", nargs="*", type=Path, default=[],
                    help="fingerprints of repeated runs of one source: keys that differ among "
                         "them are wall-clock noise, ignored by --compare")
@@ -159,7 +167,7 @@ def main(argv=None) -> int:
     if args.compare:
         runs = [json.loads(f.read_text()) for f in args.same_code]
         noisy = {k for r in runs[1:] for k in r if k != "src" and r.get(k) != runs[0].get(k)}
-        return compare(*(json.loads(f.read_text()) for f in args.compare), noisy)
+        return compare(*(json.loads(f.read_text()) for f in args.compare), noisy, args.report)
     if not args.out:
         p.error("--out is required unless --compare is given")
     result = fingerprint(args.src.resolve(), args.parts.split(","), args.work)

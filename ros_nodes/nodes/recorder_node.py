@@ -147,10 +147,12 @@ class RecorderNode(Node):
             reliable = all(q.reliability == ReliabilityPolicy.RELIABLE for q in offered)
             latched = all(q.durability == DurabilityPolicy.TRANSIENT_LOCAL for q in offered)
             # never shallower than the publisher's queue where the topic table knows it (the
-            # joint states: 5 s at 1 kHz)
+            # joint states: 5 s at 1 kHz); latched topics too: a late joiner still gets only
+            # what the publisher keeps (the last one), and a queue of 1 lost a /rig/phase
+            # published while the callback took a long queue of another topic
             known = T.BY_NAME.get(topic)
             depth = max(self._params.config.queue_depth, known.qos.depth if known else 0)
-            qos = QoSProfile(depth=1 if latched else depth,
+            qos = QoSProfile(depth=depth,
                              reliability=ReliabilityPolicy.RELIABLE if reliable
                              else ReliabilityPolicy.BEST_EFFORT,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL if latched

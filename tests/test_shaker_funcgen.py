@@ -4,7 +4,9 @@ settings and the uploaded waveform read back from the emulated instrument, refus
 before the drive, volts before the instrument, another instrument), an instrument error
 reported with its text, and stop turning the output off."""
 
+import shutil
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -39,8 +41,14 @@ class Spy:
 
 
 @pytest.fixture
-def rm():
-    rm = pyvisa.ResourceManager(f"{EMULATOR_YAML}@sim")
+def rm(tmp_path):
+    """A resource manager on an emulated instrument of this test's own: pyvisa keeps one
+    pyvisa-sim library (and so one instrument state) per device file and process, which a
+    generator that another test of the same process left open (its watchdog still asking
+    `SYST:ERR?`) would share, interleaving its queries with this test's read-backs."""
+    own = tmp_path / Path(EMULATOR_YAML).name
+    shutil.copyfile(EMULATOR_YAML, own)
+    rm = pyvisa.ResourceManager(f"{own}@sim")
     yield rm
     rm.close()
 

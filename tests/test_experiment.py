@@ -344,3 +344,36 @@ def test_the_recorder_subscribes_to_the_device_motion_before_it_starts():
     rig.recorder_subscribed = subscribed_after_a_while
     assert Experiment(PLAN, rig).run()["frames"] == 41
     assert rig.names()[:2] == ["camera_snapshot", "recorder_start"]
+
+
+def test_a_lab_camera_s_first_frame_comes_before_the_pulse():
+    """On the system clock a lab camera may stream its first frame late (an emulator on a busy
+    host took 117 ms): the pulse is fired only once a frame came, so the footage holds it."""
+
+    class LateCamera(FakeRig):
+        def camera_start(self, t_start_s):
+            super().camera_start(t_start_s)
+            self._camera = {"state": "streaming", "frames": 0}  # started, no frame yet
+            self.first_frame_wall = self.wall + 0.2
+            return True
+
+        def camera(self):
+            if self._camera.get("state") == "streaming" and self.wall >= self.first_frame_wall:
+                self._camera = {"state": "streaming", "frames": 1}
+            return self._camera
+
+        def fire(self, *args):
+            self.fired_wall = self.wall
+            return super().fire(*args)
+
+    rig = LateCamera(PLAN)
+    Experiment(PLAN, rig).run()
+    assert rig.fired_wall >= rig.first_frame_wall
+    silent = LateCamera(PLAN)
+    silent.first_frame_wall = math.inf
+    silent.camera_start = lambda t: (FakeRig.camera_start(silent, t),
+                                     setattr(silent, "_camera",
+                                             {"state": "streaming", "frames": 0}))[0]
+    with pytest.raises(RigError, match="the camera's first frame"):
+        Experiment(PLAN, silent).run()
+    assert "fire" not in silent.names()

@@ -28,6 +28,12 @@ DEVICE_TOPICS = (topics.SHAKER_JOINTS.name, topics.STAGE_JOINTS.name)
 DEVICE_SLACK_S = 0.05
 
 
+def _capturing(status: dict) -> bool:
+    """The camera films: the simulated one from its start, a lab one once a frame came."""
+    return status.get("state") == "capturing" or (status.get("state") == "streaming"
+                                                  and status.get("frames", 0) > 0)
+
+
 class RigError(RuntimeError):
     """The experiment could not proceed (a refusal, a fault or a timeout); message says why."""
 
@@ -259,6 +265,12 @@ class Experiment:
         t_rec = port.sim_time()
         if not port.camera_start(t_rec):
             raise RigError("camera refused to start")
+        # a camera on the system clock (a lab's) can take a while for its first frame on a busy
+        # host: the pulse waits for it, so that the footage holds the pulse from its start (the
+        # simulated camera films simulated time, which stands still meanwhile)
+        self.until(lambda: _capturing(port.camera()), "the camera's first frame", 10.0,
+                   fault=self._device_fault)
+        t_rec = port.sim_time()
         ok, why = port.fire(p.waveform, p.amplitude_m, p.frequency_hz, p.cycles, p.pre_trigger_s)
         if not ok:
             raise RigError(f"shaker: {why}")

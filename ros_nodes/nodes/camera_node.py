@@ -147,6 +147,8 @@ class CameraNode(Node):
         self._img.publish(enc.encode(ns, frame))
         self._info.publish(restamp(self._info_cdr, ns))
         self._published += 1
+        if self._lab and self._published == 1:  # the sequencer fires the pulse on this
+            self._lab_status("streaming", "first frame")
 
     def _enc_for(self, frame: np.ndarray) -> ImageEncoder:
         """The encoder (and camera info) for this frame shape, made once per shape."""

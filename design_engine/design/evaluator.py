@@ -68,12 +68,11 @@ _PROGRAMS: dict[tuple, object] = {}
 
 class EvaluationFailed(RuntimeError):
     """Every configuration failed for this design; the message says why. `state` is the scene's
-    state to keep (its step check stands), `events` what happened before the failure."""
+    state to keep (its step check stands)."""
 
-    def __init__(self, message: str, state=None, events=()):
+    def __init__(self, message: str, state=None):
         super().__init__(message)
         self.state = state
-        self.events = tuple(events)
 
 
 @dataclass(frozen=True)
@@ -289,7 +288,7 @@ class TaskEvaluator:
                                     previous=(st.last_config, st.last_health),
                                     budget_fails_at_once=True, on_step=log)
         except PolicyFailed as exc:
-            raise EvaluationFailed(f"{name}: {exc}", checked[0], events) from None
+            raise EvaluationFailed(f"{name}: {exc}", checked[0]) from None
         st = checked[0]
         value, grad, terms, aux = out.result
         why = list(st.reasons) + [s.reason for s in out.steps[1:]]

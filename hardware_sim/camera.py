@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 from numba import njit
 
+from metarig.fields import param
 from metarig.polygon import area_centroids
 
 FULL_SCALE = 255.0  # grey levels of an 8-bit frame
@@ -33,51 +34,51 @@ FULL_SCALE = 255.0  # grey levels of an 8-bit frame
 
 @dataclass(frozen=True, slots=True)
 class CameraConfig:
-    """Camera, optics, lighting and speckle parameters.
+    """Camera, optics, lighting and speckle parameters (each field's description, unit and
+    bounds in its metadata). Frame k is at t = k / fps; `origin_px` and `y_up` place the sample
+    frame in the image (see the module docstring); `exposure_samples` is used with
+    `render_frame`'s `motion_from`, the mid-exposure pose being the natural ground truth."""
 
-    Attributes:
-        width_px, height_px: frame size, pixels.
-        fps: frame rate, 1/s (frame k is at t = k / fps).
-        m_per_px: scale of the (square-on) image, metres per pixel.
-        origin_px: (col, row) pixel position of the sample-frame origin.
-        y_up: sample y axis points up the image (rows grow downwards).
-        supersample: sub-pixel samples per pixel side used for pixel integration.
-        background_level: grey level of the empty table (0-255).
-        unit_level: grey level of a unit's bare surface (0-255).
-        speckle_level: grey level a fully covered speckle saturates to (0-255).
-        occluder_level: grey level painted over occluded pixels (0-255).
-        speckle_sigma_m: Gaussian radius of one speckle blob, m.
-        speckle_fill: mean blob overlap (expected sum of blob profiles at a point); about
-            0.5-1 gives a well-contrasted pattern.
-        exposure_samples: sub-exposures averaged for motion blur (used with `motion_from`).
-        blur_sigma_px: Gaussian optical blur, pixels (0 = none).
-        noise_std: Gaussian read noise, fraction of full scale (0.02 = 2 %).
-        full_well: photo-electrons at full scale for shot noise (0 = no shot noise).
-        lighting_gradient: relative intensity change from the left to the right edge.
-        vignetting: relative intensity drop at the frame corners (quadratic in radius).
-        seed: default seed for `camera_rng`.
-    """
-
-    width_px: int = 640
-    height_px: int = 480
-    fps: float = 1000.0
-    m_per_px: float = 6.0e-4
-    origin_px: tuple[float, float] = (20.0, 460.0)
-    y_up: bool = True
-    supersample: int = 4
-    background_level: float = 15.0
-    unit_level: float = 45.0
-    speckle_level: float = 225.0
-    occluder_level: float = 128.0
-    speckle_sigma_m: float = 7.5e-4
-    speckle_fill: float = 0.7
-    exposure_samples: int = 5
-    blur_sigma_px: float = 0.0
-    noise_std: float = 0.0
-    full_well: float = 0.0
-    lighting_gradient: float = 0.0
-    vignetting: float = 0.0
-    seed: int = 0
+    width_px: int = param(640, "frame width, px", 1, 100000)
+    height_px: int = param(480, "frame height, px", 1, 100000)
+    fps: float = param(1000.0, "frame rate, 1/s (frame k is at t = k / fps)", 1e-6, 1e7)
+    m_per_px: float = param(6.0e-4, "scale of the (square-on) image, m/px", 1e-9, 1.0)
+    origin_px: tuple[float, float] = param(
+        (20.0, 460.0), "(col, row) pixel position of the sample-frame origin, px"
+    )
+    y_up: bool = param(True, "sample y axis points up the image (rows grow downwards)")
+    supersample: int = param(4, "sub-pixel samples per pixel side for pixel integration", 1, 16)
+    background_level: float = param(15.0, "grey level of the empty table (0-255)", 0.0, 255.0)
+    unit_level: float = param(45.0, "grey level of a unit's bare surface (0-255)", 0.0, 255.0)
+    speckle_level: float = param(
+        225.0, "grey level a fully covered speckle saturates to (0-255)", 0.0, 255.0
+    )
+    occluder_level: float = param(
+        128.0, "grey level painted over occluded pixels (0-255)", 0.0, 255.0
+    )
+    speckle_sigma_m: float = param(7.5e-4, "Gaussian radius of one speckle blob, m", 1e-9, 1.0)
+    speckle_fill: float = param(
+        0.7,
+        "mean blob overlap (expected sum of blob profiles at a "
+        "point; 0.5-1 gives a well-contrasted pattern)",
+        0.0,
+        10.0,
+    )
+    exposure_samples: int = param(5, "sub-exposures averaged for motion blur", 1, 64)
+    blur_sigma_px: float = param(0.0, "Gaussian optical blur, px (0: none)", 0.0, 100.0)
+    noise_std: float = param(
+        0.0, "Gaussian read noise, fraction of full scale (0.02: 2 %)", 0.0, 1.0
+    )
+    full_well: float = param(
+        0.0, "photo-electrons at full scale for shot noise (0: none)", 0.0, 1e9
+    )
+    lighting_gradient: float = param(
+        0.0, "relative intensity change from the left to the right edge", -1.0, 1.0
+    )
+    vignetting: float = param(
+        0.0, "relative intensity drop at the frame corners (quadratic in radius)", 0.0, 1.0
+    )
+    seed: int = param(0, "default seed for `camera_rng`", 0, 2**63 - 1)
 
     def __post_init__(self):
         if self.width_px < 1 or self.height_px < 1:
@@ -169,8 +170,16 @@ _CUTOFF = 1e-9  # blob factors below this are dropped (their sum is far below a 
 
 
 @njit(cache=True)
-def _unit_block(e_row: np.ndarray, e_col: np.ndarray, gx: np.ndarray, gy: np.ndarray,
-                verts: np.ndarray, amp: float, base: float, ss: int) -> np.ndarray:
+def _unit_block(
+    e_row: np.ndarray,
+    e_col: np.ndarray,
+    gx: np.ndarray,
+    gy: np.ndarray,
+    verts: np.ndarray,
+    amp: float,
+    base: float,
+    ss: int,
+) -> np.ndarray:
     """One unit's radiance over its bounding box, box-averaged to pixels [n_rows, n_cols].
 
     At sub-pixel (j, i): speckle s = sum_k e_row[k, j] * e_col[k, i] over each blob's
@@ -264,8 +273,9 @@ def _render_units(
         q = tex.centres_m[b, keep] @ rot.T  # blob centres in the current orientation
         e_col = np.exp(-((gx[None, :] - q[:, 0:1]) ** 2) / two_sig2)
         e_row = np.exp(-((gy[None, :] - q[:, 1:2]) ** 2) / two_sig2)
-        frame[r0:r1, c0:c1] += _unit_block(e_row, e_col, gx, gy, np.ascontiguousarray(verts_rel),
-                                           amp, base, ss)
+        frame[r0:r1, c0:c1] += _unit_block(
+            e_row, e_col, gx, gy, np.ascontiguousarray(verts_rel), amp, base, ss
+        )
     return frame
 
 
@@ -351,8 +361,9 @@ def average_frames(frames: Sequence[np.ndarray]) -> np.ndarray:
     return np.clip(np.rint(mean), info.min, info.max).astype(first.dtype)
 
 
-def reference_image(cfg: CameraConfig, polygons_m: np.ndarray, seed: int,
-                    frames: int = REFERENCE_FRAMES) -> np.ndarray:
+def reference_image(
+    cfg: CameraConfig, polygons_m: np.ndarray, seed: int, frames: int = REFERENCE_FRAMES
+) -> np.ndarray:
     """The unloaded sample at rest, averaged over `frames` frames (uint8 [H, W]), with the
     speckle that a film drawing its textures first from `np.random.default_rng(seed)` shows.
     One frame gives exactly the single snapshot (the same noise draws)."""
@@ -361,5 +372,6 @@ def reference_image(cfg: CameraConfig, polygons_m: np.ndarray, seed: int,
     rng = np.random.default_rng(seed)
     textures = make_speckle_textures(polygons_m, cfg, rng)
     still = np.zeros((np.shape(polygons_m)[0], 3))
-    return average_frames([render_frame(cfg, polygons_m, still, textures, rng)
-                           for _ in range(frames)])
+    return average_frames(
+        [render_frame(cfg, polygons_m, still, textures, rng) for _ in range(frames)]
+    )

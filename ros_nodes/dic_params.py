@@ -8,13 +8,18 @@ from tracking.calibration import Calibration, calibration_from_dict, load_calibr
 from tracking.dic import DICConfig
 
 
+# the preview tracks a decimated stream (`preview_rate_hz` of a 1000 fps camera): units move
+# further between the frames it sees than between a camera's frames, so its search windows are
+# twice the offline tracker's
+LIVE_TRACKER = DICConfig(search_radius_px=24, lost_search_radius_px=48)
+
+
 @dataclass(frozen=True, slots=True)
 class DICNodeConfig:
     """Parameters of the live DIC tracker node (ROS parameters of the same names)."""
 
     image_topic: str = param(topics.IMAGE.name, "camera frames (sensor_msgs/Image mono8/16)")
-    poses_topic: str = param(topics.POSES.name,
-                             "per-unit poses out (metarig_msgs/UnitPose2DArray)")
+    poses_topic: str = param(topics.POSES.name, "per-unit poses out (metarig_msgs/UnitPose2DArray)")
     units_path: str = param("", "JSON with polygons_m; empty: the latched /rig/design topic")
     calibration_path: str = param("", "calibration JSON; empty: fps, m_per_px, origin_* below")
     fps: float = param(1000.0, "camera frame rate (without calibration_path), Hz", 0.1, 1e6)
@@ -22,26 +27,22 @@ class DICNodeConfig:
     origin_col: float = param(0.0, "pixel column of the sample origin (without calibration_path)")
     origin_row: float = param(0.0, "pixel row of the sample origin (without calibration_path)")
     y_up: bool = param(True, "sample y points up the image (without calibration_path)")
-    preview_rate_hz: float = param(20.0, "most pose messages per second (decimated preview)",
-                                   0.1, 10000.0)
+    preview_rate_hz: float = param(
+        20.0, "most pose messages per second (decimated preview)", 0.1, 10000.0
+    )
     threads: int = param(1, "numba threads for tracking (leave cores to the camera)", 1, 256)
-    margin_px: float = param(2.5, "subset distance from the unit outline, px", 0.0, 50.0)
-    min_points: int = param(50, "units with fewer subset pixels are not tracked", 4, 100000)
-    zncc_lost: float = param(0.8, "correlation below which a unit is lost", 0.0, 1.0)
-    search_radius_px: int = param(24, "re-acquisition window half-width, px", 1, 1000)
+    tracker: DICConfig = param(lambda: LIVE_TRACKER, "tracker settings (tracking.dic.DICConfig)")
 
     def calibration(self) -> Calibration:
         """The calibration from `calibration_path`, or from the inline parameters."""
         if self.calibration_path:
             return load_calibration(self.calibration_path)
         return calibration_from_dict(
-            {"fps": self.fps, "m_per_px": self.m_per_px,
-             "origin_px": [self.origin_col, self.origin_row], "y_up": self.y_up},
-            where="node parameters")
-
-    def dic_config(self) -> DICConfig:
-        """Tracker settings (the lost-unit search window is twice the re-acquisition one)."""
-        return DICConfig(margin_px=self.margin_px, min_points=self.min_points,
-                         zncc_lost=self.zncc_lost, zncc_reacquire=max(self.zncc_lost, 0.9),
-                         search_radius_px=self.search_radius_px,
-                         lost_search_radius_px=2 * self.search_radius_px)
+            {
+                "fps": self.fps,
+                "m_per_px": self.m_per_px,
+                "origin_px": [self.origin_col, self.origin_row],
+                "y_up": self.y_up,
+            },
+            where="node parameters",
+        )

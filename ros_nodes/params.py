@@ -181,14 +181,15 @@ def _field_type(f: dataclasses.Field, value) -> type:
     return type(value)
 
 
-def flat_fields(cls, prefix: str = "") -> list[ParamSpec]:
-    """The flat parameter list of a config class (nested dataclasses get dotted names)."""
+def flat_fields(cls, prefix: str = "", defaults=None) -> list[ParamSpec]:
+    """The flat parameter list of a config class (nested dataclasses get dotted names, with the
+    defaults the outer class gives them: `defaults`, an instance, else `cls()`)."""
     out = []
-    defaults = cls()
+    defaults = cls() if defaults is None else defaults
     for f in dataclasses.fields(cls):
         value = getattr(defaults, f.name)
         if dataclasses.is_dataclass(value):
-            out += flat_fields(type(value), f"{prefix}{f.name}.")
+            out += flat_fields(type(value), f"{prefix}{f.name}.", value)
             continue
         m = f.metadata
         out.append(ParamSpec(prefix + f.name, _field_type(f, value), value,

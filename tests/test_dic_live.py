@@ -98,7 +98,7 @@ def test_node_config_calibration(tmp_path):
     cfg = DICNodeConfig(m_per_px=1e-3, origin_col=5.0, origin_row=50.0, fps=500.0)
     cal = cfg.calibration()
     assert cal.fps == 500.0 and cal.origin_px == (5.0, 50.0)
-    assert cfg.dic_config().search_radius_px == 24
+    assert cfg.tracker.search_radius_px == 24 and cfg.tracker.lost_search_radius_px == 48
     with pytest.raises(ValueError):
         DICNodeConfig(m_per_px=-1.0).calibration()
     with pytest.raises(ValueError, match="rate_hz"):

@@ -73,7 +73,7 @@ class DICTrackerNode(Node):
         cfg = self._params.config
         if self._preview is not None:
             self._preview.close()
-        tracker = DICTracker(polygons, self._calib, cfg.dic_config())
+        tracker = DICTracker(polygons, self._calib, cfg.tracker)
         self._centroids = area_centroids(tracker.polygons_m)
         self._preview = LivePreview(tracker, cfg.preview_rate_hz, self._publish,
                                     cfg.threads).start()

@@ -59,15 +59,6 @@ def take_queued(sub, limit: int) -> list[tuple]:
     return out
 
 
-def release_device(node, timer) -> None:
-    """A device node going down (`close`): its sampling `timer` destroyed, then the work of
-    its cleanup transition (the device brought to rest and released). Returns None, the
-    node's timer from now on."""
-    if timer is not None:
-        node.destroy_timer(timer)
-    node.on_cleanup(None)
-
-
 def apply_lab_ros(argv: list[str]) -> None:
     """A node started on a lab file (`-p hardware:=lab -p lab_file:=FILE`, or in a params
     file) joins the ROS domain, discovery range and static peers of the file's [ros]

@@ -26,15 +26,10 @@ program; cleanup releases everything. With `hardware` "lab" the lab file's limit
 `device.*` changes at run time do not reach the drive.
 """
 
-import threading
-
 import numpy as np
 from metarig_msgs.srv import FirePulse
-from rclpy.lifecycle import LifecycleNode, State, TransitionCallbackReturn
-from std_msgs.msg import Empty
 from std_srvs.srv import Trigger
 
-from devices.lab import LabFileError
 from devices.limits import DeviceError, LimitError
 from devices.shaker.compensation import CompensationResult, Compensator, DriveTrials, \
     drive_waveform
@@ -44,125 +39,78 @@ from ros_nodes import convert
 from ros_nodes import topics as T
 from ros_nodes.hardware import shaker_drive
 from ros_nodes.logic.sampling import due_samples
-from ros_nodes.nodes._common import COMMAND, LATCHED, qos_profile, release_device, run_node
+from ros_nodes.nodes._common import LATCHED, qos_profile, run_node
+from ros_nodes.nodes._device_node import DeviceNode
 from ros_nodes.nodes._guard import motion_refusal
-from ros_nodes.nodes._params import TypedParams
 from ros_nodes.params import ShakerNodeConfig
 
-NAME = "shaker"
 
+class ShakerNode(DeviceNode):
+    """Thin adapter over the shaker port (`devices.shaker.port`; see module docstring); the
+    lifecycle is `DeviceNode`'s."""
 
-def _drive(cfg: ShakerNodeConfig, rng: np.random.Generator) -> ShakerDrive:
-    """The shaker behind the port that `cfg.hardware` names ("sim", or "lab": `lab_file`)."""
-    return shaker_drive(cfg, rng)
-
-
-class ShakerNode(LifecycleNode):
-    """Thin adapter over the shaker port (`devices.shaker.port`; see module docstring)."""
+    NAME, CONFIG, DEVICE = "shaker", ShakerNodeConfig, "the shaker"
 
     def __init__(self, **kwargs):
-        super().__init__(NAME, **kwargs)
-        self._params = TypedParams(self, ShakerNodeConfig, on_change=self._reconfigured)
-        self._active = False
-        self._drive: ShakerDrive | None = None
         self._playing_until: float | None = None  # rig time the accepted waveform ends, s
         self._trials: DriveTrials | None = None  # a compensation under way ...
         self._trial_request: WaveformRequest | None = None  # ... of this request
         self._compensated: tuple[WaveformRequest, CompensationResult] | None = None
         self._fault = ""  # the drive's fault, once reported
-        self._timer = None
-        self._pubs: dict = {}
-        self._device_lock = threading.Lock()  # the timer's readings vs close() (another thread)
+        super().__init__(**kwargs)
+
+    @property
+    def _drive(self) -> ShakerDrive | None:
+        return self._device
+
+    # DeviceNode hooks --------------------------------------------------------------------
+    def _create_services(self) -> None:
         self.create_service(FirePulse, T.SHAKER_FIRE.name, self._on_fire)
         self.create_service(Trigger, T.SHAKER_STOP.name, self._on_stop)
         self.create_service(FirePulse, T.SHAKER_COMPENSATE.name, self._on_compensate)
-        self.create_subscription(Empty, T.RIG_STOP.name, lambda _m: self._stop("rig stop"), COMMAND)
-        if self._params.config.autostart and \
-                self.trigger_configure() == TransitionCallbackReturn.SUCCESS:
-            self.trigger_activate()
 
-    # lifecycle -----------------------------------------------------------------------------
-    def on_configure(self, state: State) -> TransitionCallbackReturn:
-        cfg = self._params.config
-        self._rng = np.random.default_rng(cfg.seed)
-        self._pubs = {
+    def _create_publishers(self) -> dict:
+        return {
             "js": self.create_publisher(convert.JointState, T.SHAKER_JOINTS.name,
                                         qos_profile(T.SHAKER_JOINTS.qos)),
             "cmd": self.create_publisher(convert.JointTrajectory, T.SHAKER_COMMAND.name, LATCHED),
-            "diag": self.create_publisher(convert.DiagnosticArray, T.DIAGNOSTICS.name, COMMAND),
         }
-        try:
-            self._drive = _drive(cfg, self._rng)
-        except (LabFileError, DeviceError, ValueError, OSError) as e:
-            self.get_logger().error(f"cannot configure the shaker: {e}")
-            self._report("error", f"cannot configure the shaker: {e}")
-            self.on_cleanup(state)  # back to unconfigured: a later configure starts afresh
-            return TransitionCallbackReturn.FAILURE
+
+    def _open(self, cfg: ShakerNodeConfig, rng: np.random.Generator) -> ShakerDrive:
+        return shaker_drive(cfg, rng)
+
+    def _configured(self) -> None:
         self._report("ok", "configured")
-        return TransitionCallbackReturn.SUCCESS
 
-    def on_activate(self, state: State) -> TransitionCallbackReturn:
-        self._drive.start(self._now_s())
-        self._timer = self.create_timer(1.0 / self._params.config.rate_hz, self._tick)
-        self._active = True
+    def _activated(self) -> None:
         self._report("ok", "active")
-        return super().on_activate(state)
 
-    def on_deactivate(self, state: State) -> TransitionCallbackReturn:
-        self._active = False
-        self._drop_program()
-        if self._timer is not None:
-            self.destroy_timer(self._timer)
-            self._timer = None
+    def _deactivated(self) -> None:
         self._report("ok", "inactive")
-        return super().on_deactivate(state)
 
-    def on_cleanup(self, state: State) -> TransitionCallbackReturn:
-        for p in self._pubs.values():
-            self.destroy_publisher(p)
-        self._pubs = {}
-        if self._drive is not None:
-            try:  # released whatever: a generator that stopped answering cannot be told more
-                self._drive.close()
-            except (DeviceError, OSError) as e:
-                self.get_logger().error(f"the shaker did not stop on release: {e}")
-            self._drive = None
-        return TransitionCallbackReturn.SUCCESS
-
-    def on_shutdown(self, state: State) -> TransitionCallbackReturn:
-        self._active = False
+    def _halt(self) -> None:
         self._drop_program()
-        return TransitionCallbackReturn.SUCCESS
 
-    # callbacks ------------------------------------------------------------------------------
-    def _reconfigured(self, cfg: ShakerNodeConfig) -> None:
-        if self._drive is None:
-            return
-        if cfg.hardware == "lab":  # the lab file's limits stand
-            self.get_logger().warning("hardware 'lab': the limits are the lab file's; device.* "
-                                      "parameters do not change them")
-            return
-        self._drive.reconfigure(cfg.device)  # new limits hold from the next request
+    def _rig_stop(self) -> None:
+        self._stop("rig stop")
 
-    def _now_s(self) -> float:
-        return self.get_clock().now().nanoseconds * 1e-9
+    def _diag_values(self) -> dict:
+        return {"active": self._active, "playing": self._playing_until is not None}
 
-    def _tick(self) -> None:
-        with self._device_lock:
-            if self._drive is None:  # closed
-                return
-            cfg = self._params.config
-            for t in due_samples(self._drive.time_s, self._now_s(), 1.0 / cfg.rate_hz):
-                r = self._drive.read(t)
-                self._pubs["js"].publish(convert.shaker_state(int(round(r.t * 1e9)), r.x_m,
-                                                              r.v_m_s))
-                if self._trials is not None:
-                    self._trial_reading(r.t, r.x_m)
-            if self._playing_until is not None and self._drive.time_s > self._playing_until:
-                self._playing_until = None
-                self._report("ok", "waveform finished")
-            self._check_fault()
+    def _sample(self) -> None:
+        cfg = self._params.config
+        for t in due_samples(self._drive.time_s, self._now_s(), 1.0 / cfg.rate_hz):
+            r = self._drive.read(t)
+            self._pubs["js"].publish(convert.shaker_state(int(round(r.t * 1e9)), r.x_m,
+                                                          r.v_m_s))
+            if self._trials is not None:
+                self._trial_reading(r.t, r.x_m)
+        if self._playing_until is not None and self._drive.time_s > self._playing_until:
+            self._playing_until = None
+            self._report("ok", "waveform finished")
+        self._check_fault()
 
+    # callbacks ---------------------------------------------------------------------------
     def _check_fault(self) -> None:
         """Report a fault the drive found on its own, once (it has stopped its output)."""
         fault = self._drive.fault
@@ -325,19 +273,6 @@ class ShakerNode(LifecycleNode):
         self._drop_program()
         self.get_logger().info(f"stop ({why})")
         self._report("ok", f"stopped ({why})")
-
-    def _report(self, level: str, message: str, values: dict | None = None) -> None:
-        if "diag" in self._pubs:
-            self._pubs["diag"].publish(convert.diagnostics(
-                self.get_clock().now().nanoseconds, NAME, level, message,
-                {"active": self._active, "playing": self._playing_until is not None,
-                 **(values or {})}))
-
-    def close(self) -> None:
-        """Bring the shaker to rest and release the device (the node is going down)."""
-        self._active = False
-        with self._device_lock:
-            self._timer = release_device(self, self._timer)
 
 
 def _request(req) -> WaveformRequest:

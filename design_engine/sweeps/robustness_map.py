@@ -11,7 +11,7 @@ import math
 import os
 import platform
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -60,8 +60,8 @@ def run_map(request: MapRequest) -> dict:
     from design_engine.sweeps.robustness import check_grid, default_chunk, design_scene, tied_timing
 
     t_start = time.perf_counter()
-    if request.chunk is None:
-        request.chunk = default_chunk()
+    if request.chunk is None:  # the caller's request is left as it came
+        request = replace(request, chunk=default_chunk())
     if request.scene not in PRESETS:
         raise MapError(f"unknown scene {request.scene!r}; choose one of: {', '.join(PRESETS)}")
     lattice, x_mm = load_design(request.design)

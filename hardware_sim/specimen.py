@@ -121,6 +121,10 @@ class SpecimenConfig:
                              "sets nx, ny (empty: the periodic design)")
     material_path: str = param("", "material file (metarig-material/1) of the sample's nominal "
                                "material (empty: the default)")
+    material_si: str = param("", "the sample's nominal material as the SI values of its "
+                             "material file, JSON, for a caller that read the file already "
+                             "(`metarig rig`); it is then not read again (empty: read "
+                             "material_path)")
     perturb: float = param(0.0, "relative (1 sigma) spread of true stiffnesses and damping",
                            0.0, 0.5)
     seed: int = param(0, "seed of the perturbation and of the imperfections", 0, 2**31 - 1)
@@ -213,10 +217,11 @@ def build(cfg: SpecimenConfig) -> Specimen:
                              f"{scene.lattice.kind} scene {cfg.scene}")
         scene = scene.with_design(design)
     material_si = None
-    if cfg.material_path:
+    if cfg.material_si or cfg.material_path:
         from design_engine.physics.material_file import material_for_scene
 
-        material, material_si = material_for_scene(scene, cfg.material_path)
+        source = json.loads(cfg.material_si) if cfg.material_si else cfg.material_path
+        material, material_si = material_for_scene(scene, source)
         scene = replace(scene, material=material)
     factors = {}
     if cfg.perturb > 0:

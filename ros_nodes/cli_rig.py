@@ -16,7 +16,7 @@ log = logging.getLogger("metarig.rig")
 # plan field -> flag, where the flag is not the field name with dashes (kept for compatibility)
 FLAG_NAMES = {"amplitude_m": "amplitude", "frequency_hz": "frequency", "real_time_factor": "rtf"}
 # plan fields set by the experiment, not from the command line
-NO_FLAG = ("clock_step_s",)
+NO_FLAG = ("clock_step_s", "material_si")
 
 
 class _Given(argparse.Action):
@@ -125,7 +125,8 @@ def _plan(args):
     if values["material"]:
         from design_engine.physics.material_file import read_material_file
 
-        read_material_file(values["material"])  # MaterialFileError (a ValueError) names the key
+        # read and checked here, once: MaterialFileError (a ValueError) names the key
+        values["material_si"] = json.dumps(dict(read_material_file(values["material"])[0]))
         values["material"] = str(Path(values["material"]).resolve())
     nested = {}
     for name in [n for n in values if "." in n]:

@@ -125,6 +125,7 @@ def nominal_design_json(plan: ExperimentPlan) -> str:
 
     return build(SpecimenConfig(scene=plan.scene, nx=plan.nx, ny=plan.ny,
                                 design_path=plan.design, material_path=plan.material,
+                                material_si=plan.material_si,
                                 imperfections=NOMINAL)).design_json()
 
 

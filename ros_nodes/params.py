@@ -107,6 +107,9 @@ class CameraNodeConfig:
                              "design); its lattice sets nx, ny")
     material_path: str = param("", "sim: material file (metarig-material/1) of the sample "
                                "(empty: the default material)")
+    material_si: str = param("", "sim: the sample's material as the SI values of its file, "
+                             "JSON, when the caller read the file (metarig rig); then "
+                             "material_path is not read again")
     perturb: float = param(0.0, "sim: relative spread of the specimen's true stiffnesses", 0.0, 0.5)
     specimen: Imperfections = param(Imperfections, "sim: how the sample differs from its model")
     noise_std: float = param(0.01, "sim: read noise, fraction of full scale", 0.0, 0.5)

@@ -236,11 +236,35 @@ def test_rig_material_flag_reaches_the_camera_node(tmp_path):
     assert plan.material == str(path.resolve())
     params = _node_params(plan, tmp_path, None)
     assert params["camera"]["material_path"] == str(path.resolve())
+    assert json.loads(params["camera"]["material_si"]) == read_material_file(path)[0]
     bad = tmp_path / "bad.toml"
     bad.write_text(f'format = "{FORMAT}"\n[parameters]\nk_bend = 0\n')
     with pytest.raises(ValueError, match="k_bend"):
         _plan(_parser().parse_args(["--material", str(bad)]))
     assert _plan(_parser().parse_args([])).material == ""
+
+
+def test_the_rig_reads_a_material_file_once(tmp_path, monkeypatch):
+    """`metarig rig --material F`: the command reads and checks F, and the camera node's
+    specimen takes the values it read (the node may run in another process) without reading
+    the file again; the specimen's material is the file's."""
+    from design_engine.physics import material_file as mf
+    from hardware_sim.specimen import NOMINAL, SpecimenConfig, build
+    from ros_nodes.cli_rig import _node_params, _parser, _plan
+
+    path = _stiffer(tmp_path / "s.toml")
+    reads = []
+    real = mf.read_material_file
+    monkeypatch.setattr(mf, "read_material_file", lambda p: (reads.append(p), real(p))[1])
+    plan = _plan(_parser().parse_args(["--material", str(path), "--nx", "6", "--ny", "4",
+                                       "--scene", "focusing-24x16"]))
+    cam = _node_params(plan, tmp_path, None)["camera"]
+    specimen = build(SpecimenConfig(scene=cam["scene"], nx=cam["nx"], ny=cam["ny"],
+                                    material_path=cam["material_path"],
+                                    material_si=cam["material_si"], imperfections=NOMINAL))
+    assert len(reads) == 1
+    assert specimen.scene.material.k_shear == 2 * 1.19
+    assert json.loads(specimen.design_json())["material_si"] == real(path)[0]
 
 
 def test_a_material_file_is_validated_once_where_it_is_read(tmp_path, monkeypatch):

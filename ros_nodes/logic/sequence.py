@@ -47,6 +47,8 @@ class ExperimentPlan:
     design: str = param("", "design file (metarig-design/1) of the sample, e.g. from `metarig "
                         "design`; its lattice sets nx, ny (empty: the scene's periodic design)")
     material: str = param("", "material file (metarig-material/1) of the sample (empty: the default)")
+    material_si: str = param("", "the material file's SI values, JSON, as `metarig rig` read "
+                             "and checked them (once; the nodes take these, not the file)")
     strain: float = param(0.02, "pre-compression strain", 0.0, 0.09)
     settle_s: float = param(0.02, "hold after pre-compression before recording, s", 0.0, 60.0)
     pre_trigger_s: float = param(0.005, "recording before the pulse starts, s", 0.0, 10.0)
@@ -109,7 +111,7 @@ def node_parameters(plan: ExperimentPlan, out_dir: Path) -> dict[str, dict]:
         "camera": {**common, "source": "sim", "fps": plan.fps, "width": plan.width,
                    "height": plan.height, "m_per_px": plan.m_per_px, "scene": plan.scene,
                    "nx": plan.nx, "ny": plan.ny, "design_path": plan.design,
-                   "material_path": plan.material,
+                   "material_path": plan.material, "material_si": plan.material_si,
                    "perturb": plan.perturb, "seed": plan.seed,
                    **{f"specimen.{k}": v for k, v in asdict(plan.specimen).items()},
                    "rate_factor": 0.0},

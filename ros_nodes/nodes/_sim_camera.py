@@ -36,6 +36,7 @@ class SimCameraPath:
                     ny=cfg.ny,
                     design_path=cfg.design_path,
                     material_path=cfg.material_path,
+                    material_si=cfg.material_si,
                     perturb=cfg.perturb,
                     seed=cfg.seed,
                     imperfections=cfg.specimen,

@@ -30,6 +30,7 @@ import numpy as np
 from design_engine.calibration.hinge import (HINGE_HEADER, HINGE_TESTS, hinge_sample,
                                              make_hinge_forces)
 from design_engine.calibration.oscillation import make_oscillation_model, oscillation_sample
+from metarig.fields import param
 from metarig.trajectory import Trajectory
 
 # Noise levels. The paper states no load-cell noise; 0.02 N is ~0.5-1.5 % of the peak forces
@@ -44,23 +45,16 @@ FPS = 960.0
 
 @dataclass(frozen=True)
 class HingeTestConfig:
-    """One simulated hinge-test run.
+    """One simulated hinge-test run (an Instron-like ramp of one ligament test)."""
 
-    Attributes:
-        test: "tension", "compression" or "shear".
-        max_displacement_m: crosshead travel (default: the paper's 1.05 / 3.75 / 3.75 mm).
-        n_points: samples of the ramp (from 0 to the maximum).
-        rate_m_s: crosshead speed, m/s (sets the time column only: quasi-static).
-        noise_n: Gaussian force noise, N (1 sigma).
-        seed: noise seed.
-    """
-
-    test: str
-    max_displacement_m: float | None = None
-    n_points: int = 200
-    rate_m_s: float = 5e-3 / 60.0  # 5 mm/min
-    noise_n: float = FORCE_NOISE_N
-    seed: int = 0
+    test: str = param("tension", "which test", choices=tuple(HINGE_TESTS))
+    max_displacement_m: float | None = param(None, "crosshead travel, m (None: the paper's "
+                                             "1.05 / 3.75 / 3.75 mm)", 0.0, 0.05)
+    n_points: int = param(200, "samples of the ramp, from 0 to the maximum", 2, 100000)
+    rate_m_s: float = param(5e-3 / 60.0, "crosshead speed, m/s (5 mm/min; sets the time column "
+                            "only: the test is quasi-static)", 0.0, 1.0)
+    noise_n: float = param(FORCE_NOISE_N, "Gaussian force noise, N (1 sigma)", 0.0, 10.0)
+    seed: int = param(0, "noise seed", 0, 2**31 - 1)
 
 
 def hinge_curve(material, test: str, d_max_m: float, n_points: int, sample=None):
@@ -115,12 +109,15 @@ def hinge_tests(material, out_dir, tests=tuple(HINGE_TESTS), runs: int = 1, seed
 class OscillationConfig:
     """The free-oscillation video: initial rotation, length, frame rate, tracking noise."""
 
-    initial_rotation_rad: float = np.radians(10.0)
-    n_frames: int = 600
-    fps: float = FPS
-    noise_rad: float = ROTATION_NOISE_RAD
-    noise_m: float = POSITION_NOISE_M
-    seed: int = 0
+    initial_rotation_rad: float = param(float(np.radians(10.0)), "initial rotation of the free "
+                                        "unit, rad", -1.0, 1.0)
+    n_frames: int = param(600, "frames of the video", 2, 10**6)
+    fps: float = param(FPS, "frame rate, 1/s", 1.0, 1e6)
+    noise_rad: float = param(ROTATION_NOISE_RAD, "tracking noise on rotations, rad (1 sigma)",
+                             0.0, 1.0)
+    noise_m: float = param(POSITION_NOISE_M, "tracking noise on positions, m (1 sigma)", 0.0,
+                           0.01)
+    seed: int = param(0, "noise seed", 0, 2**31 - 1)
 
 
 def free_oscillation(material, cfg: OscillationConfig = OscillationConfig(), sample=None):

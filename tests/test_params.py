@@ -99,3 +99,31 @@ def test_the_registry_names_each_rig_node_config():
     assert [NODES[n].config() for n in RIG] == CONFIGS
     for cls in CONFIGS:
         assert dataclasses.is_dataclass(cls)
+
+
+def test_every_configuration_dataclass_declares_its_fields_with_param():
+    """One metadata schema for every configuration (`metarig.fields.param`): each dataclass
+    named `...Config` in the project's packages gives every field a description and bounds.
+    Read from the source (no imports); the solver settings are an equinox module, not a
+    dataclass, and are not covered."""
+    import ast
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    found, bare = 0, []
+    for pkg in ("metarig", "design_engine", "tracking", "hardware_sim", "comparison",
+                "ros_nodes", "devices"):
+        for path in sorted((root / pkg).rglob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text())):
+                is_dataclass = isinstance(node, ast.ClassDef) and any(
+                    "dataclass" in ast.unparse(d) for d in node.decorator_list)
+                if not (is_dataclass and node.name.endswith("Config")):
+                    continue
+                found += 1
+                for item in node.body:
+                    if isinstance(item, ast.AnnAssign) and not (
+                            isinstance(item.value, ast.Call)
+                            and ast.unparse(item.value.func).endswith("param")):
+                        bare.append(f"{path.relative_to(root)}: {node.name}.{ast.unparse(item.target)}")
+    assert found >= 10
+    assert bare == []

@@ -100,17 +100,23 @@ def design_fingerprint(src: Path, tmp: Path) -> dict:
 
 
 def rig_fingerprint(src: Path, tmp: Path) -> dict:
-    from mcap.reader import make_reader
-
     folder = tmp / "rig"
     _metarig(src, "rig", "--nx", "6", "--ny", "4", "--no-compare", "--record-s", "0.02",
              "--out", str(folder))
+    return {f"rig{topic}": h for topic, h in topic_fingerprints(folder).items()}
+
+
+def topic_fingerprints(folder: Path) -> dict[str, str]:
+    """{topic: SHA-256 of the payloads of its messages} over the MCAP files under `folder` (log
+    times left out)."""
+    from mcap.reader import make_reader
+
     hashes: dict[str, hashlib._Hash] = {}
     for mcap in sorted(folder.rglob("*.mcap")):
         with open(mcap, "rb") as f:
             for _, channel, message in make_reader(f).iter_messages():
                 hashes.setdefault(channel.topic, hashlib.sha256()).update(message.data)
-    return {f"rig{topic}": h.hexdigest() for topic, h in sorted(hashes.items())}
+    return {topic: h.hexdigest() for topic, h in sorted(hashes.items())}
 
 
 def fingerprint(src: Path, parts: list[str], work: Path | None = None) -> dict:

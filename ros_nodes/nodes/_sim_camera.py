@@ -11,6 +11,7 @@ A mixin of `CameraNode` (it adds methods, overrides none): the node owns the pub
 status and the frame publishing it uses.
 """
 
+import hashlib
 import time
 
 import numpy as np
@@ -54,21 +55,19 @@ class SimCameraPath:
         t, _, pos, _ = convert.joint_state_arrays(msg)
         self._stage.append((t * 1e-9, float(pos.sum())))
 
-    def _await_device_records(self, t1: float, timeout_s: float = 2.0) -> None:
-        """Wait until the shaker's (and the stages') joint states reach the end of the capture
-        `t1` (s): the last messages may still be in flight when the capture stops, and a record
-        that ends early would be held at its last value for the remaining frames."""
+    def _await_device_records(self, t1: float, timeout_s: float = 5.0) -> None:
+        """Wait until the shaker's (and the stages') joint states hold every sample up to the
+        end of the capture `t1` (s; `hardware_sim.rig.record_complete`): the last messages may
+        still be in flight when the capture stops, and a record that ends early would be held at
+        its last value for the remaining frames."""
+        from hardware_sim.rig import record_complete
 
         def short():
-            out = []
-            for name, rec in (("shaker", self._shaker), ("stage", self._stage)):
-                t = np.sort([s[0] for s in list(rec)])
-                # a device samples at its own rate: its last sample may be up to one period
-                # before the end of the capture
-                period = float(np.median(np.diff(t[-20:]))) if t.size > 1 else 0.0
-                if t.size and t[-1] < t1 - period - 1e-9:
-                    out.append(name)
-            return out
+            return [
+                name
+                for name, rec in (("shaker", self._shaker), ("stage", self._stage))
+                if rec and not record_complete([s[0] for s in list(rec)], t1)
+            ]
 
         deadline = time.monotonic() + timeout_s
         while short() and time.monotonic() < deadline:
@@ -117,13 +116,25 @@ class SimCameraPath:
             self._await_device_records(t1)
             shaker = MotionRecord.from_samples(list(self._shaker), t1)
             stage = MotionRecord.from_samples(list(self._stage), t1)
+            # what the specimen is solved under, and the samples left out (after the capture;
+            # how many depends on the load): in two runs of one seed, the first part is the same
+            counts = [
+                (name, [s[0] for s in list(rec)])
+                for name, rec in (("shaker", self._shaker), ("stage", self._stage))
+            ]
+            digest = hashlib.sha256(
+                b"".join(
+                    np.ascontiguousarray(a).tobytes()
+                    for r in (shaker, stage)
+                    for a in (r.t, r.value)
+                )
+            ).hexdigest()[:16]
             self.get_logger().info(
-                "device records: "
+                f"device records up to {t1:.4f} s (sha256 {digest}): "
                 + ", ".join(
-                    f"{name} {len(rec)} samples {min(rec)[0]:.4f}-{max(rec)[0]:.4f} s"
-                    if rec
-                    else f"{name} none"
-                    for name, rec in (("shaker", list(self._shaker)), ("stage", list(self._stage)))
+                    f"{name} {sum(t <= t1 for t in ts)} samples"
+                    f" ({sum(t > t1 for t in ts)} later ones left out)"
+                    for name, ts in counts
                 )
             )
             traj = exposure_motion(self._specimen, times, shaker, stage, cfg.fps)

@@ -6,7 +6,13 @@ Per run: velocity NRMSE, largest displacement error and lost units of the compar
 DIC (what `metarig rig` reports) and through the truth poses (`metarig compare --poses truth`:
 the model part, which must not depend on the machine's load), the gap between the two (the
 tracking part), the tracked poses against the truth (RMS position and rotation error over all
-unit-frames, and in the first, pre-compressed frame), and the messages recorded.
+unit-frames, and in the first, pre-compressed frame; the velocity NRMSE of the tracked rates
+against the true ones, beside the tracking noise the comparison states), and the messages
+recorded. The simulated
+rig's truth and footage (/camera/ground_truth, /camera/image_raw, /camera/reference_image) are
+fingerprinted (SHA-256 of their payloads) with the camera's line on the device records it
+solved the specimen under: for one strain they must be the same at every load
+(`same_at_every_load`).
 
 Writes `<out>/bench_precompressed.json` (machine, load before and after each run) after every
 run; a run whose folder already holds both comparisons is read back, not repeated (resume after
@@ -16,6 +22,7 @@ an interrupt). Prints a table.
 import argparse
 import json
 import os
+import re
 import subprocess
 import sys
 import time
@@ -23,16 +30,18 @@ from pathlib import Path
 
 import numpy as np
 
+from check_identical import topic_fingerprints
 from machine import describe
 
 BIN = Path(sys.prefix) / "bin"
 
 
 
-def _run(cmd: list[str], env: dict) -> None:
+def _run(cmd: list[str], env: dict) -> str:
     r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=1800)
     if r.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed:\n{r.stderr[-3000:]}")
+    return r.stdout + r.stderr
 
 
 def pose_errors(run: Path) -> dict:
@@ -47,15 +56,30 @@ def pose_errors(run: Path) -> dict:
     m_per_px = json.loads((run / "calibration.json").read_text())["m_per_px"]
     e = tracked - truth.q
     pos = np.hypot(e[..., 0], e[..., 1])
+    # the tracking part of the velocity figure as the comparison computes it (rates after the
+    # onset, over the simulated RMS speed), against the noise the comparison states for it
+    from comparison.metrics import frame_rates
+
+    summary = json.loads((run / "summary.json").read_text())
+    t = np.load(run / "tracks.npz")["t"]
+    keep = t >= summary["onset_s"] - 1e-9
+    used = np.all(np.isfinite(tracked), axis=(0, 2))
+    v_sim = frame_rates(t, np.load(run / "simulated.npz")["q"])[keep][:, used, :2]
+    dv = (frame_rates(t, tracked) - frame_rates(t, truth.q))[keep][:, used, :2]
+    v_rms = np.sqrt(np.mean(np.sum(v_sim**2, axis=-1)))
     return {"position_rms_px": float(np.sqrt(np.nanmean(pos**2)) / m_per_px),
             "rotation_rms_mrad": float(np.sqrt(np.nanmean(e[..., 2] ** 2)) * 1e3),
             "first_frame_position_max_px": float(np.nanmax(pos[0]) / m_per_px),
             "first_frame_rotation_max_mrad": float(np.nanmax(np.abs(e[0, :, 2])) * 1e3),
             "largest_true_rotation_rad": float(np.abs(truth.q[0, :, 2]).max()),
+            "velocity_nrmse_tracked_vs_truth": float(np.sqrt(np.mean(np.sum(dv**2, axis=-1)))
+                                                     / v_rms),
+            "velocity_noise_nrmse_stated": summary.get("velocity_noise_nrmse"),
             "largest_true_displacement_px": float(
                 np.hypot(truth.q[0, :, 0], truth.q[0, :, 1]).max() / m_per_px)}
 
 
+SIMULATED = ("/camera/ground_truth", "/camera/image_raw", "/camera/reference_image")
 NOISE_KEYS = ("velocity_noise_nrmse", "velocity_nrmse_beyond_noise")
 
 
@@ -68,7 +92,9 @@ def one(out: Path, strain: float, load: int, env: dict) -> dict:
         load0 = os.getloadavg()
         t0 = time.monotonic()
         try:
-            _run([str(BIN / "metarig"), "rig", "--strain", str(strain), "--out", str(run)], env)
+            log = _run([str(BIN / "metarig"), "rig", "--strain", str(strain), "--out", str(run)],
+                       env)
+            (run / "rig.log").write_text(log)
             _run([str(BIN / "metarig"), "compare", str(run), "--poses", "truth", "--out",
                   str(truth_dir), "-q"], env)
         finally:
@@ -82,8 +108,14 @@ def one(out: Path, strain: float, load: int, env: dict) -> dict:
     meta = json.loads((run / "run.json").read_text())
     keys = ("velocity_nrmse", "max_displacement_error_m", "lost_units",
             "energy_map_correlation", "target_peak_ke_rel_err")
+    topics = topic_fingerprints(run)
+    records = re.findall(r"device records up to .*", (run / "rig.log").read_text()) \
+        if (run / "rig.log").exists() else []
     return {"strain": strain, "background_load_processes": load,
             **json.loads((run / "bench_load.json").read_text()),
+            # the simulated rig's truth and footage: the same at every load (one seed)
+            "fingerprints": {t: topics.get(t) for t in SIMULATED},
+            "device_records": records[-1] if records else "",
             "messages_recorded": meta["recording"]["messages"],
             "frames": meta["frames"],
             "dic": {k: dic[k] for k in (*keys, *NOISE_KEYS) if k in dic},
@@ -129,6 +161,12 @@ def main(argv=None) -> int:
             for d in filter(None, (args.out, args.results)):
                 d.mkdir(parents=True, exist_ok=True)
                 (d / "bench_precompressed.json").write_text(json.dumps(res, indent=2))
+    res["same_at_every_load"] = {
+        f"{s:g}": len({json.dumps(r["fingerprints"], sort_keys=True) for r in res["runs"]
+                       if r["strain"] == s}) == 1 for s in strains}
+    for d in filter(None, (args.out, args.results)):
+        (d / "bench_precompressed.json").write_text(json.dumps(res, indent=2))
+    print(f"truth and footage the same at every load (per strain): {res['same_at_every_load']}")
     print(f"{'strain':>7}{'load':>6}{'NRMSE DIC':>11}{'beyond noise':>13}{'truth':>8}"
           f"{'gap pp':>8}{'max disp DIC':>14}"
           f"{'truth':>8}{'lost':>6}{'pos px':>8}{'rot mrad':>9}{'msgs':>6}")

@@ -42,6 +42,9 @@ def design_main(argv: list[str] | None = None) -> int:
                    help="optimiser (default the task's: mma)")
     p.add_argument("--material", type=Path, help="material file (TOML, metarig-material/1, SI) "
                    "for every scene of the task (default: the default material)")
+    p.add_argument("--initial", type=Path, help="start from this design file (metarig-design/1, "
+                   "the task's lattice) instead of the periodic design, e.g. to redesign a "
+                   "tested design with a calibrated --material")
     p.add_argument("--resume", action="store_true", help="continue the run in --out")
     p.add_argument("--list", action="store_true", help="list the task presets and exit")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
@@ -56,6 +59,8 @@ def design_main(argv: list[str] | None = None) -> int:
         return 0
     if not args.task:
         p.error("a task preset or task file is required (see --list)")
+    if args.initial is not None and (args.seed is not None or args.bias_angle_deg is not None):
+        p.error("--initial gives the start; --seed and --bias-angle-deg make another one")
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     logging.getLogger("metarig").setLevel(logging.INFO)
 
@@ -69,7 +74,8 @@ def design_main(argv: list[str] | None = None) -> int:
         task = load_task(args.task, size=args.size, max_evals=args.max_evals,
                          max_time_s=args.max_time, max_solve_steps=args.max_solve_steps,
                          bias_angle_deg=args.bias_angle_deg,
-                         seed=args.seed, algorithm=args.algorithm, material=args.material)
+                         seed=args.seed, algorithm=args.algorithm, material=args.material,
+                         initial=args.initial)
         out = Path("runs") / f"design-{task.name}" if args.out is None else args.out
         if args.resume:
             read_record(out)  # a damaged record: one line, before anything else is said

@@ -155,7 +155,7 @@ def load_task(source: str | Path, *, size: tuple[int, int] | None = None,
               max_solve_steps: int | None = None, bias_angle_deg: float | None = None,
               seed: int | None = None,
               algorithm: str | None = None, weights: tuple[float, ...] | None = None,
-              material: str | Path | None = None) -> Task:
+              material: str | Path | None = None, initial: str | Path | None = None) -> Task:
     """Read and resolve a task preset (by name) or task file, with command-line overrides.
 
     Args:
@@ -170,6 +170,9 @@ def load_task(source: str | Path, *, size: tuple[int, int] | None = None,
         weights: one weight per objective term, replacing the file's (Pareto sweeps).
         material: material file (metarig-material/1) given to every scene (contact angles the
             file does not set stay the scene's); recorded in the resolved document.
+        initial: design file (metarig-design/1) of the task's lattice to start from instead of
+            the periodic design (a redesign continues from the design it improves); recorded
+            in the resolved document.
 
     Raises:
         TaskError: one line naming the file, the key and the problem.
@@ -183,6 +186,8 @@ def load_task(source: str | Path, *, size: tuple[int, int] | None = None,
     if seed is not None:
         amp = amp or 0.15  # the default random amplitude of a seeded start (spec 3.1)
     x0 = initial_design(lattice, bias, amp, seed, f"{where}.initial")
+    if initial is not None:
+        x0 = given_initial_design(initial, lattice)
     limits = read_constraints(doc, where, lattice)
     budget = read_budget(doc, where, max_evals, max_time_s, max_solve_steps)
     optimizer = read_optimizer(doc, where, algorithm)
@@ -222,7 +227,8 @@ def load_task(source: str | Path, *, size: tuple[int, int] | None = None,
         "format": FORMAT, "name": name, "goal": goal, "source": label,
         "lattice": {"kind": kind, "size": list(shape)},
         "initial": {"bias_angle_deg": bias, "random_amplitude": amp if seed is not None else 0.0,
-                    "seed": -1 if seed is None else seed},
+                    "seed": -1 if seed is None else seed,
+                    **({} if initial is None else {"design_file": str(initial)})},
         "constraints": {"min_void_angle_deg": math.degrees(limits.min_void_angle),
                         "min_vertex_angle_deg": math.degrees(limits.min_vertex_angle),
                         "min_edge_length_mm": limits.min_edge_length},
@@ -264,6 +270,20 @@ def initial_design(lattice: Lattice, bias_deg: float, amplitude: float, seed: in
     except InvalidDesignError as exc:
         fail(where, f"the initial design is not valid ({exc}); use a smaller "
              "random_amplitude or another seed")
+
+
+def given_initial_design(path: str | Path, lattice: Lattice) -> np.ndarray:
+    """The design vector (mm) of design file `path`, which must be of `lattice`'s kind and size."""
+    from design_engine.design.design_io import load_design
+
+    try:
+        given, x = load_design(path)
+    except InvalidDesignError as exc:
+        fail("initial design", str(exc))
+    if given.kind != lattice.kind or tuple(given.shape) != tuple(lattice.shape):
+        fail("initial design", f"{path} is a {given.kind} {given.shape[0]}x{given.shape[1]} "
+             f"design, the task's lattice is {lattice.kind} {lattice.shape[0]}x{lattice.shape[1]}")
+    return x
 
 
 def design_window_indices(lattice: Lattice, p: int, offset: tuple[int, int]) -> np.ndarray:

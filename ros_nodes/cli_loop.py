@@ -1,10 +1,11 @@
 """`metarig loop TASK --out DIR`: design, test on the rig, calibrate, redesign; round by round.
 
 Round k (`DIR/round-k/`): the design (round 1: optimised for TASK, or `--design FILE`; later
-rounds: optimised with the material calibrated in the round before), its experiment on the
-simulated rig (`metarig rig`, with the discrepant specimen; rig flags after `--`, the same in
-every round), the task's objective measured from the tracked poses and predicted by the round's
-model, and the material calibrated from the experiment (`metarig calibrate`). Finished steps are
+rounds: optimised from the round before's design with the material calibrated in that round),
+its experiment on the simulated rig (`metarig rig`, with the discrepant specimen; rig flags
+after `--`, the same in every round), the task's objective measured from the tracked poses and
+predicted by the round's model, an identification experiment on the same specimen, and the
+material calibrated from it (`metarig calibrate`). Finished steps are
 kept: a second invocation resumes. Writes `DIR/loop.json` (per round: design, model and
 calibrated material with their stated errors, predicted and measured objective) and
 `DIR/loop.rrd` (the rounds side by side in Rerun). See `ros_nodes.logic.closed_loop`.
@@ -15,7 +16,7 @@ import logging
 import sys
 from pathlib import Path
 
-from metarig.argtypes import grid_size, positive, text
+from metarig.argtypes import grid_size, non_negative, positive, text
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -40,6 +41,15 @@ def build_parser() -> argparse.ArgumentParser:
                    "fits (as `metarig calibrate --fit`; default its own)")
     p.add_argument("--workers", type=positive(int), default=None, help="tracker processes "
                    "(default: all cores)")
+    p.add_argument("--identify", choices=("pulse", "task"), default="pulse", help="what the "
+                   "calibration fits: an identification experiment on the same specimen (a 1 mm "
+                   "pulse at 100 Hz, 150 ms capture; default) or the task's own experiment")
+    p.add_argument("--no-warm-start", dest="warm_start", action="store_false", help="every "
+                   "round designs from the task's initial design (default: round k from round "
+                   "k-1's design)")
+    p.add_argument("--design-seed", type=non_negative(int), default=None, help="round 1 "
+                   "designs from the task's periodic design plus the random perturbation drawn "
+                   "with this seed (`metarig design --seed`; default: the task's initial design)")
     return p
 
 
@@ -57,7 +67,9 @@ def loop_main(argv: list[str] | None = None) -> int:
 
     plan = LoopPlan(task=args.task, out=args.out, rounds=args.rounds, design=args.design,
                     material=args.material, size=args.size, max_evals=args.max_evals,
-                    rig_args=tuple(rig_args), fit=args.fit, workers=args.workers)
+                    rig_args=tuple(rig_args), fit=args.fit, workers=args.workers,
+                    identify=args.identify, warm_start=args.warm_start,
+                    design_seed=args.design_seed)
     try:
         doc = run_loop(plan)
     except LoopError as exc:

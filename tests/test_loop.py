@@ -50,6 +50,65 @@ def test_rig_arguments_refuse_what_the_loop_sets(flag):
         rig_arguments(task, (flag, "x"))
 
 
+def test_identification_experiment_is_the_same_rig_with_a_short_pulse():
+    """The identification experiment differs from the task's only in its input and capture: the
+    same scene, frame and specimen flags (so the same sample), a 10 ms pulse, 150 ms capture."""
+    from ros_nodes.logic.closed_loop import IDENTIFY_FREQUENCY_HZ, IDENTIFY_RECORD_S
+
+    task = load_plan_task(LoopPlan(task="focusing-demo", out=Path("unused")))
+    specimen = ("--perturb", "0.2", "--seed", "5", "--specimen-friction-hz", "1")
+    args = rig_arguments(task, specimen)
+    ident = rig_arguments(task, specimen, identify=True)
+    assert float(_flag(ident, "--frequency")) == IDENTIFY_FREQUENCY_HZ == 100.0
+    assert float(_flag(ident, "--amplitude")) < float(_flag(args, "--amplitude"))
+    assert float(_flag(ident, "--record-s")) == pytest.approx(IDENTIFY_RECORD_S)
+    assert float(_flag(ident, "--record-s")) > float(_flag(args, "--record-s"))
+    input_flags = {"--amplitude", "--frequency", "--record-s"}
+    for a in (args, ident):
+        assert len(a) % 2 == 0
+    same = {k: v for k, v in zip(args[::2], args[1::2]) if k not in input_flags}
+    assert same == {k: v for k, v in zip(ident[::2], ident[1::2]) if k not in input_flags}
+    longer = rig_arguments(task, ("--pre-trigger-s", "0.05"), identify=True)
+    assert float(_flag(longer, "--record-s")) == pytest.approx(IDENTIFY_RECORD_S + 0.045)
+
+
+@pytest.mark.parametrize("k, warm, seed, expected", [
+    (1, True, None, []),
+    (1, True, 3, ["--seed", "3"]),
+    (2, True, 3, ["--initial", "LOOP/round-1/design/design.json"]),
+    (3, True, None, ["--initial", "LOOP/round-2/design/design.json"]),
+    (2, False, 3, []),
+])
+def test_each_round_designs_from_the_design_before(tmp_path, k, warm, seed, expected):
+    from ros_nodes.logic.closed_loop import _Round
+
+    plan = LoopPlan(task="focusing-demo", out=tmp_path, rounds=3, warm_start=warm,
+                    design_seed=seed)
+    start = _Round(plan, None, k, [], []).start()
+    assert start == [a.replace("LOOP", str(tmp_path)) for a in expected]
+
+
+def test_a_design_run_starts_from_a_given_design(tmp_path):
+    """`metarig design --initial` (what round k > 1 runs): the task's initial design and every
+    scene's design are the file's; a design of another lattice is refused."""
+    from design_engine.design.design_io import save_design
+    from design_engine.design.task import TaskError, load_task
+    from design_engine.physics.lattice import periodic_design, quads
+
+    nominal = load_task("focusing-demo")
+    x = nominal.initial_design + np.random.default_rng(0).normal(0.0, 0.2,
+                                                                 nominal.initial_design.size)
+    path = save_design(tmp_path / "d.json", nominal.lattice, x)
+    task = load_task("focusing-demo", initial=path)
+    np.testing.assert_allclose(task.initial_design, x, atol=1e-9)
+    for scene in task.scenes.values():
+        np.testing.assert_allclose(np.asarray(scene.design), x, atol=1e-9)
+    assert task.document["initial"]["design_file"] == str(path)
+    other = save_design(tmp_path / "o.json", quads(6, 4), periodic_design(quads(6, 4), 0.4))
+    with pytest.raises(TaskError, match="quads 6x4 design, the task's lattice is quads 8x6"):
+        load_task("focusing-demo", initial=other)
+
+
 def test_rig_capture_covers_a_longer_pre_trigger():
     task = load_plan_task(LoopPlan(task="focusing-demo", out=Path("unused")))
     short = float(_flag(rig_arguments(task, ()), "--record-s"))
@@ -140,11 +199,12 @@ STEP_FILES = {
     "rig": ["recording.mcap", "run.json", "summary.json", "comparison.rrd", "tracks.npz",
             "simulated.npz", "design.json", "calibration.json", "step.json"],
     "objective": ["objective.json", "target_ke.npz", "step.json"],
+    "identify": ["recording.mcap", "run.json", "step.json"],
     "calibrate": ["calibration.json", "material.toml", "calibration.png", "step.json"],
 }
 
 
-@pytest.mark.slow  # one round: a 2-evaluation design, a rig run, tracking, a calibration (146 s)
+@pytest.mark.slow  # one round: a 2-evaluation design, two rig runs, tracking, a calibration
 def test_one_round_end_to_end_then_resumed(tmp_path):
     out = tmp_path / "loop"
     argv = ["loop", "focusing-demo", "--out", str(out), "--rounds", "1", "--max-evals", "2",
@@ -171,11 +231,16 @@ def test_one_round_end_to_end_then_resumed(tmp_path):
     cal = rnd["calibrated_material"]
     assert cal["parameters"] and all("stderr" in p for p in cal["parameters"].values())
     assert "[loop] round 1/1: calibrate: done in" in r.stderr
+    # the calibration fitted the identification experiment, the 100 Hz pulse on the same sample
+    assert rnd["calibrated_from"] == str(round_dir / "identify")
+    ident = json.loads((round_dir / "identify" / "step.json").read_text())["command"]
+    assert float(_flag(ident, "--frequency")) == 100.0
+    assert _flag(ident, "--seed") == "576" and _flag(ident, "--perturb") == "0.2"
 
     stamps = {p: p.stat().st_mtime_ns for p in round_dir.rglob("*") if p.is_file()}
     again = _metarig(*argv)
     assert again.returncode == 0, again.stderr[-2000:]
-    assert again.stderr.count("done already") == 4
+    assert again.stderr.count("done already") == 5
     assert "done in" not in again.stderr  # no step ran
     assert {p: p.stat().st_mtime_ns for p in round_dir.rglob("*") if p.is_file()} == stamps
     again_doc = json.loads((out / "loop.json").read_text())

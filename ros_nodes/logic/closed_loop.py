@@ -10,7 +10,10 @@ its own folder (or file), in order:
                    tracked poses, comparison with the design document's nominal model)
     objective/     `objective.json`: the task's objective measured (from the tracked poses)
                    and predicted (the round's model on the measured input), `target_ke.npz`
-    calibrate/     `metarig calibrate rig/ --material material.toml`: calibration.json,
+    identify/      `metarig rig` on the same specimen with the identification pulse (a short
+                   pulse and a long record: `IDENTIFY_*`), the experiment the calibration
+                   fits (`--identify task`: none, the calibration fits rig/)
+    calibrate/     `metarig calibrate identify/ --material material.toml`: calibration.json,
                    material.toml
 
 Each step is a `metarig` command in its own process (its progress goes to this terminal), so the
@@ -18,6 +21,18 @@ loop runs exactly what a user would type. A step is finished when its folder hol
 (written last: the command, its wall time); a folder without it is the remains of an
 interrupted step and is redone (`metarig design` resumes from its checkpoint), so Ctrl-C loses
 no finished step and a second invocation recomputes nothing that is finished.
+
+Round k > 1 starts its design from round k-1's (`metarig design --initial`): a redesign
+improves the design that was tested, with the material that its test calibrated; round 1 starts
+from the task's initial design (or, with `design_seed`, a seeded random one, `metarig design
+--seed`).
+
+Why an identification experiment: the task's input is chosen for the objective, not to show the
+material. The focusing task's 30 Hz pulse drives the small lattice nearly quasi-statically (its
+shear modes ring at about 150 Hz), and the quasi-static shape depends on ratios of stiffnesses,
+not on their size, so a calibration on it may determine nothing (k_shear 3466 +- 5900 N/m on
+the task's experiment in README "Closing the loop"). A 10 ms pulse rings those modes, and a
+150 ms record follows them until they decay (`benchmarks/bench_loop.py` for what it determines).
 
 The rig is the same in every round: the same flags, so the same simulated specimen statistics,
 print-wide errors and seed (the specimen's per-ligament draws follow the seed: the same seed
@@ -49,7 +64,7 @@ STEP_DONE = "step.json"
 SUMMARY_NAME = "loop.json"
 RRD_NAME = "loop.rrd"
 MATERIAL_NAME = "material.toml"
-DESIGN, RIG, OBJECTIVE, CALIBRATE = "design", "rig", "objective", "calibrate"
+DESIGN, RIG, OBJECTIVE, IDENTIFY, CALIBRATE = "design", "rig", "objective", "identify", "calibrate"
 # rig flags the loop sets itself (from the task and the round)
 LOOP_RIG_FLAGS = ("--design", "--out", "--scene", "--material", "--no-compare", "--nx", "--ny",
                   "--strain", "--amplitude", "--frequency", "--waveform")
@@ -57,6 +72,10 @@ FRAME_PX = (480, 360)  # default frame of the simulated camera (the demo's)
 FRAME_FILL = 1.2  # the frame spans this much more than the undeformed sample
 RECORD_MARGIN_S = 0.01  # capture beyond the task's window
 PRE_TRIGGER_S = 0.005  # the rig's default recording before the pulse
+# the identification experiment: a 1 mm pulse at 100 Hz (10 ms long), a 150 ms capture
+IDENTIFY_AMPLITUDE_M, IDENTIFY_FREQUENCY_HZ, IDENTIFY_RECORD_S = 1e-3, 100.0, 0.15
+IDENTIFY_CHOICES = ("pulse", "task")  # what the calibration fits: the identification pulse, or
+# the task's own experiment
 
 
 class LoopError(RuntimeError):
@@ -79,6 +98,11 @@ class LoopPlan:
             `--specimen-*`; the camera's), the same in every round.
         fit: parameters the calibration fits (None: `metarig calibrate`'s default).
         workers: tracker processes (None: all cores).
+        identify: what the calibration fits: "pulse", an identification experiment on the
+            same specimen (`IDENTIFY_*`), or "task", the task's own experiment.
+        warm_start: round k > 1 designs from round k-1's design (False: from the task's start).
+        design_seed: round 1 designs from the task's periodic design plus the seeded random
+            perturbation of `metarig design --seed` (None: the task's initial design).
     """
 
     task: str
@@ -91,6 +115,9 @@ class LoopPlan:
     rig_args: tuple[str, ...] = field(default=())
     fit: str | None = None
     workers: int | None = None
+    identify: str = "pulse"
+    warm_start: bool = True
+    design_seed: int | None = None
 
 
 # --- the task on the rig ----------------------------------------------------------------------
@@ -133,10 +160,12 @@ def _value(args, flag: str) -> float:
     raise LoopError(f"{flag} needs a value")
 
 
-def rig_arguments(task, rig_args) -> list[str]:
+def rig_arguments(task, rig_args, identify: bool = False) -> list[str]:
     """The `metarig rig` flags of the task's scene: scene preset, strain, amplitude (m),
     frequency (Hz), waveform, a capture covering the objective's window; a frame that holds the
-    sample unless `rig_args` sets one; then `rig_args`.
+    sample unless `rig_args` sets one; then `rig_args`. With `identify`, those of the
+    identification experiment on the same scene and specimen: its pulse (`IDENTIFY_*`) and
+    capture instead of the task's (a `--record-s` in `rig_args` still wins).
 
     Raises:
         LoopError: `rig_args` sets a flag that the loop sets itself.
@@ -152,9 +181,14 @@ def rig_arguments(task, rig_args) -> list[str]:
         pre = _value(rig_args, "--pre-trigger-s")
     end_ms = scene.window_start + scene.window  # the window's end on the solver clock, ms
     record_s = math.ceil((pre + end_ms / 1e3 + RECORD_MARGIN_S) * 1e3) / 1e3
+    amplitude_m, frequency_hz, waveform = float(ld.amplitude) / 1e3, float(ld.frequency) * 1e3, \
+        ld.waveform
+    if identify:
+        amplitude_m, frequency_hz, waveform = IDENTIFY_AMPLITUDE_M, IDENTIFY_FREQUENCY_HZ, "pulse"
+        record_s = round(pre + IDENTIFY_RECORD_S - PRE_TRIGGER_S, 6)
     out = ["--scene", scene.name, "--strain", repr(float(ld.strain)),
-           "--amplitude", repr(float(ld.amplitude) / 1e3),
-           "--frequency", repr(float(ld.frequency) * 1e3), "--waveform", ld.waveform]
+           "--amplitude", repr(amplitude_m), "--frequency", repr(frequency_hz),
+           "--waveform", waveform]
     if not _given(rig_args, "--record-s"):
         out += ["--record-s", repr(record_s)]
     if not any(_given(rig_args, f) for f in ("--width", "--height", "--m-per-px")):
@@ -251,8 +285,10 @@ def _metarig(name: str, argv: list[str]) -> None:
 class _Round:
     """The steps of one round (see the module docstring)."""
 
-    def __init__(self, plan: LoopPlan, task, k: int, rig_argv: list[str]):
+    def __init__(self, plan: LoopPlan, task, k: int, rig_argv: list[str],
+                 identify_argv: list[str]):
         self.plan, self.task, self.k, self.rig_argv = plan, task, k, rig_argv
+        self.identify_argv = identify_argv
         self.dir = plan.out / f"round-{k}"
         self.timings: dict[str, float] = {}  # steps run by this invocation
         self.walls: dict[str, float | None] = {}  # every step, when it ran
@@ -300,6 +336,16 @@ class _Round:
                       f"({prev / CALIBRATE / 'calibration.json'})", note)
         return path
 
+    def start(self) -> list[str]:
+        """The `metarig design` flags of the round's initial design: round k-1's design (warm
+        start), round 1's seeded random start, or none (the task's)."""
+        if self.k > 1 and self.plan.warm_start:
+            return ["--initial", str(self.plan.out / f"round-{self.k - 1}" / DESIGN /
+                                     "design.json")]
+        if self.k == 1 and self.plan.design_seed is not None:
+            return ["--seed", str(self.plan.design_seed)]
+        return []
+
     def design(self, material: Path | None) -> Path:
         folder = self.dir / DESIGN
 
@@ -316,6 +362,7 @@ class _Round:
                 argv += ["--max-evals", str(self.plan.max_evals)]
             if material is not None:
                 argv += ["--material", str(material)]
+            argv += self.start()
             if (folder / "run.json").exists():
                 argv.append("--resume")  # an interrupted design continues from its checkpoint
             _metarig("design", argv)
@@ -326,18 +373,22 @@ class _Round:
         self._step("design", folder, work)
         return folder / "design.json"
 
-    def rig(self, design: Path) -> Path:
-        folder = self.dir / RIG
+    def rig(self, design: Path, identify: bool = False) -> Path:
+        """The task's experiment on the rig (`rig/`), or with `identify` the identification
+        experiment on the same specimen (`identify/`)."""
+        folder = self.dir / (IDENTIFY if identify else RIG)
 
         def work(folder):
             shutil.rmtree(folder, ignore_errors=True)  # the remains of an interrupted run
-            argv = ["rig", "--design", str(design), *self.rig_argv, "--out", str(folder)]
+            rig_argv = self.identify_argv if identify else self.rig_argv
+            argv = ["rig", "--design", str(design), *rig_argv, "--out", str(folder)]
             if self.plan.workers is not None:
                 argv += ["--workers", str(self.plan.workers)]
             _metarig("rig", argv)
             return argv, {}
 
-        self._step("rig (experiment, tracking, comparison)", folder, work)
+        self._step("identification experiment (rig, tracking)" if identify else
+                   "rig (experiment, tracking, comparison)", folder, work)
         return folder
 
     def objective(self, run_dir: Path, material: Path | None) -> dict:
@@ -380,9 +431,13 @@ class _Round:
         design = self.design(material)
         run_dir = self.rig(design)
         objective = self.objective(run_dir, material)
+        if self.plan.identify == "pulse":
+            run_dir = self.rig(design, identify=True)
         calibration = self.calibrate(run_dir, material)
         doc = round_summary(self.dir, self.k, design, material, objective, calibration,
                             self.timings, self.skipped)
+        doc["calibrated_from"] = str(run_dir)
+        doc["design_start"] = self.start()
         doc["steps_wall_s"] = self.walls
         return doc
 
@@ -471,8 +526,11 @@ def run_loop(plan: LoopPlan) -> dict:
             read_material_file(plan.material)
         except MaterialFileError as exc:
             raise LoopError(str(exc)) from None
+    if plan.identify not in IDENTIFY_CHOICES:
+        raise LoopError(f"--identify {plan.identify}: one of {', '.join(IDENTIFY_CHOICES)}")
     task = load_plan_task(plan)
     rig_argv = rig_arguments(task, plan.rig_args)
+    identify_argv = rig_arguments(task, plan.rig_args, identify=True)
     if plan.design is not None:
         check_design_fits(plan.design, task)
     plan.out.mkdir(parents=True, exist_ok=True)
@@ -480,14 +538,17 @@ def run_loop(plan: LoopPlan) -> dict:
     t0 = time.perf_counter()
     rounds = []
     for k in range(1, plan.rounds + 1):
-        r = _Round(plan, task, k, rig_argv).run()
+        r = _Round(plan, task, k, rig_argv, identify_argv).run()
         rounds.append(r)
         log.info("[loop] round %d: objective measured %.4g J, predicted %.4g J (x%.3f)", k,
                  r["measured_objective_J"], r["predicted_objective_J"],
                  r["measured_over_predicted"])
     doc = {
         "task": task.name, "goal": task.goal, "out": str(plan.out), "rounds": rounds,
-        "rig_arguments": rig_argv, "max_evals": plan.max_evals,
+        "rig_arguments": rig_argv, "identify": plan.identify,
+        "identify_rig_arguments": identify_argv if plan.identify == "pulse" else None,
+        "warm_start": plan.warm_start, "design_seed": plan.design_seed,
+        "max_evals": plan.max_evals,
         "lattice": list(task.lattice.shape),
         "objective_unit": "J (mean kinetic energy of the target over the task's window)",
         "wall_s_this_invocation": round(time.perf_counter() - t0, 1),

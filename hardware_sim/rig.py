@@ -75,6 +75,18 @@ def capture_times(t_start_s: float, t_stop_s: float, fps: float) -> np.ndarray:
     return np.arange(k0, k1 + 1) / fps
 
 
+def _solve(specimen: Specimen, times: np.ndarray, shaker: MotionRecord, stage: MotionRecord | None):
+    """The specimen's motion at `times` (s) under the device records."""
+    return simulate(
+        specimen,
+        times,
+        shaker.t,
+        shaker.value,
+        None if stage is None else stage.t,
+        None if stage is None else stage.value,
+    )
+
+
 def specimen_motion(
     specimen: Specimen,
     frame_t_s: np.ndarray,
@@ -84,14 +96,7 @@ def specimen_motion(
 ):
     """Solve the specimen at the frame times and one period before the first."""
     times = np.r_[frame_t_s[0] - 1.0 / fps, frame_t_s]
-    return simulate(
-        specimen,
-        times,
-        shaker.t,
-        shaker.value,
-        None if stage is None else stage.t,
-        None if stage is None else stage.value,
-    )
+    return _solve(specimen, times, shaker, stage)
 
 
 # exposure of a frame, in frame periods: it ends at the frame's capture time k / fps
@@ -116,14 +121,7 @@ def exposure_motion(
 ):
     """Solve the specimen at the start, middle and end of every frame's exposure (`film`)."""
     times = exposure_times(frame_t_s, fps, shutter).ravel()
-    return simulate(
-        specimen,
-        times,
-        shaker.t,
-        shaker.value,
-        None if stage is None else stage.t,
-        None if stage is None else stage.value,
-    )
+    return _solve(specimen, times, shaker, stage)
 
 
 def film(

@@ -158,8 +158,9 @@ class CameraNode(LabCameraPath, SimCameraPath, Node):
     # replay -----------------------------------------------------------------------------------
     def _replay(self) -> None:
         cfg = self._params.config
-        try:
-            frames = open_replay(
+
+        def replay():
+            return open_replay(
                 cfg.source,
                 cfg.path,
                 cfg.fps,
@@ -169,6 +170,9 @@ class CameraNode(LabCameraPath, SimCameraPath, Node):
                 cfg.image_topic,
                 cfg.seed,
             )
+
+        try:
+            frames = replay()
             base = self.get_clock().now().nanoseconds if not cfg.publish_clock else 0
             while True:
                 wall0 = time.perf_counter()
@@ -186,16 +190,7 @@ class CameraNode(LabCameraPath, SimCameraPath, Node):
                     and self._published >= cfg.n_frames
                 ):
                     break
-                frames = open_replay(
-                    cfg.source,
-                    cfg.path,
-                    cfg.fps,
-                    cfg.width,
-                    cfg.height,
-                    cfg.n_frames,
-                    cfg.image_topic,
-                    cfg.seed,
-                )
+                frames = replay()
                 base += t_rel + int(1e9 / cfg.fps)
             self._status("done", f"published {self._published} frames")
         except SourceError as e:

@@ -144,6 +144,7 @@ def prepare_frame(tracker: DICTracker, frame: np.ndarray) -> PreparedFrame:
 
 
 def rot(alpha: np.ndarray) -> np.ndarray:
+    """Rotation matrices [..., 2, 2] of the angles alpha [...] (rad, col towards row)."""
     c, s = np.cos(alpha), np.sin(alpha)
     return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
 

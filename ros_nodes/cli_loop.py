@@ -45,8 +45,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "calibration fits: an identification experiment on the same specimen (a 1 mm "
                    "pulse at 100 Hz, 150 ms capture; default) or the task's own experiment")
     p.add_argument("--no-warm-start", dest="warm_start", action="store_false", help="every "
-                   "round designs from the task's initial design (default: round k from round "
-                   "k-1's design)")
+                   "round designs from round 1's start (default: round k from round k-1's "
+                   "design)")
     p.add_argument("--design-seed", type=non_negative(int), default=None, help="round 1 "
                    "designs from the task's periodic design plus the random perturbation drawn "
                    "with this seed (`metarig design --seed`; default: the task's initial design)")

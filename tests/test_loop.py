@@ -77,7 +77,8 @@ def test_identification_experiment_is_the_same_rig_with_a_short_pulse():
     (1, True, 3, ["--seed", "3"]),
     (2, True, 3, ["--initial", "LOOP/round-1/design/design.json"]),
     (3, True, None, ["--initial", "LOOP/round-2/design/design.json"]),
-    (2, False, 3, []),
+    (2, False, 3, ["--seed", "3"]),
+    (2, False, None, []),
 ])
 def test_each_round_designs_from_the_design_before(tmp_path, k, warm, seed, expected):
     from ros_nodes.logic.closed_loop import _Round

@@ -100,7 +100,7 @@ class LoopPlan:
         workers: tracker processes (None: all cores).
         identify: what the calibration fits: "pulse", an identification experiment on the
             same specimen (`IDENTIFY_*`), or "task", the task's own experiment.
-        warm_start: round k > 1 designs from round k-1's design (False: from the task's start).
+        warm_start: round k > 1 designs from round k-1's design (False: from round 1's start).
         design_seed: round 1 designs from the task's periodic design plus the seeded random
             perturbation of `metarig design --seed` (None: the task's initial design).
     """
@@ -338,11 +338,11 @@ class _Round:
 
     def start(self) -> list[str]:
         """The `metarig design` flags of the round's initial design: round k-1's design (warm
-        start), round 1's seeded random start, or none (the task's)."""
+        start), else round 1's start: the seeded random one or none (the task's)."""
         if self.k > 1 and self.plan.warm_start:
             return ["--initial", str(self.plan.out / f"round-{self.k - 1}" / DESIGN /
                                      "design.json")]
-        if self.k == 1 and self.plan.design_seed is not None:
+        if self.plan.design_seed is not None:
             return ["--seed", str(self.plan.design_seed)]
         return []
 

@@ -22,7 +22,8 @@ constant, mostly the reference image's noise), against `comparison.metrics.FRAME
 and what the comparison states from it: the share of the true velocity errors (the
 comparison's rates of the tracked poses against those of the truth, over units never lost)
 within 2 of the standard errors that `FRAME_NOISE_SHARE` of the poses' stated variance gives
-them (`comparison.metrics.rate_noise_var`) [about 95 %]. The tracked poses are kept in
+them (`comparison.metrics.rate_noise_var`) [about 95 %], and the share that would make the
+stated rate noise right on average (`velocity_error_share`). The tracked poses are kept in
 `<out>/tracks.npz` (or `tracks_refN.npz`).
 
 The reference image averages `--reference-frames` frames at rest (default: the rig's,
@@ -127,18 +128,32 @@ def white_share(e: np.ndarray) -> list[float]:
     return [float(np.nanmean(dev[..., i] ** 2) / np.nanmean(e[..., i] ** 2)) for i in range(3)]
 
 
-def velocity_within_2_sigma(t: np.ndarray, q: np.ndarray, sigma: np.ndarray,
-                            truth: np.ndarray, share: float) -> list[float]:
-    """Share of the rate errors (the comparison's rates of tracked poses q [n_t, n, 3] against
-    those of the truth) within 2 standard errors, per component, with `share` of each pose's
-    stated variance (sigma [n_t, n, 3]) white from frame to frame; units lost in any frame left
-    out."""
+def rate_errors(t: np.ndarray, q: np.ndarray, sigma: np.ndarray, truth: np.ndarray):
+    """(error, variance): the comparison's rates of tracked poses q [n_t, n, 3] minus those of
+    the truth, and their variance were all of each pose's stated variance (sigma [n_t, n, 3])
+    white from frame to frame; units lost in any frame left out."""
     from comparison.metrics import frame_rates, rate_noise_var
 
     keep = np.all(np.isfinite(q) & np.isfinite(sigma), axis=(0, 2))
     err = frame_rates(t, q[:, keep]) - frame_rates(t, truth[:, keep])
-    sd = np.sqrt(rate_noise_var(t, share * sigma[:, keep] ** 2))
-    return [float(np.mean(np.abs(err[..., i]) < 2.0 * sd[..., i])) for i in range(3)]
+    return err, rate_noise_var(t, sigma[:, keep] ** 2)
+
+
+def velocity_within_2_sigma(t: np.ndarray, q: np.ndarray, sigma: np.ndarray,
+                            truth: np.ndarray, share: float) -> list[float]:
+    """Share of the rate errors (`rate_errors`) within 2 standard errors, per component, with
+    `share` of each pose's stated variance white from frame to frame."""
+    err, var = rate_errors(t, q, sigma, truth)
+    return [float(np.mean(np.abs(err[..., i]) < 2.0 * np.sqrt(share * var[..., i])))
+            for i in range(3)]
+
+
+def velocity_error_share(t: np.ndarray, q: np.ndarray, sigma: np.ndarray,
+                         truth: np.ndarray) -> list[float]:
+    """The share that would make the stated rate noise right on average, per component: the
+    mean square of the rate errors (`rate_errors`) over their mean variance at a share of 1."""
+    err, var = rate_errors(t, q, sigma, truth)
+    return [float(np.mean(err[..., i] ** 2) / np.mean(var[..., i])) for i in range(3)]
 
 
 def main(argv=None) -> int:
@@ -242,6 +257,7 @@ def main(argv=None) -> int:
         "white_share": white_share(e), "frame_noise_share": FRAME_NOISE_SHARE,
         "velocity_within_2_sigma": velocity_within_2_sigma(traj.t, traj.q, traj.sigma, truth,
                                                            FRAME_NOISE_SHARE),
+        "velocity_error_share": velocity_error_share(traj.t, traj.q, traj.sigma, truth),
         "frames_per_s": float(traj.n_t / wall), "workers": args.workers,
         "cpu_ms_per_frame": 1e3 * cpu / traj.n_t,
         "load_average_1min": {"before": load0[0], "after": os.getloadavg()[0]},

@@ -14,8 +14,16 @@ is the sum of its evaluations' `wall_s`, stated as such); OUT/bench_focusing_run
 after every part and OUT/bench_focusing_run.png (best feasible J against wall time, and where
 each evaluation's time went) at the end.
 
+`--replay FIRST LAST` instead replays evaluations FIRST..LAST of the stored "after" run (its
+designs, `checkpoint.npz`) through a fresh task evaluator, once from a checkout of `--before`
+and once from this one, side by side (both at once when `--parallel`): per evaluation its wall
+time, the objective and how many programs the evaluator had compiled
+(OUT/bench_focusing_replay.json).
+
     .venv/bin/python benchmarks/bench_focusing_run.py --out runs/bench-focusing-run
     .venv/bin/python benchmarks/bench_focusing_run.py --evals 20 --recheck 3 --out /tmp/bfr
+    .venv/bin/python benchmarks/bench_focusing_run.py --out runs/bench-focusing-run \
+        --replay 6 12 --before 35c7535
 """
 
 import argparse
@@ -189,6 +197,56 @@ def plot(report: dict, path: Path) -> None:
     plt.close(fig)
 
 
+# a task evaluator over stored designs: argv = checkpoint.npz, first, last, output JSON
+REPLAY = """
+import json, sys, time
+import numpy as np
+from design_engine.design.evaluator import TaskEvaluator
+from design_engine.design.task import load_task
+xs = np.load(sys.argv[1])["x"]
+first, last = int(sys.argv[2]), int(sys.argv[3])
+task = load_task("%s")
+t0 = time.perf_counter()
+ev = TaskEvaluator(task)
+rows = [{"eval": 0, "wall_s": time.perf_counter() - t0, "compilations": ev.compilations}]
+for i in range(first, last + 1):
+    t0 = time.perf_counter()
+    out = ev.evaluate(task.embed(xs[i - 1]))
+    rows.append({"eval": i, "wall_s": time.perf_counter() - t0, "value": out.value,
+                 "compilations": ev.compilations, "config": out.solver["pulse"]["config"],
+                 "events": list(out.events)})
+    print(json.dumps(rows[-1]), flush=True)
+json.dump(rows, open(sys.argv[4], "w"))
+""" % TASK
+
+
+def replay(out: Path, before: str, first: int, last: int, parallel: bool) -> dict:
+    """Evaluations `first`..`last` of the stored "after" run through a fresh evaluator, from
+    the sources of `before` and of this checkout (see module docstring)."""
+    checkpoint = out / "after" / "checkpoint.npz"
+    procs, files = {}, {}
+    for label, src in (("before", source_tree(out, before)), ("after", REPO)):
+        files[label] = out / f"replay_{label}.json"
+        cmd = [sys.executable, "-c", REPLAY, str(checkpoint), str(first), str(last),
+               str(files[label])]
+        env = dict(os.environ, PYTHONPATH=str(src))
+        t0, load0 = time.perf_counter(), os.getloadavg()[0]
+        procs[label] = (subprocess.Popen(cmd, cwd=src, env=env), t0, load0)
+        if not parallel:
+            procs[label][0].wait()
+    result = {"first": first, "last": last, "before_ref": before, "parallel": parallel,
+              "sides": {}}
+    for label, (proc, t0, load0) in procs.items():
+        if proc.wait() != 0:
+            raise SystemExit(f"replay {label} failed (exit {proc.returncode})")
+        rows = json.loads(files[label].read_text())
+        result["sides"][label] = {"rows": rows, "compilations": rows[-1]["compilations"],
+                                  "wall_s": sum(r["wall_s"] for r in rows),
+                                  "process_wall_s": time.perf_counter() - t0,
+                                  "load_start": load0, "load_end": os.getloadavg()[0]}
+    return result
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", type=Path, default=Path("runs/bench-focusing-run"))
@@ -197,9 +255,18 @@ def main(argv=None) -> int:
     p.add_argument("--recheck", type=int, default=6, help="evaluations of the 'after' run "
                    "re-checked against tight Dopri8 (0: none)")
     p.add_argument("--only", choices=("before", "after"), help="run one side only")
+    p.add_argument("--replay", nargs=2, type=int, metavar=("FIRST", "LAST"),
+                   help="replay these evaluations of the stored 'after' run, before and after")
+    p.add_argument("--parallel", action="store_true", help="--replay: both sides at once")
     args = p.parse_args(argv)
     out = args.out.resolve()
     out.mkdir(parents=True, exist_ok=True)
+    if args.replay:
+        res = replay(out, args.before, *args.replay, args.parallel) | {"machine": describe()}
+        (out / "bench_focusing_replay.json").write_text(json.dumps(res, indent=1))
+        for label, side in res["sides"].items():
+            print(f"{label}: {side['wall_s']:.0f} s, {side['compilations']} programs")
+        return 0
     path = out / "bench_focusing_run.json"
     report = json.loads(path.read_text()) if path.exists() else {}
     report.update(evals=args.evals, before_ref=args.before, machine=describe())

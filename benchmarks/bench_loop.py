@@ -6,18 +6,24 @@ the model") and its stiffnesses scaled as a whole by `--perturb 0.2 --seed 576`:
 the first seed at which the three stiffness factors each lie 15-20 % from nominal (k_stretch
 x1.156, k_shear x0.818, k_bend x0.820; checked here before anything runs). The task: focusing
 (`focusing-demo`: 8x6 units, 2 mm pulse at 30 Hz, the target 2x2) with `--max-evals` design
-evaluations per round.
+evaluations per round, round 1 from the seeded random start `--design-seed` (the task's periodic
+start is mirror symmetric: its response tips with any imperfection of the sample, so that a
+measurement near it measures the sample's imperfections, not the design).
 
-Round 1 designs with the nominal material, round 2 with the material calibrated from round 1's
-experiment; both are tested on the same rig. Writes, per round, the measured objective (from the
-tracked poses), its prediction (the round's model on the measured input, through the same
-camera-rate filter), the model's full-band prediction and the design engine's own objective,
-the calibrated material beside the specimen's effective truth, wall times, the machine and its
-load, into benchmarks/results/bench_loop.json.
+Round 1 designs with the nominal material, round 2 from round 1's design with the material
+calibrated from round 1's identification experiment; both are tested on the same rig. Then, on
+the same rig:
+- the control: round 2's step without the calibration (`metarig design --initial` round 1's
+  design with the nominal material, the same budget), tested the same way: what the extra design
+  evaluations give without what the rig taught;
+- a second measurement of each round's design (the same rig flags): the run-to-run spread.
+Writes per round the measured objective (from the tracked poses), its prediction (the round's
+model on the measured input, through the same camera-rate filter), the model's full-band
+prediction and the design engine's own objective, the calibrated material beside the specimen's
+effective truth, wall times, the machine and its load, into benchmarks/results/bench_loop.json.
 
 Run: .venv/bin/python benchmarks/bench_loop.py [--max-evals 8] [--run-dir runs/bench-loop]
-[--fit k_shear,k_bend --out benchmarks/results/bench_loop_fit.json] (resumable: the loop's
-folder keeps its finished steps; --fresh starts over).
+(resumable: the loop's folder keeps its finished steps; --fresh starts over).
 """
 
 import argparse
@@ -61,6 +67,87 @@ def effective_truth(perturb: float, seed: int, design: str) -> dict[str, float]:
     return {n: si[n] for n in (*STIFFNESSES, "damping_u", "damping_theta") if n in si}
 
 
+def design_path(design: Path, start: list[str], design_seed: int) -> dict:
+    """The design engine's objective at each evaluation of a round (`history.json`) and how far
+    the round's design lies from its start (largest coordinate move, mm)."""
+    from design_engine.design.design_io import load_design
+    from design_engine.design.task import load_task
+
+    history = json.loads((design.parent / "history.json").read_text())["evaluations"]
+    if start[:1] == ["--initial"]:
+        x0 = load_design(start[1])[1]
+    else:
+        x0 = load_task(TASK, seed=design_seed if start[:1] == ["--seed"] else None).initial_design
+    return {"design_evaluations_J": [e["objective"] for e in history],
+            "design_max_move_mm": float(abs(load_design(design)[1] - x0).max())}
+
+
+def _metarig(argv: list[str]) -> None:
+    code = subprocess.run([sys.executable, "-m", "metarig", *argv], cwd=ROOT).returncode
+    if code != 0:
+        raise SystemExit(f"metarig {argv[0]} failed (exit code {code})")
+
+
+def measured(folder: Path, design: Path, rig_argv: list[str], material: Path | None) -> dict:
+    """`design` on the rig (`folder/rig`, with the loop's rig flags) and the task's objective,
+    measured and predicted by `material`'s model (`folder/objective.json`); kept if done."""
+    from design_engine.design.task import load_task
+    from ros_nodes.logic.loop_objective import objective_of_run
+
+    done = folder / "objective.json"
+    if done.exists():
+        return json.loads(done.read_text())
+    rig = folder / "rig"
+    shutil.rmtree(rig, ignore_errors=True)
+    t0 = time.perf_counter()
+    _metarig(["rig", "--design", str(design), *rig_argv, "--out", str(rig)])
+    doc, _ = objective_of_run(rig, load_task(TASK), material)
+    doc["rig_wall_s"] = round(time.perf_counter() - t0, 1)
+    done.write_text(json.dumps(doc, indent=1))
+    return doc
+
+
+def control(run_dir: Path, max_evals: int, rig_argv: list[str]) -> dict:
+    """Round 2 without the calibration: round 1's design optimised further with the nominal
+    material (the same budget and start as round 2), measured on the same rig."""
+    folder = run_dir / "control"
+    design = folder / "design"
+    if not (design / "design.json").exists():
+        shutil.rmtree(design, ignore_errors=True)
+        _metarig(["design", TASK, "--initial", str(run_dir / "round-1" / "design" / "design.json"),
+                  "--max-evals", str(max_evals), "--out", str(design), "--quiet", "--no-plots"])
+    doc = measured(folder, design / "design.json", rig_argv, None)
+    doc["design_objective_J"] = json.loads((design / "design.json").read_text())["objective"]
+    return doc
+
+
+def repeat(run_dir: Path, k: int, rig_argv: list[str]) -> dict:
+    """Round k's design measured a second time on the same rig flags."""
+    material = run_dir / f"round-{k}" / "material.toml"
+    return measured(run_dir / f"repeat-{k}", run_dir / f"round-{k}" / "design" / "design.json",
+                    rig_argv, material if material.exists() else None)
+
+
+def earlier_invocations(path: Path, res: dict) -> list[dict]:
+    """The wall times and loads of the earlier invocations on the same loop folder and command
+    (from the results file they wrote): a resumed run computes only what was missing, so the
+    load that the figures were computed under is that of the invocations that ran the steps."""
+    try:
+        before = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return []
+    if (before.get("command"), before.get("run_dir")) != (res["command"], res["run_dir"]):
+        return []
+    return before.get("invocations") or [{
+        k: before[k] for k in ("wall_s_this_invocation", "load_before", "load_after",
+                               "control_and_repeats_wall_s") if k in before}]
+
+
+def _objectives(doc: dict) -> dict:
+    return {k: doc[k] for k in ("measured_J", "predicted_J", "measured_over_predicted",
+                                "predicted_full_band_J", "comparison") if k in doc}
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", type=Path, default=OUT, help="results JSON")
@@ -72,6 +159,13 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=576)
     p.add_argument("--fit", default=None, help="parameters the calibration fits (default: "
                    "`metarig calibrate`'s)")
+    p.add_argument("--design-seed", type=int, default=0, help="round 1's seeded random start "
+                   "(-1: the task's periodic start)")
+    p.add_argument("--identify", default="pulse", choices=("pulse", "task"))
+    p.add_argument("--no-warm-start", action="store_true", help="every round from the task's "
+                   "start (the loop before issue 28 item 4, with --design-seed -1 --identify "
+                   "task)")
+    p.add_argument("--no-control", action="store_true", help="skip the control and the repeats")
     p.add_argument("--fresh", action="store_true", help="remove the loop's folder first")
     args = p.parse_args(argv)
 
@@ -86,7 +180,9 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     cmd = [sys.executable, "-m", "metarig", "loop", TASK, "--out", str(args.run_dir),
            "--rounds", str(args.rounds), "--max-evals", str(args.max_evals),
+           "--identify", args.identify, *(["--no-warm-start"] if args.no_warm_start else []),
            *(["--fit", args.fit] if args.fit else []),
+           *(["--design-seed", str(args.design_seed)] if args.design_seed >= 0 else []),
            "--", "--perturb", str(args.perturb), "--seed", str(args.seed)]
     code = subprocess.run(cmd, cwd=ROOT).returncode
     wall = time.perf_counter() - t0
@@ -106,32 +202,63 @@ def main(argv=None) -> int:
             "comparison": r["comparison"],
             "model_material": r["model_material"],
             "calibrated_material": {k: r["calibrated_material"][k] for k in
-                                    ("parameters", "derived", "undetermined", "model_error")},
+                                    ("parameters", "derived", "undetermined", "model_error", "fit",
+                                     "correlation")},
             "specimen_effective_truth_si": effective_truth(args.perturb, args.seed,
                                                            r["design"]),
+            "design_start": r.get("design_start"),
+            **design_path(Path(r["design"]), r.get("design_start") or [], args.design_seed),
             "timings_s": r["timings_s"], "steps_done_before": r["steps_done_before"],
         })
     steps = {str(f.relative_to(args.run_dir).parent): json.loads(f.read_text())["wall_s"]
              for f in sorted(args.run_dir.glob("round-*/*/step.json"))}
     m = [r["measured_objective_J"] for r in rounds]
     gap = [abs(r["measured_over_predicted"] - 1.0) for r in rounds]
+    extra = {}
+    if not args.no_control and len(rounds) > 1:
+        t1 = time.perf_counter()
+        ctrl = control(args.run_dir, args.max_evals, loop["rig_arguments"])
+        again = [repeat(args.run_dir, r["round"], loop["rig_arguments"]) for r in rounds]
+        spread = [abs(a["measured_J"] - b) / (0.5 * (a["measured_J"] + b))
+                  for a, b in zip(again, m)]
+        extra = {
+            "control_round2_nominal_model": {
+                **_objectives(ctrl), "design_objective_J": ctrl["design_objective_J"],
+                "what": "round 1's design optimised further with the nominal material (same "
+                        "budget as round 2), measured on the same rig"},
+            "repeats": [{"round": r["round"], **_objectives(a)} for r, a in zip(rounds, again)],
+            "repeat_spread_of_measured": spread,
+            "round2_measured_over_control": m[1] / ctrl["measured_J"],
+            "control_measured_over_round1": ctrl["measured_J"] / m[0],
+            "round2_repeat_measured_over_round1_repeat": again[1]["measured_J"] /
+            again[0]["measured_J"],
+            "control_and_repeats_wall_s": round(time.perf_counter() - t1, 1),
+        }
     res = {
         "task": TASK, "lattice": loop["lattice"], "max_evals_per_round": args.max_evals,
+        "design_seed": args.design_seed if args.design_seed >= 0 else None,
+        "identify": args.identify, "identify_rig_arguments": loop.get("identify_rig_arguments"),
+        "warm_start": loop.get("warm_start"),
         "calibration_fit": args.fit or "metarig calibrate's default",
         "specimen": {"perturb": args.perturb, "seed": args.seed, "stiffness_factors": factors,
                      "imperfections": "defaults (hardware_sim.specimen.Imperfections)"},
         "command": " ".join(["metarig", *cmd[3:]]), "rounds": rounds,
         "round2_measured_over_round1": m[1] / m[0] if len(m) > 1 and m[0] else None,
         "prediction_gap_per_round": gap,
+        **extra,
         "steps_wall_s": steps, "steps_wall_s_total": sum(steps.values()),
         "wall_s_this_invocation": wall, "machine": describe(), "load_before": load_before,
         "load_after": os.getloadavg(), "run_dir": str(args.run_dir),
     }
+    res["invocations"] = [*earlier_invocations(args.out, res), {
+        k: res[k] for k in ("wall_s_this_invocation", "load_before", "load_after",
+                            "control_and_repeats_wall_s") if k in res}]
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(res, indent=1) + "\n")
     print(json.dumps({k: res[k] for k in ("round2_measured_over_round1",
-                                          "prediction_gap_per_round", "steps_wall_s_total")},
-                     indent=1))
+                                          "prediction_gap_per_round", "steps_wall_s_total",
+                                          "round2_measured_over_control",
+                                          "repeat_spread_of_measured") if k in res}, indent=1))
     for r in rounds:
         print(f"round {r['round']}: measured {r['measured_objective_J']:.4g} J, predicted "
               f"{r['predicted_objective_J']:.4g} J (x{r['measured_over_predicted']:.3f}), "

@@ -466,6 +466,7 @@ def round_summary(folder: Path, k: int, design: Path, material: Path | None, obj
             "derived": calibration.get("derived", {}),
             "undetermined": calibration.get("undetermined", []),
             "model_error": calibration.get("model_error"),
+            "fit": calibration.get("fit"), "correlation": calibration.get("correlation"),
             "residual": calibration.get("residual"), "residual_unit": calibration.get(
                 "residual_unit")},
         "timings_s": timings, "steps_done_before": skipped,

@@ -119,7 +119,8 @@ def _config(summary: dict):
 
     if summary["solver"] == "FixedStepVerlet":
         solver = FixedStepVerlet(max_dt=summary["max_dt_s"] * 1e3,
-                                 refined=bool(summary.get("refined", False)))
+                                 refined=bool(summary.get("refined", False)),
+                                 remat=bool(summary.get("remat", False)))
         return SolverConfig(solver=solver, use_contact=summary["use_contact"],
                             dtype=summary["dtype"])
     return SolverConfig(solver=getattr(diffrax, summary["solver"])(), rtol=summary["rtol"],

@@ -232,7 +232,8 @@ class FixedStepVerlet(AbstractFixedStep):
         return num_steps + 1
 
     def summary(self) -> dict:
-        return {"max_dt_s": self.max_dt * 1e-3, **({"refined": True} if self.refined else {})}
+        return {"max_dt_s": self.max_dt * 1e-3, **({"refined": True} if self.refined else {}),
+                **({"remat": True} if self.remat else {})}
 
     def unstable_hint(self) -> str:
         return (" (the fixed step is above the stability limit 2/omega_max, or contact stiffened "

@@ -1,7 +1,7 @@
 """A task's objective as the optimiser sees it: value and exact gradient for any design.
 
 One compiled value-and-gradient per solver configuration (the design, material, loading, sample
-times, weights and a fixed step's step counts are traced arguments, so every evaluation, every scene of the same topology and
+times and weights are traced arguments, so every evaluation, every scene of the same topology and
 every run of a sweep in the same process reuses it). Per evaluation and scene the solver policy (`solve.policy`) applies, with two additions
 that an optimisation needs:
 - the fixed step is kept valid while the design changes: before each fixed-step solve the
@@ -41,8 +41,8 @@ from design_engine.solve.policy import (STABILITY_SAFETY, choose_config, contact
                                         initial_vector, make_frequency_estimator)
 from design_engine.solve.run import prestressed_state
 from design_engine.solve.run import checked, compile_key, config_summary
-from design_engine.solve.simulate import (SimulationError, Solution, SolverConfig, fixed_steps,
-                                          make_simulator, solve_health)
+from design_engine.solve.simulate import (SimulationError, Solution, SolverConfig, make_simulator,
+                                          solve_health)
 
 STEP_RECHECK = 0.8  # re-choose the fixed step above this fraction of the stability limit
 STEP_CHECK_ITERATIONS = 30  # warm-started power iterations per evaluation
@@ -156,8 +156,7 @@ class TaskEvaluator:
     def _function(self, name: str, config: SolverConfig):
         scene = self.task.scenes[name]
         terms = [t for t in self.task.terms if t.scene == name]
-        # fixed steps of one step capacity share a program: the step counts are arguments
-        key = compile_key(scene, config, "task", scene.sample_times, run_time_steps=True) + tuple(
+        key = compile_key(scene, config, "task", scene.sample_times) + tuple(
             (t.quantity, tuple(self.task.targets[t.target])) for t in terms) + (
             None if self.task.spin_point is None else tuple(self.task.spin_point),)
         if key in _PROGRAMS:
@@ -168,8 +167,8 @@ class TaskEvaluator:
         quantities = [t.quantity for t in terms]
         point = None if self.task.spin_point is None else jnp.asarray(self.task.spin_point)
 
-        def objective(x, material, loading, ts, weights, steps):
-            sol = sim(x, material, loading, ts, steps=steps)
+        def objective(x, material, loading, ts, weights):
+            sol = sim(x, material, loading, ts)
             raw = [objective_term(q, sol, ids, point) for q, ids in zip(quantities, targets)]
             value = sum(weights[k] * OPTIMISER_SCALE[q] * raw[k] for k, q in enumerate(quantities))
             aux = dict(solve_health(sol), terms=jnp.stack(raw), start_state=sol.q[0])
@@ -200,7 +199,7 @@ class TaskEvaluator:
         terms = [t for t in self.task.terms if t.scene == name]
         weights = jnp.asarray([t.weight for t in terms])
         out = fn(jnp.asarray(x), scene.material, scene.loading, jnp.asarray(scene.sample_times),
-                 weights, fixed_steps(config, scene.sample_times))
+                 weights)
         out = jax.block_until_ready(out)
         checked(out, config)
         (value, aux), grad = out

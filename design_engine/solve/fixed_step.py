@@ -15,8 +15,7 @@ implicitly (closed form, C and M diagonal), which keeps the scheme second order 
 when C = 0. Explicit, so it is stable only for dt < 2 / omega_max (the highest natural
 frequency, see `modal`); the contact barrier stiffens without bound, so a scene driven into
 contact needs a margin or the adaptive solver. Differentiation is discretise-then-optimise
-through `lax.scan`. The step counts are run-time arguments (`march`): one compiled program
-serves every step whose counts fit its capacity (`step_capacity`).
+through `lax.scan`.
 """
 
 import abc
@@ -31,11 +30,9 @@ import jax.numpy as jnp
 import numpy as np
 
 
-class StepGrid(NamedTuple):
-    """Step counts of a solve from t0 = 0 through fixed sample times.
-
-    On the host the fields are Python numbers; a compiled solve takes them as run-time arrays
-    (`Integrator`), so that one program serves every step up to its `step_capacity`.
+@dataclasses.dataclass(frozen=True)
+class StepGrid:
+    """Static step counts of a solve from t0 = 0 through fixed sample times.
 
     Attributes:
         n_pre: steps from 0 to the first sample (0 when it is at 0).
@@ -59,37 +56,11 @@ def step_grid(time_grid, max_dt: float) -> StepGrid:
     return StepGrid(n_pre, n_sub, n_pre + n_sub * (grid.size - 1), dt_nominal)
 
 
-def capacity(n: int) -> int:
-    """The smallest of 1, 2, 3, 4, 6, 8, 12, 16, 24, ... (2^k and 3 x 2^k) that is >= n (0 for
-    0): a compiled solve holds this many steps per interval, so a step that changes by a few
-    per cent (a design's new frequency, the policy's refinement) keeps its program, and at
-    most a third of the steps a program holds go unused (skipped, not computed)."""
-    if n <= 0:
-        return 0
-    power = 1 << (n - 1).bit_length()  # the smallest power of two >= n
-    return 3 * power // 4 if power >= 4 and 3 * power // 4 >= n else power
-
-
-def step_capacity(grid: StepGrid) -> StepGrid:
-    """The static step counts a compiled solve is built for: `capacity` of each of `grid`'s
-    (n_steps and dt_nominal as for those counts, for the record)."""
-    n_pre, n_sub = capacity(grid.n_pre), capacity(grid.n_sub)
-    n_t = (grid.n_steps - grid.n_pre) // grid.n_sub + 1
-    return StepGrid(n_pre, n_sub, n_pre + n_sub * (n_t - 1), 0.0)
-
-
-def run_time_steps(grid: StepGrid, dtype) -> StepGrid:
-    """`grid` as the run-time argument of a compiled solve (int32 counts, `dtype` step)."""
-    return StepGrid(jnp.asarray(grid.n_pre, jnp.int32), jnp.asarray(grid.n_sub, jnp.int32),
-                    jnp.asarray(grid.n_steps, jnp.int32), jnp.asarray(grid.dt_nominal, dtype))
-
-
-# `integrate(force, inv_mass, damping, (q0, v0), ts, steps) -> (q [n_t, n], v [n_t, n],
-# converged, energy_error)`: force(q, t) -> (F, (V, P)) with F = -dV/dq ([n] -> [n]), V the
-# potential energy and P = dV/dt at fixed q (the power the prescribed motion puts in); inv_mass,
-# damping: [n] diagonals; ts: [n_t] sample times (ms); steps: the run-time `StepGrid` of those
-# times (`run_time_steps`), within the capacity the integrator was made for; converged: bool
-# scalar, False when the solve must be reported failed; energy_error: the ledger's verdict
+# `integrate(force, inv_mass, damping, (q0, v0), ts) -> (q [n_t, n], v [n_t, n], converged,
+# energy_error)`: force(q, t) -> (F, (V, P)) with F = -dV/dq ([n] -> [n]), V the potential energy
+# and P = dV/dt at fixed q (the power the prescribed motion puts in); inv_mass, damping: [n]
+# diagonals; ts: [n_t] sample times (ms) of the step grid; converged: bool scalar, False when the
+# solve must be reported failed; energy_error: the ledger's verdict (`energy_error`)
 Integrator = Callable[..., tuple]
 
 
@@ -140,9 +111,7 @@ def energy_error(led: Ledger):
 
 
 class AbstractFixedStep(eqx.Module):
-    """A scheme that runs on a step grid fitted between the sample times: its step counts are
-    run-time arguments up to a static capacity (`step_capacity`), so one compiled program
-    serves every step of a bucket (`program_form`).
+    """A scheme that runs on a static step grid fitted between the sample times.
 
     Attributes:
         max_dt: largest step, ms.
@@ -156,11 +125,10 @@ class AbstractFixedStep(eqx.Module):
     @abc.abstractmethod
     def make_integrator(self, grid: StepGrid, bond_blocks: np.ndarray, free: np.ndarray,
                         n_dof: int) -> Integrator:
-        """Factory: the pure `integrate` (see `Integrator`) for this capacity and topology.
+        """Factory: the pure `integrate` (see `Integrator`) for this step grid and topology.
 
         Args:
-            grid: the static step counts the solve can hold (`step_capacity`); each call's
-                run-time counts must be within them.
+            grid: the step grid of the sample times.
             bond_blocks: [n_bonds, 2] units joined by each ligament.
             free: [n] increasing global indices of the integrated DOFs, out of `n_dof`.
         """
@@ -180,12 +148,6 @@ class AbstractFixedStep(eqx.Module):
     @abc.abstractmethod
     def unconverged_message(self) -> str:
         """Why a solve reported `converged = False` failed, and what to change."""
-
-    @abc.abstractmethod
-    def program_form(self) -> "AbstractFixedStep":
-        """The scheme with its run-time settings (the step, bookkeeping flags) set to fixed
-        values: two schemes of equal `program_form` and equal `step_capacity` compile to the
-        same program."""
 
     def with_max_dt(self, max_dt: float) -> "AbstractFixedStep":
         """The same scheme with another largest step (ms)."""
@@ -219,14 +181,12 @@ class FixedStepVerlet(AbstractFixedStep):
 
     def make_integrator(self, grid: StepGrid, bond_blocks: np.ndarray, free: np.ndarray,
                         n_dof: int) -> Integrator:
-        def run(force, inv_mass, damping, y0, ts, steps):
-            qs, vs, led = integrate(self, force, inv_mass, damping, y0, ts, 0.0, steps, grid)
+        def run(force, inv_mass, damping, y0, ts):
+            qs, vs, led = integrate(self, force, inv_mass, damping, y0, ts, 0.0, grid.n_pre,
+                                    grid.n_sub)
             return qs, vs, jnp.asarray(True), energy_error(led)
 
         return run
-
-    def program_form(self) -> "FixedStepVerlet":
-        return dataclasses.replace(self, max_dt=1.0, refined=False)
 
     def force_evaluations(self, num_steps: int) -> int:
         return num_steps + 1
@@ -248,51 +208,44 @@ def substeps(interval: float, max_dt: float) -> int:
     return max(1, math.ceil(interval / max_dt - 1e-9))
 
 
-def march(step, carry, ts, t0: float, steps: StepGrid, capacity: StepGrid, remat: bool = False):
+def march(step, carry, ts, t0: float, n_pre: int, n_sub: int, remat: bool = False):
     """Drive a one-step map through the sample times (shared by every fixed-step scheme).
-
-    Each interval runs a scan over its capacity whose steps beyond the run-time count are
-    skipped (`lax.cond`: not computed, forward or reverse), so the count is an argument.
 
     Args:
         step: `step(carry, t, dt) -> carry`; `carry[0], carry[1]` are the sampled q and v.
         carry: state at t0.
         ts: [n_t] sample times (the first may equal t0).
-        steps: run-time `StepGrid`: n_pre steps from t0 to ts[0] (0 when ts[0] == t0), n_sub
-            equal steps between consecutive samples.
-        capacity: static `StepGrid` (`step_capacity`) >= `steps`; n_pre = 0 leaves out the
-            steps before ts[0].
+        n_pre: steps from t0 to ts[0] (static; 0 when ts[0] == t0).
+        n_sub: equal steps between consecutive samples (static).
         remat: recompute the steps between two samples in the backward pass.
 
     Returns:
         (carry at ts[-1], q [n_t, ...], v [n_t, ...]).
     """
 
-    def advance(carry, t_start, t_end, n, cap):
-        # times the reciprocal, as XLA's simplifier computed a division by the static count
-        dt = (t_end - t_start) * (1.0 / jnp.asarray(n, ts.dtype))
+    def advance(carry, t_start, t_end, n):
+        dt = (t_end - t_start) / n
 
         def body(c, k):
-            return jax.lax.cond(k < n, lambda c: step(c, t_start + k * dt, dt), lambda c: c,
-                                c), None
+            return step(c, t_start + k * dt, dt), None
 
-        return jax.lax.scan(body, carry, jnp.arange(cap, dtype=ts.dtype))[0]
+        return jax.lax.scan(body, carry, jnp.arange(n, dtype=ts.dtype))[0]
 
-    if capacity.n_pre > 0:
-        carry = advance(carry, jnp.asarray(t0, ts.dtype), ts[0], steps.n_pre, capacity.n_pre)
+    if n_pre > 0:
+        carry = advance(carry, jnp.asarray(t0, ts.dtype), ts[0], n_pre)
     first = carry
 
     def interval(c, pair):
-        advance_fn = jax.checkpoint(advance, static_argnums=(4,)) if remat else advance
-        c = advance_fn(c, pair[0], pair[1], steps.n_sub, capacity.n_sub)
+        advance_fn = jax.checkpoint(advance, static_argnums=(3,)) if remat else advance
+        c = advance_fn(c, pair[0], pair[1], n_sub)
         return c, (c[0], c[1])
 
     last, (qs, vs) = jax.lax.scan(interval, carry, jnp.stack([ts[:-1], ts[1:]], axis=1))
     return last, jnp.concatenate([first[0][None], qs]), jnp.concatenate([first[1][None], vs])
 
 
-def integrate(method: FixedStepVerlet, force, inv_mass, damping, y0, ts, t0: float,
-              steps: StepGrid, capacity: StepGrid):
+def integrate(method: FixedStepVerlet, force, inv_mass, damping, y0, ts, t0: float, n_pre: int,
+              n_sub: int):
     """Integrate from t0 through the sample times.
 
     Args:
@@ -301,7 +254,8 @@ def integrate(method: FixedStepVerlet, force, inv_mass, damping, y0, ts, t0: flo
         inv_mass, damping: [n] diagonal inverse mass and damping.
         y0: (q0, v0), each [n].
         ts: [n_t] sample times (the first may equal t0).
-        steps, capacity: run-time step counts and the static capacity (`march`).
+        n_pre: steps from t0 to ts[0] (static; 0 when ts[0] == t0).
+        n_sub: steps between consecutive samples (static).
 
     Returns:
         (q [n_t, n], v [n_t, n]) at the sample times and the final `Ledger`.
@@ -320,5 +274,5 @@ def integrate(method: FixedStepVerlet, force, inv_mass, damping, y0, ts, t0: flo
     q0, v0 = y0
     f0, aux0 = force(q0, jnp.asarray(t0, ts.dtype))
     carry = (q0, v0, f0, ledger_start(v0, mass, aux0))
-    last, qs, vs = march(step, carry, ts, t0, steps, capacity, method.remat)
+    last, qs, vs = march(step, carry, ts, t0, n_pre, n_sub, method.remat)
     return qs, vs, last[3]

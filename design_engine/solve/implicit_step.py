@@ -16,7 +16,6 @@ more than `tol` did not converge and the solve is reported as failed. Differenti
 discretise-then-optimise through the iterations.
 """
 
-import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -56,15 +55,12 @@ class ImplicitNewmark(AbstractFixedStep):
                         n_dof: int) -> Integrator:
         layout = band_layout(free_dof_pairs(bond_blocks, free, n_dof), free.size)
 
-        def run(force, inv_mass, damping, y0, ts, steps):
+        def run(force, inv_mass, damping, y0, ts):
             qs, vs, moved, led = integrate(self, force, inv_mass, damping, layout, y0, ts, 0.0,
-                                           steps, grid)
+                                           grid.n_pre, grid.n_sub, grid.dt_nominal)
             return qs, vs, moved <= self.tol, energy_error(led)
 
         return run
-
-    def program_form(self) -> "ImplicitNewmark":
-        return dataclasses.replace(self, max_dt=1.0)
 
     def force_evaluations(self, num_steps: int) -> int:
         return num_steps * self.iterations + 1  # Hessian-vector products of the factor not counted
@@ -203,7 +199,7 @@ def solve(layout: BandLayout, factors, r):
 
 
 def integrate(method: ImplicitNewmark, force, inv_mass, damping, layout: BandLayout, y0, ts,
-              t0: float, steps: StepGrid, capacity: StepGrid):
+              t0: float, n_pre: int, n_sub: int, dt_nominal: float):
     """Integrate from t0 through the sample times.
 
     Args:
@@ -212,9 +208,8 @@ def integrate(method: ImplicitNewmark, force, inv_mass, damping, layout: BandLay
         inv_mass, damping: [n] diagonal inverse mass and damping.
         layout: band layout of the stiffness over the n DOFs.
         y0: (q0, v0), each [n].
-        ts: [n_t] sample times.
-        steps, capacity: run-time step counts and the static capacity (`fixed_step.march`);
-            the iteration matrix is built for the largest step, `steps.dt_nominal` (ms).
+        ts: [n_t] sample times; n_pre, n_sub: steps before ts[0] and between samples (static).
+        dt_nominal: step the iteration matrix is built for, ms (the largest step).
 
     Returns:
         (q [n_t, n], v [n_t, n], largest last correction of q over all steps, the final
@@ -224,7 +219,7 @@ def integrate(method: ImplicitNewmark, force, inv_mass, damping, layout: BandLay
     q0, v0 = y0
     t_start = jnp.asarray(t0, ts.dtype)
     mass = 1.0 / inv_mass
-    h = jnp.asarray(steps.dt_nominal, ts.dtype)
+    h = jnp.asarray(dt_nominal, ts.dtype)
 
     def hvp(v):
         return -jax.jvp(lambda q: force(q, t_start)[0], (q0,), (v,))[1]
@@ -257,5 +252,5 @@ def integrate(method: ImplicitNewmark, force, inv_mass, damping, layout: BandLay
     f0, aux0 = force(q0, t_start)
     a0 = inv_mass * (f0 - damping * v0)
     carry = (q0, v0, a0, jnp.zeros((), ts.dtype), ledger_start(v0, mass, aux0))
-    last, qs, vs = march(step, carry, ts, t0, steps, capacity, method.remat)
+    last, qs, vs = march(step, carry, ts, t0, n_pre, n_sub, method.remat)
     return qs, vs, last[3], last[4]

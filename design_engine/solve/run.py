@@ -4,7 +4,6 @@ This is the API the CLI, the simulated rig and the optimiser use. Inputs and out
 SI where they leave the engine (`Trajectory`, summaries); internal units stay inside.
 """
 
-import functools
 import time
 from dataclasses import dataclass
 
@@ -23,39 +22,32 @@ from design_engine.solve.objectives import (angular_momentum, block_kinetic_ener
                                             region_energy_ratio)
 from design_engine.solve.policy import Choice, choose_config
 from design_engine.solve.simulate import (SimulationError, Solution, SolverConfig, check_solution,
-                                          fixed_steps, make_simulator, program_key,
-                                          simulation_error, solve_health)
+                                          make_simulator, simulation_error, solve_health)
 from metarig.trajectory import Trajectory
 
 _COMPILED: dict[tuple, object] = {}
 
 
-def compile_key(scene: Scene, config: SolverConfig, tag: str, ts_ms,
-                run_time_steps: bool = False) -> tuple:
-    """Key of a compiled program for this scene's topology and `config` on sample times
-    `ts_ms`. With `run_time_steps` a fixed step enters by its `simulate.program_key` (the step
-    capacity, not the step): the caller then passes each call's `simulate.fixed_steps`."""
+def compile_key(scene: Scene, config: SolverConfig, tag: str, ts_ms) -> tuple:
     s = scene.supports
     grid = np.asarray(ts_ms).tobytes() if is_fixed_step(config.solver) else b""
-    solver = program_key(config, ts_ms) if run_time_steps else (repr(config), grid)
     return (tag, scene.lattice.kind, scene.lattice.shape, scene.lattice.spacing,
             scene.lattice.ligament_length, s.constrained.tobytes(), s.channel.tobytes(),
-            s.gain.tobytes(), *solver, scene.model)
+            s.gain.tobytes(), repr(config), grid, scene.model)
 
 
 def compiled_simulator(scene: Scene, config: SolverConfig, ts_ms=None):
     """jit-compiled `simulate(x, material, loading, ts)` for this scene's topology (cached).
 
-    `ts_ms` (default the scene's sample times) with the fixed step sets the step counts; the
-    compiled function must then be called with those sample times. Fixed steps of one step
-    capacity share one program (`simulate.program_key`), the counts being bound here.
+    `ts_ms` (default the scene's sample times) fixes the step count of the fixed-step solver;
+    the compiled function must then be called with those sample times.
     """
     ts_ms = scene.sample_times if ts_ms is None else np.asarray(ts_ms)
-    key = compile_key(scene, config, "sim", ts_ms, run_time_steps=True)
+    key = compile_key(scene, config, "sim", ts_ms)
     if key not in _COMPILED:
         _COMPILED[key] = jax.jit(make_simulator(scene.lattice, scene.supports, config, ts_ms,
                                                 model=scene.model))
-    return functools.partial(_COMPILED[key], steps=fixed_steps(config, ts_ms))
+    return _COMPILED[key]
 
 
 @dataclass(frozen=True)
@@ -319,10 +311,10 @@ def make_objective(scene: Scene, config: SolverConfig | None = None, weights=Non
 
     def pick(i, x):
         def solve(cfg):
-            key = program_key(cfg, scene.sample_times)
+            key = repr(cfg)
             if key not in programs:
-                programs[key] = _jitted_programs(scene, cfg, weights)
-            out = programs[key][i](x, fixed_steps(cfg, scene.sample_times))
+                programs[key] = _jitted_objective(scene, cfg, weights)
+            out = programs[key][i](x)
             value_aux = out[0] if i == 0 else out
             checked(value_aux, cfg)
             return out, value_aux[1]
@@ -336,15 +328,6 @@ def make_objective(scene: Scene, config: SolverConfig | None = None, weights=Non
 
 
 def _jitted_objective(scene: Scene, config: SolverConfig, weights):
-    """`(value_and_grad, value)` of `x` alone, with `config`'s own step counts bound."""
-    steps = fixed_steps(config, scene.sample_times)
-    vg, value = _jitted_programs(scene, config, weights)
-    return functools.partial(vg, steps=steps), functools.partial(value, steps=steps)
-
-
-def _jitted_programs(scene: Scene, config: SolverConfig, weights):
-    """Jitted `(value_and_grad, value)` of `(x, steps)`: one pair serves every configuration of
-    `config`'s `simulate.program_key`."""
     sim = make_simulator(scene.lattice, scene.supports, config, scene.sample_times,
                          model=scene.model)
     names = list(scene.targets)
@@ -354,8 +337,8 @@ def _jitted_programs(scene: Scene, config: SolverConfig, weights):
         raise ValueError(f"{len(names)} targets ({names}) need as many weights, got {weights}")
     ts = jnp.asarray(scene.sample_times)
 
-    def objective(x, steps):
-        sol = sim(x, scene.material, scene.loading, ts, steps=steps)
+    def objective(x):
+        sol = sim(x, scene.material, scene.loading, ts)
         if scene.spin_point is not None:
             value = objective_term("angular_momentum", sol, scene.targets[names[0]],
                                    scene.spin_point)

@@ -1,14 +1,10 @@
 """Time integration (the one owner of diffrax): design + load -> sampled trajectory.
 
 `make_simulator(lattice, supports, config)` returns a pure, jittable and differentiable
-`simulate(x, material, loading, ts)`; a fixed-step solve takes its step counts as a run-time
-argument too (`steps=`, `fixed_steps`), so one compiled program serves every configuration of
-the same `program_key`; solver failures are returned as a status code alongside the
+`simulate(x, material, loading, ts)`; solver failures are returned as a status code alongside the
 solution (so value-and-gradient can run under jit) and turned into `SimulationError` by
 `check_solution`, never into silent NaNs.
 """
-
-import dataclasses
 
 import diffrax
 import equinox as eqx
@@ -25,8 +21,7 @@ from design_engine.physics.lattice import Lattice
 from design_engine.physics.loading import Loading, Supports, make_prescribed
 from design_engine.physics.material import Material
 from design_engine.physics.statics import EquilibriumError, check_equilibrium, make_static_solver
-from design_engine.solve.fixed_step import (AbstractFixedStep, is_fixed_step, run_time_steps,
-                                            step_capacity, step_grid)
+from design_engine.solve.fixed_step import AbstractFixedStep, is_fixed_step, step_grid
 
 
 class SolverConfig(eqx.Module):
@@ -118,9 +113,8 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
 
     Args:
         lattice, supports, config: static set-up.
-        time_grid: [n_t] the sample times (ms) the fixed-step solver will be called with; with
-            the step it fixes the capacity of the steps (`fixed_step.step_capacity`). Not needed
-            by the adaptive solvers.
+        time_grid: [n_t] the sample times (ms) the fixed-step solver will be called with; it fixes
+            the (static) number of steps. Not needed by the adaptive solvers.
 
     Args of the returned function:
         x: [n_design] design vector, mm.
@@ -131,8 +125,6 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
             state, or for a static pre-compression (`loading.is_static`) in the equilibrium
             under the closed stages, solved in float64 with the model's energy and
             differentiated by the implicit function theorem, `statics.make_static_solver`).
-        steps: a fixed-step solve's run-time step counts (`fixed_steps` of any configuration
-            with this one's `program_key`); default those of `config` on `time_grid`.
     """
     energy_fn = make_energy(lattice, linearized=config.linearized, use_contact=config.use_contact,
                             model=model)
@@ -148,7 +140,7 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
         if time_grid is None:
             raise ValueError("the fixed-step solver needs the time grid (time_grid=) up front")
         grid = step_grid(time_grid, config.solver.max_dt)
-        integrate = config.solver.make_integrator(step_capacity(grid), bb, free, 3 * nb)
+        integrate = config.solver.make_integrator(grid, bb, free, 3 * nb)
     else:
         term = diffrax.ODETerm(rhs)
         controller = diffrax.PIDController(rtol=config.rtol, atol=config.atol)
@@ -165,7 +157,7 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
                  sol.stats["num_accepted_steps"], sol.stats["num_rejected_steps"])
         return ys[:, :n_free], ys[:, n_free:] / VELOCITY_SCALE, stats, jnp.zeros((), ys.dtype)
 
-    def solve_fixed(args, y0, ts, steps):
+    def solve_fixed(args, y0, ts):
         def force(qf, t):
             # one pass gives the force on the free units, the energy and, from the reactions
             # of the prescribed units, the power their motion puts in (the ledger's inputs)
@@ -176,9 +168,8 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
             return -grad[free], (potential, power)
 
         q0, v0 = y0[:n_free], y0[n_free:] / VELOCITY_SCALE
-        n = steps.n_pre + steps.n_sub * (ts.shape[0] - 1)
-        qs, vs, converged, drift = integrate(force, args.inv_mass, args.damping, (q0, v0), ts,
-                                             steps)
+        n = jnp.asarray(grid.n_steps)
+        qs, vs, converged, drift = integrate(force, args.inv_mass, args.damping, (q0, v0), ts)
         result = jnp.where(converged, 0, NOT_CONVERGED).astype(jnp.int32)
         return qs, vs, (result, n, n, jnp.asarray(0)), drift
 
@@ -203,8 +194,7 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
         q_f, info = static_solvers[0](*cast((x, material, loading), jnp.float64), 0.0)
         return (q_f, jnp.zeros_like(q_f)), info["gradient_norm"]
 
-    def simulate(x: DesignVector, material: Material, loading: Loading, ts, initial=None,
-                 steps=None) -> Solution:
+    def simulate(x: DesignVector, material: Material, loading: Loading, ts, initial=None) -> Solution:
         if config.stretch_scale != 1.0:
             material = eqx.tree_at(lambda m: m.k_stretch, material,
                                    material.k_stretch * config.stretch_scale)
@@ -218,13 +208,8 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
             y0 = jnp.zeros(2 * n_free, dtype=ts.dtype)
         else:  # (q_f [n_free] mm/rad, qdot_f [n_free] mm/ms, rad/ms)
             y0 = jnp.concatenate([initial[0], VELOCITY_SCALE * initial[1]])
-        if fixed:
-            steps = run_time_steps(grid, ts.dtype) if steps is None else jax.tree_util.tree_map(
-                jnp.asarray, steps)
-            qf, vf, (result, n_steps, accepted, rejected), drift = solve_fixed(args, y0, ts,
-                                                                               steps)
-        else:
-            qf, vf, (result, n_steps, accepted, rejected), drift = solve_adaptive(args, y0, ts)
+        qf, vf, (result, steps, accepted, rejected), drift = (
+            solve_fixed if fixed else solve_adaptive)(args, y0, ts)
         q = jax.vmap(lambda qq, t: full(qq, t, loading))(qf, ts)
         qc_dot = jax.vmap(lambda t: prescribed(t, loading)[1])(ts)
         v_all = jnp.zeros((ts.shape[0], 3 * nb), vf.dtype)
@@ -238,7 +223,7 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
             inertia=material.density * geom.polar_moments,
             centroids=geom.centroids,
             result=result,
-            num_steps=n_steps,
+            num_steps=steps,
             num_accepted=accepted,
             num_rejected=rejected,
             min_void_margin=jax.lax.stop_gradient(jnp.min(voids) - material.contact_min),
@@ -247,27 +232,6 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
         )
 
     return simulate
-
-
-def fixed_steps(config: SolverConfig, time_grid):
-    """The run-time step counts (`fixed_step.StepGrid`) of `config`'s fixed step on `time_grid`
-    [n_t] (ms), for `simulate(..., steps=)`; None for an adaptive solver."""
-    if not is_fixed_step(config.solver):
-        return None
-    grid = step_grid(time_grid, config.solver.max_dt)
-    return run_time_steps(grid, jnp.dtype(config.dtype))
-
-
-def program_key(config: SolverConfig, time_grid) -> tuple:
-    """What the compiled program of `make_simulator(..., config, time_grid)` depends on: the
-    configuration, less a fixed step's run-time settings (`program_form`) and with its step
-    capacity instead of its step. Programs of equal keys are interchangeable when each call
-    passes its own `fixed_steps`."""
-    if not is_fixed_step(config.solver):
-        return (repr(config),)
-    grid = step_grid(time_grid, config.solver.max_dt)
-    form = dataclasses.replace(config, solver=config.solver.program_form())
-    return (repr(form), tuple(step_capacity(grid)), np.asarray(time_grid).shape)
 
 
 def solve_health(sol: Solution, xp=jnp) -> dict:

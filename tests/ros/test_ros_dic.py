@@ -121,3 +121,56 @@ def test_node_waits_for_the_design_topic_and_refuses_bad_files(ros_node, start_n
     finally:
         out = stop_process(proc)
     assert len(got[0].ids) == scene.n and not any(got[0].lost), out
+
+
+def test_node_tracks_from_the_cameras_averaged_snapshot(ros_node, start_node, tmp_path):
+    """The camera's snapshot (`snapshot_frames` frames at rest, averaged) on the latched
+    /camera/reference_image is the node's reference: a sample already displaced in every frame
+    the node sees (pre-compressed) is reported displaced, from the snapshot's configuration;
+    without the snapshot the first frame would be the reference and every pose 0."""
+    from metarig_msgs.msg import UnitPose2DArray
+    from sensor_msgs.msg import Image
+
+    from hardware_sim.camera import REFERENCE_FRAMES, average_frames
+    from ros_nodes import convert
+    from ros_nodes.nodes._common import LATCHED, STREAM
+
+    node, ex = ros_node
+    scene = _scene_files(tmp_path)
+    rng = np.random.default_rng(3)
+    at_rest = np.zeros((scene.n, 3))
+    snapshot = average_frames([scene.render(at_rest, rng) for _ in range(REFERENCE_FRAMES)])
+    moved = np.zeros((scene.n, 3))
+    moved[:, 0] = 1.3 * scene.cfg.m_per_px
+    moved[:, 1] = -0.6 * scene.cfg.m_per_px
+    moved[:, 2] = 0.01
+    frame = scene.render(moved, rng)
+    ref_pub = node.create_publisher(Image, T.REFERENCE_IMAGE.name, LATCHED)
+    ref_pub.publish(convert.image(0, snapshot))
+    pub = node.create_publisher(Image, T.IMAGE.name, STREAM)
+    got: list = []
+    sub = node.create_subscription(UnitPose2DArray, "/dic/poses", got.append, STREAM)
+    proc = start_node(NODE, "-p", f"units_path:={tmp_path / 'units.json'}",
+                      "-p", f"calibration_path:={tmp_path / 'cal.json'}")
+    try:
+        wait_matched(ref_pub, ex, timeout_s=60)
+        wait_matched(pub, ex, timeout_s=60)
+        wait_matched(sub, ex, timeout_s=60)
+        ex.spin_once(timeout_sec=0.5)  # the latched snapshot reaches the node first
+
+        def poke():
+            pub.publish(convert.image(10**6 * (len(got) + 1), frame))
+            ex.spin_once(timeout_sec=0.2)
+            return bool(got)
+
+        spin_until(ex, poke, 30, "poses from the snapshot")
+    finally:
+        out = stop_process(proc)
+    m = got[0]
+    assert not any(m.lost), out
+    c0 = polygon_centroids(scene.polygons_m)
+    np.testing.assert_allclose(np.asarray(m.x) - c0[:, 0], moved[:, 0],
+                               atol=0.03 * scene.cfg.m_per_px)
+    np.testing.assert_allclose(np.asarray(m.y) - c0[:, 1], moved[:, 1],
+                               atol=0.03 * scene.cfg.m_per_px)
+    np.testing.assert_allclose(np.asarray(m.theta), moved[:, 2], atol=1e-3)

@@ -112,10 +112,11 @@ def followed_voids(void_ref, q, bond_blocks):
     return void_angles(ref, q[..., bb[:, 1], 2] - q[..., bb[:, 0], 2])
 
 
-def _rotate_minus_identity(theta, d):
-    """(R(theta) - I) d for [n] angles and [n, 2] vectors."""
-    c, s = jnp.cos(theta), jnp.sin(theta)
-    return jnp.stack([(c - 1.0) * d[:, 0] - s * d[:, 1], s * d[:, 0] + (c - 1.0) * d[:, 1]], axis=-1)
+def _rotate_minus_identity(half_cos, half_sin, d):
+    """(R(theta) - I) d for [n, 2] vectors d, from cos and sin of theta / 2 ([n] each):
+    cos theta - 1 = -2 sin^2(theta / 2), sin theta = 2 sin(theta / 2) cos(theta / 2)."""
+    c1, s = -2.0 * half_sin**2, 2.0 * half_sin * half_cos
+    return jnp.stack([c1 * d[:, 0] - s * d[:, 1], s * d[:, 0] + c1 * d[:, 1]], axis=-1)
 
 
 def make_bond_measures(lattice: Lattice, *, linearized: bool = False):
@@ -131,8 +132,14 @@ def make_bond_measures(lattice: Lattice, *, linearized: bool = False):
         r0 = jnp.asarray(lattice.bond_r0, q.dtype)
         q1, q2 = q[b1], q[b2]
         th1, th2 = q1[:, 2], q2[:, 2]
-        w1 = q1[:, :2] + _rotate_minus_identity(th1, bonds.arm1)
-        w2 = q2[:, :2] + _rotate_minus_identity(th2, bonds.arm2)
+        # the sines and cosines once per unit, of half its rotation: both ends' rotations and
+        # the bond's mean rotation follow from them by products (per bond, XLA recomputed the
+        # rotations in several fusions: 26 of a force evaluation's 27 transcendentals per bond,
+        # benchmarks/bench_contact_step.py --profile)
+        half_cos, half_sin = jnp.cos(0.5 * q[:, 2]), jnp.sin(0.5 * q[:, 2])
+        hc1, hs1, hc2, hs2 = half_cos[b1], half_sin[b1], half_cos[b2], half_sin[b2]
+        w1 = q1[:, :2] + _rotate_minus_identity(hc1, hs1, bonds.arm1)
+        w2 = q2[:, :2] + _rotate_minus_identity(hc2, hs2, bonds.arm2)
         dw = w2 - w1
         bend = th2 - th1
         mean_th = 0.5 * (th1 + th2)
@@ -143,7 +150,7 @@ def make_bond_measures(lattice: Lattice, *, linearized: bool = False):
             ell = r0 + dw
             strain = jnp.sqrt(ell[:, 0] ** 2 + ell[:, 1] ** 2) / l0 - 1.0
             # shear angle: from the reference ligament carried by the mean rotation to the current one
-            c, s = jnp.cos(mean_th), jnp.sin(mean_th)
+            c, s = hc1 * hc2 - hs1 * hs2, hs1 * hc2 + hc1 * hs2  # cos, sin of the mean rotation
             carried = jnp.stack([c * r0[:, 0] - s * r0[:, 1], s * r0[:, 0] + c * r0[:, 1]], axis=-1)
             shear = jnp.arctan2(carried[:, 0] * ell[:, 1] - carried[:, 1] * ell[:, 0],
                                 carried[:, 0] * ell[:, 0] + carried[:, 1] * ell[:, 1])

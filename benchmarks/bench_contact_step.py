@@ -15,7 +15,7 @@ hit hard. JSON in --out/bench_contact_step.json.
 `--profile` measures instead what one Verlet step costs on the first design, forward and
 value-and-gradient, with and without contact, float64 and float32, against the pieces of a step
 and the arithmetic of a force evaluation (`profile`); JSON in
---out/bench_contact_step_profile.json.
+--out/bench_contact_step_profile.json (or --name).
 
     .venv/bin/python benchmarks/bench_contact_step.py
     .venv/bin/python benchmarks/bench_contact_step.py --profile --out benchmarks/results
@@ -40,6 +40,8 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, default=Path("runs/bench-contact-step"))
     p.add_argument("--profile", action="store_true", help="per-step cost instead of accuracy")
     p.add_argument("--repeats", type=int, default=3, help="timed calls per measurement (best)")
+    p.add_argument("--name", default="bench_contact_step_profile",
+                   help="--profile: stem of the JSON file written under --out")
     args = p.parse_args(argv)
 
     import diffrax
@@ -70,7 +72,7 @@ def main(argv=None) -> int:
         print(f"{name}: Verlet at dt = {dt * 1e3:.1f} us (0.6 x 2/omega_max)", flush=True)
         report["scenes"][name] = profile(scene, dt, args.repeats)
         report["machine"]["load_average_end"] = os.getloadavg()
-        (args.out / "bench_contact_step_profile.json").write_text(json.dumps(report, indent=1))
+        (args.out / f"{args.name}.json").write_text(json.dumps(report, indent=1))
         return 0
 
     def value_and_grad(scene, config):

@@ -167,6 +167,8 @@ def _objectives(doc: dict) -> dict:
 
 
 def main(argv=None) -> int:
+    from ros_nodes.logic.closed_loop import IDENTIFY_CHOICES
+
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", type=Path, default=OUT, help="results JSON")
     p.add_argument("--run-dir", type=Path, default=ROOT / "runs" / "bench-loop",
@@ -179,7 +181,7 @@ def main(argv=None) -> int:
                    "`metarig calibrate`'s)")
     p.add_argument("--design-seed", type=int, default=0, help="round 1's seeded random start "
                    "(-1: the task's periodic start)")
-    p.add_argument("--identify", default="pulse", choices=("pulse", "task"))
+    p.add_argument("--identify", default=IDENTIFY_CHOICES[0], choices=IDENTIFY_CHOICES)
     p.add_argument("--no-warm-start", action="store_true", help="every round from the task's "
                    "start (the loop before issue 28 item 4, with --design-seed -1 --identify "
                    "task)")

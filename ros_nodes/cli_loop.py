@@ -20,6 +20,8 @@ from metarig.argtypes import grid_size, non_negative, positive, text
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from ros_nodes.logic.closed_loop import IDENTIFY_CHOICES
+
     p = argparse.ArgumentParser(
         prog="metarig loop", description=loop_main.__doc__,
         epilog="Flags after `--` go to `metarig rig` in every round, e.g. `-- --perturb 0.2 "
@@ -41,7 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "fits (as `metarig calibrate --fit`; default its own)")
     p.add_argument("--workers", type=positive(int), default=None, help="tracker processes "
                    "(default: all cores)")
-    p.add_argument("--identify", choices=("pulse", "task"), default="pulse", help="what the "
+    p.add_argument("--identify", choices=IDENTIFY_CHOICES, default=IDENTIFY_CHOICES[0], help="what the "
                    "calibration fits: an identification experiment on the same specimen (a 1 mm "
                    "pulse at 100 Hz, 150 ms capture; default) or the task's own experiment")
     p.add_argument("--no-warm-start", dest="warm_start", action="store_false", help="every "

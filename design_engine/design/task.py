@@ -185,9 +185,8 @@ def load_task(source: str | Path, *, size: tuple[int, int] | None = None,
     bias, amp, seed = read_initial(doc, where, kind, bias_angle_deg, seed)
     if seed is not None:
         amp = amp or 0.15  # the default random amplitude of a seeded start (spec 3.1)
-    x0 = initial_design(lattice, bias, amp, seed, f"{where}.initial")
-    if initial is not None:
-        x0 = given_initial_design(initial, lattice)
+    x0 = (initial_design(lattice, bias, amp, seed, f"{where}.initial") if initial is None
+          else given_initial_design(initial, lattice))
     limits = read_constraints(doc, where, lattice)
     budget = read_budget(doc, where, max_evals, max_time_s, max_solve_steps)
     optimizer = read_optimizer(doc, where, algorithm)

@@ -74,8 +74,8 @@ RECORD_MARGIN_S = 0.01  # capture beyond the task's window
 PRE_TRIGGER_S = 0.005  # the rig's default recording before the pulse
 # the identification experiment: a 1 mm pulse at 100 Hz (10 ms long), a 150 ms capture
 IDENTIFY_AMPLITUDE_M, IDENTIFY_FREQUENCY_HZ, IDENTIFY_RECORD_S = 1e-3, 100.0, 0.15
-IDENTIFY_CHOICES = ("pulse", "task")  # what the calibration fits: the identification pulse, or
-# the task's own experiment
+# what the calibration fits: the identification pulse, or the task's own experiment
+IDENTIFY_CHOICES = ("pulse", "task")
 
 
 class LoopError(RuntimeError):

@@ -2,6 +2,7 @@
 and (slow) one small round end to end on the simulated rig, then resumed."""
 
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -10,8 +11,8 @@ import numpy as np
 import pytest
 
 from design_engine.physics.material_file import read_material_file, save_material
-from ros_nodes.logic.closed_loop import (LoopError, LoopPlan, carried_material, load_plan_task,
-                                         rig_arguments)
+from ros_nodes.logic.closed_loop import (LoopError, LoopPlan, carried_material,
+                                         common_stiffness_scale, load_plan_task, rig_arguments)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -139,28 +140,115 @@ def test_task_the_rig_cannot_measure_is_refused():
         load_plan_task(LoopPlan(task="spin-ccw", out=Path("unused")))
 
 
-def _calibration(undetermined):
-    return {"parameters": {"k_shear": {"value": 1000.0, "stderr": 20.0, "unit": "N/m"},
-                           "k_bend": {"value": 1e-4, "stderr": 5e-3, "unit": "N m/rad"},
-                           "damping_ratio": {"value": 0.03, "stderr": 0.002, "unit": "1"}},
-            "derived": {"damping_u": {"value": 0.04, "stderr": 0.003, "unit": "N s/m"},
-                        "damping_theta": {"value": 5e-7, "stderr": 4e-8, "unit": "N m s"}},
-            "undetermined": undetermined}
+def _calibration(undetermined, correlation=None, start=None):
+    """A pulse calibration of k_shear, k_bend and the damping ratio (SI), as calibration.json."""
+    doc = {"parameters": {"k_shear": {"value": 1000.0, "stderr": 20.0, "unit": "N/m"},
+                          "k_bend": {"value": 1e-4, "stderr": 5e-3, "unit": "N m/rad"},
+                          "damping_ratio": {"value": 0.03, "stderr": 0.002, "unit": "1"}},
+           "derived": {"damping_u": {"value": 0.04, "stderr": 0.003, "unit": "N s/m"},
+                       "damping_theta": {"value": 5e-7, "stderr": 4e-8, "unit": "N m s"}},
+           "undetermined": undetermined, "fit": ["k_shear", "k_bend", "damping_ratio"]}
+    if correlation is not None:
+        doc["correlation"] = correlation
+    if start is not None:
+        doc["start"] = start
+    return doc
 
 
-def test_carried_material_keeps_only_what_the_calibration_determined(tmp_path):
+START = {"k_shear": 1190.0, "k_bend": 1.5e-3, "damping_ratio": 0.0186}
+
+
+def test_carried_material_carries_each_stiffness_the_calibration_determined(tmp_path):
     model = save_material(tmp_path / "m.toml", {"k_bend": 1.2e-3, "k_stretch": 1.1e5},
                           {"k_bend": 1e-4})
-    values, errors, dropped = carried_material(model, _calibration(["k_bend"]))
+    values, errors, dropped = carried_material(model, _calibration([], start=START))
     assert values["k_shear"] == 1000.0 and errors["k_shear"] == 20.0  # determined: carried
-    assert values["k_bend"] == 1.2e-3 and errors["k_bend"] == 1e-4  # undetermined: the model's
+    assert values["k_bend"] == 1e-4 and errors["k_bend"] == 5e-3
     assert values["k_stretch"] == 1.1e5  # not fitted: the model's
     assert values["density"] == 6.18  # not in the model file: the default's
     assert values["damping_u"] == 0.04 and values["damping_theta"] == 5e-7
     assert "damping_ratio" not in values  # the coefficients it gives are carried instead
-    assert dropped == ["k_bend"]
+    assert dropped == []
     save_material(tmp_path / "next.toml", values, errors)  # a valid material file
     assert read_material_file(tmp_path / "next.toml")[0] == values
+
+
+def test_stiffnesses_determined_only_together_are_carried_as_one_common_scale(tmp_path):
+    """k_shear determined, k_bend not (independent errors): both move by one factor, the
+    precision-weighted mean of their log changes, so the model keeps its k_bend / k_shear."""
+    model = save_material(tmp_path / "m.toml", {"k_shear": 1190.0, "k_bend": 1.5e-3,
+                                                "k_stretch": 1.1e5})
+    cal = _calibration(["k_bend", "damping_ratio"], start=START)
+    values, errors, dropped = carried_material(model, cal)
+    x = np.log([1000.0 / 1190.0, 1e-4 / 1.5e-3])
+    w = 1.0 / np.array([20.0 / 1000.0, 5e-3 / 1e-4]) ** 2
+    s = math.exp(float(w @ x / w.sum()))
+    assert values["k_shear"] == pytest.approx(1190.0 * s, rel=1e-12)
+    assert values["k_bend"] == pytest.approx(1.5e-3 * s, rel=1e-12)
+    assert values["k_bend"] / values["k_shear"] == pytest.approx(1.5e-3 / 1190.0, rel=1e-12)
+    assert values["k_stretch"] == 1.1e5  # not fitted: not scaled
+    # the stated error: no smaller than the best single stiffness's relative error
+    assert errors["k_shear"] / values["k_shear"] == pytest.approx(0.02, rel=1e-12)
+    assert errors["k_bend"] / values["k_bend"] == pytest.approx(0.02, rel=1e-12)
+    assert dropped == ["damping_ratio", "damping_theta", "damping_u"]
+    assert values["damping_ratio"] == 0.0186  # undetermined: the model's ratio, which gives
+    assert "damping_u" not in values  # the coefficients from the carried stiffnesses
+    save_material(tmp_path / "next.toml", values, errors)
+    assert read_material_file(tmp_path / "next.toml")[0] == values
+
+
+def test_the_common_scale_follows_the_fits_correlation():
+    """With k_shear and k_bend correlated at -0.995 (the identification pulse's fits), the
+    scale is the point of the common-scale line that the fit's covariance makes most likely:
+    the Mahalanobis distance to the fit is smallest there (checked on a fine scan), and it is
+    not k_shear's own change."""
+    rho = -0.995
+    corr = [[1.0, rho, 0.0], [rho, 1.0, 0.0], [0.0, 0.0, 1.0]]
+    sc = common_stiffness_scale(_calibration(["k_bend"], correlation=corr, start=START))
+    x = np.log([1000.0 / 1190.0, 1e-4 / 1.5e-3])
+    sd = np.array([0.02, 50.0])
+    cinv = np.linalg.inv(np.array([[1.0, rho], [rho, 1.0]]) * np.outer(sd, sd))
+    t = np.linspace(x[0] - 0.05, x[0] + 0.05, 200001)
+    d = x[None, :] - t[:, None]
+    best = t[np.argmin(np.einsum("ti,ij,tj->t", d, cinv, d))]
+    assert math.log(sc["value"]) == pytest.approx(best, abs=1e-6)
+    # the valley moves it below k_shear's own change (k_bend's fit lies below the line)
+    assert math.log(sc["value"]) < x[0] - 5e-4
+    assert sc["log_stderr_on_line"] < 0.02 <= sc["log_stderr"]
+    assert sc["names"] == ["k_shear", "k_bend"] and sc["start"] == {"k_shear": 1190.0,
+                                                                      "k_bend": 1.5e-3}
+
+
+def test_a_determined_damping_ratio_beside_a_common_scale_is_carried_as_the_ratio(tmp_path):
+    model = save_material(tmp_path / "m.toml", {"damping_u": 0.05, "damping_theta": 6e-7})
+    values, errors, dropped = carried_material(model, _calibration(["k_bend"], start=START))
+    assert values["damping_ratio"] == 0.03 and errors["damping_ratio"] == 0.002
+    assert "damping_u" not in values and "damping_theta" not in values  # the ratio gives them
+    assert dropped == []
+    save_material(tmp_path / "next.toml", values, errors)
+    assert read_material_file(tmp_path / "next.toml")[0] == values
+
+
+@pytest.mark.parametrize("undetermined", [[], ["k_shear", "k_bend"]])
+def test_no_common_scale_unless_determined_only_in_combination(undetermined):
+    assert common_stiffness_scale(_calibration(undetermined, start=START)) is None
+
+
+def test_no_common_scale_for_a_single_fitted_stiffness():
+    cal = _calibration([], start=START)
+    del cal["parameters"]["k_bend"]
+    cal["fit"].remove("k_bend")
+    assert common_stiffness_scale(cal) is None
+    values, _, _ = carried_material(None, cal)
+    assert values["k_shear"] == 1000.0
+
+
+def test_the_common_scale_starts_from_the_model_where_the_calibration_gives_no_start(tmp_path):
+    model = save_material(tmp_path / "m.toml", {"k_shear": 1190.0, "k_bend": 1.5e-3})
+    with_start, _, _ = carried_material(model, _calibration(["k_bend"], start=START))
+    without, _, _ = carried_material(model, _calibration(["k_bend"]))
+    assert without["k_shear"] == pytest.approx(with_start["k_shear"], rel=1e-12)
+    assert common_stiffness_scale(_calibration(["k_bend"])) is None  # no start known
 
 
 def test_carried_material_drops_damping_derived_from_an_undetermined_ratio():

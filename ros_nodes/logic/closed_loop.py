@@ -220,11 +220,72 @@ def check_design_fits(path: Path, task) -> None:
 # --- materials between rounds -----------------------------------------------------------------
 
 
+STIFFNESSES = ("k_stretch", "k_shear", "k_bend")
+
+
+def common_stiffness_scale(calibration: dict, start: dict | None = None) -> dict | None:
+    """The common factor of the fitted stiffnesses, when the calibration determined them only
+    in combination (at least one of them determined, at least one undetermined), else None.
+
+    The identification pulse sees k_shear and barely k_bend (their fitted values are
+    correlated at about -0.995: README "Closing the loop"); carrying k_shear alone would move
+    the model's k_bend / k_shear ratio by the whole change of k_shear, while the quasi-static
+    shape that a design works with depends on that ratio. So the fitted stiffnesses are taken
+    to be off their start by one common factor s (a modulus error of the print keeps their
+    ratios), and s is the point of that line that the fit makes most likely: with
+    x = log(value / start) of the fitted stiffnesses and C their covariance (the stated
+    relative errors with the fit's correlations), log s = (1' C^-1 x) / (1' C^-1 1), with
+    sd_line(log s) = (1' C^-1 1)^(-1/2) (generalised least squares). That error holds only
+    if the stiffnesses really share one factor, which the experiment does not test (on a
+    strong correlation it comes out far below any single one's), so the stated error of s is
+    the smallest relative stated error of a single fitted stiffness: no more precise than the
+    best-determined one alone (and s is determined when any one of them is).
+
+    `start` (SI) stands in for the fit's start values where the calibration gives none.
+
+    Returns:
+        {"names": the stiffnesses it scales, "value": s, "stderr": s * sd(log s), "log_stderr":
+        sd(log s), "log_stderr_on_line": sd_line(log s), "start": their start values (SI)},
+        or None.
+    """
+    params = calibration.get("parameters", {})
+    fit = calibration.get("fit") or list(params)
+    names = [n for n in fit if n in STIFFNESSES and n in params]
+    undetermined = set(calibration.get("undetermined", []))
+    if len(names) < 2 or all(n in undetermined for n in names) or not any(
+            n in undetermined for n in names):
+        return None
+    given = {**(start or {}), **calibration.get("start", {})}
+    if any(n not in given for n in names):
+        return None
+    start = {n: float(given[n]) for n in names}
+    x = np.array([math.log(float(params[n]["value"]) / start[n]) for n in names])
+    sd = np.array([float(params[n]["stderr"]) / float(params[n]["value"]) for n in names])
+    corr = np.asarray(calibration.get("correlation") or np.eye(len(fit)), np.float64)
+    idx = [fit.index(n) for n in names]
+    r = corr[np.ix_(idx, idx)]
+    # C^-1 = D^-1 R^-1 D^-1; the pseudo-inverse holds at |correlation| = 1
+    w = np.linalg.pinv(r, rcond=1e-12) / np.outer(sd, sd)
+    info = float(np.ones(len(names)) @ w @ np.ones(len(names)))
+    log_s = float(np.ones(len(names)) @ w @ x) / info
+    on_line = 1.0 / math.sqrt(info)
+    log_sd = max(on_line, float(sd.min()))
+    s = math.exp(log_s)
+    return {"names": names, "value": s, "stderr": s * log_sd, "log_stderr": log_sd,
+            "log_stderr_on_line": on_line, "start": start}
+
+
 def carried_material(model: Path | None, calibration: dict) -> tuple[dict, dict, list[str]]:
     """(values, stderrs, names dropped) of the next round's model: `model`'s values (the
     default file's where it sets none: a complete material) updated with the calibrated
     parameters and the values derived from them, except those the calibration calls
-    undetermined (and what derives from them)."""
+    undetermined (and what derives from them).
+
+    Stiffnesses determined only in combination (`common_stiffness_scale`) are carried as
+    their start times the common scale, every fitted one (so the model keeps its stiffness
+    ratios), each with the scale's relative error; none of them is then dropped. A damping
+    ratio determined beside them is carried as the ratio (its coefficients follow the carried
+    stiffnesses, spec 6.3), not as the coefficients the fit derived from its own stiffnesses."""
     from design_engine.physics.material import default_si
     from design_engine.physics.material_file import SI_UNITS, read_material_file
 
@@ -232,14 +293,27 @@ def carried_material(model: Path | None, calibration: dict) -> tuple[dict, dict,
     values, errors = {**default_si(), **values}, dict(errors)
     undetermined = set(calibration.get("undetermined", []))
     derived = calibration.get("derived", {})
-    dropped = sorted(undetermined)
+    scale = common_stiffness_scale(calibration, values)
+    scaled = set(scale["names"]) if scale else set()
+    dropped = sorted(undetermined - scaled)
     for name, p in calibration.get("parameters", {}).items():
-        if name in undetermined or name not in SI_UNITS:
+        if name in undetermined or name in scaled or name not in SI_UNITS:
             continue
-        if name == "damping_ratio":  # the calibration gives the coefficients it derives
+        if name == "damping_ratio" and not scaled:  # the calibration derives the coefficients
             continue
         values[name], errors[name] = float(p["value"]), float(p["stderr"])
-    if "damping_ratio" not in undetermined and any(n in SI_UNITS for n in derived):
+    for name in scaled:
+        values[name] = scale["start"][name] * scale["value"]
+        errors[name] = values[name] * scale["log_stderr"]
+    ratio_carried = "damping_ratio" in calibration.get("parameters", {}) and \
+        "damping_ratio" not in undetermined
+    if scaled and ratio_carried:
+        for name in ("damping_u", "damping_theta"):  # the carried ratio gives them
+            values.pop(name, None)
+            errors.pop(name, None)
+    elif scaled:
+        dropped += sorted(n for n in derived if n in SI_UNITS)
+    elif "damping_ratio" not in undetermined and any(n in SI_UNITS for n in derived):
         values.pop("damping_ratio", None)  # the coefficients replace the ratio they came from
         errors.pop("damping_ratio", None)
         for name, p in derived.items():
@@ -329,8 +403,14 @@ class _Round:
         from design_engine.physics.material_file import save_material
 
         self.dir.mkdir(parents=True, exist_ok=True)
-        note = (f"not carried (undetermined by the calibration): {', '.join(dropped)}"
-                if dropped else "")
+        notes = [f"not carried (undetermined by the calibration): {', '.join(dropped)}"] \
+            if dropped else []
+        scale = common_stiffness_scale(cal)
+        if scale is not None:
+            notes.append(f"determined only in combination: {', '.join(scale['names'])} carried "
+                         f"as their start times one common scale {scale['value']:.4g} +- "
+                         f"{scale['stderr']:.2g}")
+        note = "; ".join(notes)
         save_material(path, values, errors,
                       f"metarig loop: round {self.k - 1}'s model updated by its calibration "
                       f"({prev / CALIBRATE / 'calibration.json'})", note)
@@ -437,6 +517,10 @@ class _Round:
         doc = round_summary(self.dir, self.k, design, material, objective, calibration,
                             self.timings, self.skipped)
         doc["calibrated_from"] = str(run_dir)
+        if self.k > 1:  # how round k-1's calibration made this round's model
+            prev = self.plan.out / f"round-{self.k - 1}" / CALIBRATE / "calibration.json"
+            doc["model_material"]["common_stiffness_scale"] = common_stiffness_scale(
+                json.loads(prev.read_text()))
         doc["design_start"] = self.start()
         doc["steps_wall_s"] = self.walls
         return doc

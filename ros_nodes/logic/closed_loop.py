@@ -37,7 +37,10 @@ the task's experiment in README "Closing the loop"). A 10 ms pulse rings those m
 The rig is the same in every round: the same flags, so the same simulated specimen statistics,
 print-wide errors and seed (the specimen's per-ligament draws follow the seed: the same seed
 draws the same scatter per ligament index). A calibrated parameter that its calibration calls
-undetermined is not carried into the next model (its value says nothing).
+undetermined is not carried into the next model (its value says nothing); stiffnesses that it
+determines only in combination (the identification pulse sees k_shear, barely k_bend) are
+carried as one common scale of the fitted stiffnesses, so that the model keeps its stiffness
+ratios (`common_stiffness_scale`).
 
 Units: SI at every interface; the objective is the task's (the mean over the window's samples of
 the target's kinetic energy, J, weighted and summed over the task's terms).

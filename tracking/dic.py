@@ -64,7 +64,8 @@ def track_frame(
     Returns:
         The new state and this frame's poses. A frame that cannot be used (blank, wrong
         size, non-finite) flags every unit lost instead of raising (`FramePoses.error` says
-        why).
+        why). `state` is consumed (its reference arrays may be updated in place,
+        `TrackerState.refs_own`): go on from the state returned.
     """
     cfg = tracker.cfg
     try:
@@ -168,19 +169,18 @@ def track_frame(
     moved = np.nan_to_num(
         np.hypot(*(new_t - prev_t).T) + np.abs(new_alpha - prev_alpha) * refs.rmax
     )
-    state = replace(state, alpha=new_alpha, t=new_t, prev_alpha=prev_alpha, prev_t=prev_t, lost=~ok)
-    state = _update_references(tracker, state, prep, ok, new_alpha - state.ref_alpha, src_zncc)
-
     q = np.full((n, 3), np.nan)
     q[ok] = to_sample(tracker, new_alpha[ok], new_t[ok])
     sigma = np.full((n, 3), np.nan)
     cal = tracker.calib
-    for rs, sel, zn in src_refs:
+    for rs, sel, zn in src_refs:  # before the references are updated (in place)
         if sel.any():
             floor = np.hypot(cfg.sigma_floor_px, cfg.sigma_blur_share * moved[sel])
             sigma[sel] = pose_sigma(
                 rs, np.flatnonzero(sel), zn[sel], cfg.prefilter_sigma_px, floor
             ) * np.array([cal.m_per_px, cal.m_per_px, 1.0])
+    state = replace(state, alpha=new_alpha, t=new_t, prev_alpha=prev_alpha, prev_t=prev_t, lost=~ok)
+    state = _update_references(tracker, state, prep, ok, new_alpha - state.ref_alpha, src_zncc)
     return state, FramePoses(q=q, quality=src_zncc, lost=~ok, sigma=sigma)
 
 
@@ -341,17 +341,19 @@ def _update_references(
     ref_alpha, ref_t = state.ref_alpha.copy(), state.ref_t.copy()
     ref_alpha[idx], ref_t[idx] = state.alpha[idx], state.t[idx]
     log.debug("reference updated for %d units", idx.size)
+    own = state.refs_own  # else refs and pieces are still refs0's and pieces0's: copied
     pieces = state.pieces
     if pieces is not None:
         cut = split_refs(sub, pieces.parts)
         pidx = pieces.index(idx).ravel()
-        offset = pieces.offset.copy()
+        offset = pieces.offset if own else pieces.offset.copy()
         offset[pidx] = cut.offset
-        pieces = Pieces(replace_refs(pieces.refs, pidx, cut.refs), offset, pieces.parts)
+        pieces = Pieces(replace_refs(pieces.refs, pidx, cut.refs, own), offset, pieces.parts)
     return replace(
         state,
-        refs=replace_refs(state.refs, idx, sub),
+        refs=replace_refs(state.refs, idx, sub, own),
         ref_alpha=ref_alpha,
         ref_t=ref_t,
         pieces=pieces,
+        refs_own=True,
     )

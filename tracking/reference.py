@@ -89,17 +89,18 @@ def subset_pixels(poly_px: np.ndarray, margin_px: float, shape: tuple[int, int])
     return pts[keep]
 
 
-def spline_gradients(coef: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """d/dcol and d/drow [h, w] of the cubic B-spline interpolant at the pixel centres.
+def spline_gradients(coef: np.ndarray, rows: np.ndarray, cols: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """d/dcol and d/drow of the cubic B-spline interpolant at the pixel centres (rows, cols)
+    (at least 1 px inside the image).
 
     At integer positions the spline derivative is (c[k+1] - c[k-1]) / 2 of its coefficients,
     so the steepest-descent images are the exact derivatives of the interpolant that IC-GN
-    samples (borders are left 0; subsets keep 2 px away from them).
+    samples. Only the pixels asked for: a reference update re-extracts a few units, and the
+    whole frame's gradients cost more than their subsets.
     """
-    gx = np.zeros(coef.shape, np.float32)
-    gy = np.zeros(coef.shape, np.float32)
-    gx[:, 1:-1] = 0.5 * (coef[:, 2:] - coef[:, :-2])
-    gy[1:-1, :] = 0.5 * (coef[2:, :] - coef[:-2, :])
+    gx = 0.5 * (coef[rows, cols + 1] - coef[rows, cols - 1])
+    gy = 0.5 * (coef[rows + 1, cols] - coef[rows - 1, cols])
     return gx, gy
 
 
@@ -128,7 +129,6 @@ def build_refs(
     """
     n = polys_px.shape[0]
     shape = img.shape
-    gx, gy = spline_gradients(coef)
     pts = [subset_pixels(polys_px[b], margin_px, shape) for b in range(n)]
     pts = [p if p.shape[0] >= min_points else p[:0] for p in pts]
     count = np.array([p.shape[0] for p in pts], dtype=np.int64)
@@ -146,7 +146,7 @@ def build_refs(
         cols, rows = p[:, 0], p[:, 1]
         ddx = cols - centres_px[b, 0]
         ddy = rows - centres_px[b, 1]
-        fx, fy = gx[rows, cols], gy[rows, cols]
+        fx, fy = spline_gradients(coef, rows, cols)
         dx[b, :k], dy[b, :k] = ddx, ddy
         fv[b, :k] = img[rows, cols]
         # warp x -> R(alpha)(x - c) + c + w; its derivative at identity
@@ -193,9 +193,20 @@ def _pad_to(a: np.ndarray, m: int) -> np.ndarray:
     return np.pad(a, widths)
 
 
-def replace_refs(refs: RefSet, idx: np.ndarray, new: RefSet) -> RefSet:
-    """A copy of `refs` whose units `idx` are replaced by the units of `new` (same order)."""
+def replace_refs(refs: RefSet, idx: np.ndarray, new: RefSet, in_place: bool = False) -> RefSet:
+    """A copy of `refs` whose units `idx` are replaced by the units of `new` (same order).
+
+    in_place: write the rows into `refs`'s own arrays instead (and return it) where they are
+    wide enough: copying every padded array costs more than tracking the frame (~8 ms a frame
+    on 384 units); only for arrays nothing else holds (`TrackerState.refs_own`)."""
     m = max(refs.dx.shape[1], new.dx.shape[1])
+    if in_place and m == refs.dx.shape[1]:
+        for name in RefSet.__slots__:
+            new_a = getattr(new, name)
+            if name in ("dx", "dy", "ft", "jac", "mask"):
+                new_a = _pad_to(new_a, m)
+            getattr(refs, name)[idx] = new_a
+        return refs
     out = {}
     for name in RefSet.__slots__:
         old_a, new_a = getattr(refs, name), getattr(new, name)

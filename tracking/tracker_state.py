@@ -75,6 +75,9 @@ class TrackerState:
             are checked against them every frame), None to skip that check.
         pieces, pieces0: the subsets of `refs` and `refs0` cut into pieces for the check of
             every pose (`DICConfig.check_pieces`), None without it.
+        refs_own: `refs` and `pieces` are this state's own arrays (no longer those of
+            `refs0`), so a reference update writes them in place. `track_frame` therefore
+            consumes the state it is given: keep only the state it returns.
     """
 
     refs: RefSet
@@ -90,6 +93,7 @@ class TrackerState:
     refs0: RefSet | None = None
     pieces: Pieces | None = None
     pieces0: Pieces | None = None
+    refs_own: bool = False
 
 
 @dataclass(frozen=True, slots=True)

@@ -16,7 +16,9 @@ rotation error over the unflagged unit-frames and over all tracked ones [<= 0.1 
 lost unit-frames and uncertain ones, slender units (no search template fits inside them) counted
 separately [<= 2 %]; the share of true errors within 2 stated standard errors [about 95 %];
 tracking speed [>= 20 frames/s on 2 cores]; with the machine and its load, and the CPU time the
-tracking took (all its processes), which a busy machine changes far less. Also the share of
+tracking took (all its processes, start-up and PNG decoding included), which a busy machine
+changes far less. `metarig track`'s default split: 1 process whose numba threads share the
+cores (`--workers`, `--threads`). Also the share of
 each component's error variance that is white from frame to frame (the rest is each unit's
 constant, mostly the reference image's noise), against `comparison.metrics.FRAME_NOISE_SHARE`,
 and what the comparison states from it: the share of the true velocity errors (the
@@ -162,7 +164,12 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, default=Path("runs/bench_dic_design"))
     p.add_argument("--results", type=Path, default=None, help="also copy the JSON here")
     p.add_argument("--duration-s", type=float, default=0.1)
-    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--workers", type=int, default=1,
+                   help="tracker processes (`metarig track --workers`); each decodes and "
+                        "prepares every frame itself, so on 2 cores 1 process with 2 numba "
+                        "threads is the cheaper split")
+    p.add_argument("--threads", type=int, default=0,
+                   help="numba threads per process (0: the cores shared out between them)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--reference-frames", type=int, default=None,
                    help="frames at rest the reference image averages (default: the rig's)")
@@ -206,6 +213,7 @@ def main(argv=None) -> int:
     cpu0 = _cpu_s()
     t0 = time.perf_counter()
     traj, _ = track_source(open_source(frames), polygons, calib, cfg, workers=args.workers,
+                           threads=args.threads,
                            reference=str(ref_path))
     wall = time.perf_counter() - t0
     cpu = _cpu_s() - cpu0
@@ -259,6 +267,7 @@ def main(argv=None) -> int:
                                                            FRAME_NOISE_SHARE),
         "velocity_error_share": velocity_error_share(traj.t, traj.q, traj.sigma, truth),
         "frames_per_s": float(traj.n_t / wall), "workers": args.workers,
+        "threads_per_worker": args.threads or max(1, (os.cpu_count() or 1) // args.workers),
         "cpu_ms_per_frame": 1e3 * cpu / traj.n_t,
         "load_average_1min": {"before": load0[0], "after": os.getloadavg()[0]},
     }

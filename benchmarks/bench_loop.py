@@ -16,7 +16,9 @@ the same rig:
 - the control: round 2's step without the calibration (`metarig design --initial` round 1's
   design with the nominal material, the same budget), tested the same way: what the extra design
   evaluations give without what the rig taught;
-- a second measurement of each round's design (the same rig flags): the run-to-run spread.
+- a second measurement of each round's design (the same rig flags): the run-to-run spread;
+- with `--oracle`, round 2's step with the specimen's effective material (what a calibration
+  that found every constant exactly would carry): how much a better calibration could give.
 Writes per round the measured objective (from the tracked poses), its prediction (the round's
 model on the measured input, through the same camera-rate filter), the model's full-band
 prediction and the design engine's own objective, the calibrated material beside the specimen's
@@ -107,17 +109,54 @@ def measured(folder: Path, design: Path, rig_argv: list[str], material: Path | N
     return doc
 
 
-def control(run_dir: Path, max_evals: int, rig_argv: list[str]) -> dict:
-    """Round 2 without the calibration: round 1's design optimised further with the nominal
-    material (the same budget and start as round 2), measured on the same rig."""
-    folder = run_dir / "control"
+def redesign(run_dir: Path, name: str, max_evals: int, rig_argv: list[str],
+             material: Path | None) -> dict:
+    """Round 2's step with `material`'s model instead of the calibrated one: round 1's design
+    optimised further (the same budget and start as round 2), measured on the same rig and
+    predicted by that model (`run_dir/name/`)."""
+    folder = run_dir / name
     design = folder / "design"
     if not (design / "design.json").exists():
         shutil.rmtree(design, ignore_errors=True)
         _metarig(["design", TASK, "--initial", str(run_dir / "round-1" / "design" / "design.json"),
-                  "--max-evals", str(max_evals), "--out", str(design), "--quiet", "--no-plots"])
-    doc = measured(folder, design / "design.json", rig_argv, None)
+                  "--max-evals", str(max_evals), "--out", str(design), "--quiet", "--no-plots",
+                  *(["--material", str(material)] if material is not None else [])])
+    doc = measured(folder, design / "design.json", rig_argv, material)
     doc["design_objective_J"] = json.loads((design / "design.json").read_text())["objective"]
+    return doc
+
+
+def control(run_dir: Path, max_evals: int, rig_argv: list[str]) -> dict:
+    """Round 2 without the calibration: the nominal material's model."""
+    return redesign(run_dir, "control", max_evals, rig_argv, None)
+
+
+def oracle_material(run_dir: Path, perturb: float, seed: int) -> Path:
+    """The specimen's effective material (of round 1's design's specimen: what a calibration
+    that found every constant exactly would carry), the default's values for the rest, as a
+    material file `run_dir/oracle/material.toml` (written once)."""
+    from design_engine.physics.material import default_si
+    from design_engine.physics.material_file import save_material
+
+    path = run_dir / "oracle" / "material.toml"
+    if not path.exists():
+        truth = effective_truth(perturb, seed, str(run_dir / "round-1" / "design" / "design.json"))
+        values = {**default_si(), **truth}
+        if "damping_u" in truth:  # its coefficients, not the default's ratio
+            values.pop("damping_ratio", None)
+        save_material(path, values, None, "bench_loop.py: the specimen's effective material "
+                      f"(--perturb {perturb} --seed {seed}, round 1's design)")
+    return path
+
+
+def oracle(run_dir: Path, max_evals: int, rig_argv: list[str], perturb: float,
+           seed: int) -> dict:
+    """Round 2 with the specimen's effective material: what a perfect calibration would give."""
+    from design_engine.physics.material_file import read_material_file
+
+    material = oracle_material(run_dir, perturb, seed)
+    doc = redesign(run_dir, "oracle", max_evals, rig_argv, material)
+    doc["material_si"] = read_material_file(material)[0]
     return doc
 
 
@@ -129,20 +168,22 @@ def repeat(run_dir: Path, k: int, rig_argv: list[str]) -> dict:
 
 
 def at_fps(run_dir: Path, fps: float, rig_argv: list[str]) -> dict:
-    """Round 1's, round 2's and the control's designs measured with the camera at `fps`, each
-    predicted by the model it was designed with (`fps-F/`)."""
+    """Round 1's, round 2's, the control's (and the oracle's, where it ran) designs measured
+    with the camera at `fps`, each predicted by the model it was designed with (`fps-F/`)."""
     folder = run_dir / f"fps-{fps:g}"
     argv = [*rig_argv, "--fps", f"{fps:g}"]
     out = {"fps": fps}
-    for name, design, material in (
-            ("round-1", run_dir / "round-1" / "design" / "design.json", None),
-            ("round-2", run_dir / "round-2" / "design" / "design.json",
-             run_dir / "round-2" / "material.toml"),
-            ("control", run_dir / "control" / "design" / "design.json", None)):
+    for name, material in (("round-1", None), ("round-2", run_dir / "round-2" / "material.toml"),
+                           ("control", None), ("oracle", run_dir / "oracle" / "material.toml")):
+        design = run_dir / name / "design" / "design.json"
+        if name == "oracle" and not design.exists():
+            continue
         out[name] = _objectives(measured(folder / name, design, argv, material))
-    m = {k: out[k]["measured_J"] for k in ("round-1", "round-2", "control")}
+    m = {k: out[k]["measured_J"] for k in ("round-1", "round-2", "control", "oracle") if k in out}
     out["round2_measured_over_round1"] = m["round-2"] / m["round-1"]
     out["round2_measured_over_control"] = m["round-2"] / m["control"]
+    if "oracle" in m:
+        out["oracle_measured_over_control"] = m["oracle"] / m["control"]
     return out
 
 
@@ -189,6 +230,9 @@ def main(argv=None) -> int:
     p.add_argument("--fps-also", type=float, default=None, help="measure round 1's, round 2's "
                    "and the control's designs once more with the camera at this frame rate "
                    "(the design engine's objective holds motion faster than 1 kHz resolves)")
+    p.add_argument("--oracle", action="store_true", help="also run round 2's step with the "
+                   "specimen's effective material (what a perfect calibration would carry), "
+                   "measured the same way")
     p.add_argument("--fresh", action="store_true", help="remove the loop's folder first")
     args = p.parse_args(argv)
 
@@ -257,6 +301,17 @@ def main(argv=None) -> int:
             again[0]["measured_J"],
             "control_and_repeats_wall_s": round(time.perf_counter() - t1, 1),
         }
+        if args.oracle:
+            t3 = time.perf_counter()
+            orc = oracle(args.run_dir, args.max_evals, loop["rig_arguments"], args.perturb,
+                         args.seed)
+            extra["oracle_round2_effective_material"] = {
+                **_objectives(orc), "design_objective_J": orc["design_objective_J"],
+                "material_si": orc["material_si"], "wall_s": round(time.perf_counter() - t3, 1),
+                "what": "round 1's design optimised further with the specimen's effective "
+                        "material (same budget as round 2), measured on the same rig"}
+            extra["round2_measured_over_oracle"] = m[1] / orc["measured_J"]
+            extra["oracle_measured_over_control"] = orc["measured_J"] / ctrl["measured_J"]
         if args.fps_also:
             t2 = time.perf_counter()
             extra["at_fps"] = at_fps(args.run_dir, args.fps_also, loop["rig_arguments"])
@@ -285,6 +340,7 @@ def main(argv=None) -> int:
     print(json.dumps({k: res[k] for k in ("round2_measured_over_round1",
                                           "prediction_gap_per_round", "steps_wall_s_total",
                                           "round2_measured_over_control",
+                                          "round2_measured_over_oracle",
                                           "repeat_spread_of_measured") if k in res}, indent=1))
     for r in rounds:
         print(f"round {r['round']}: measured {r['measured_objective_J']:.4g} J, predicted "

@@ -18,7 +18,8 @@ separately [<= 2 %]; the share of true errors within 2 stated standard errors [a
 tracking speed [>= 20 frames/s on 2 cores]; with the machine and its load, and the CPU time the
 tracking took (all its processes, start-up and PNG decoding included), which a busy machine
 changes far less. `metarig track`'s default split: 1 process whose numba threads share the
-cores (`--workers`, `--threads`). Also the share of
+cores (`--workers`, `--threads`). Every pose is also checked against its bonded neighbours
+(the ligaments found in the outlines, `bonds` in the results; `--no-neighbours`: without). Also the share of
 each component's error variance that is white from frame to frame (the rest is each unit's
 constant, mostly the reference image's noise), against `comparison.metrics.FRAME_NOISE_SHARE`,
 and what the comparison states from it: the share of the true velocity errors (the
@@ -170,6 +171,8 @@ def main(argv=None) -> int:
                         "threads is the cheaper split")
     p.add_argument("--threads", type=int, default=0,
                    help="numba threads per process (0: the cores shared out between them)")
+    p.add_argument("--no-neighbours", dest="neighbours", action="store_false",
+                   help="track without the check of every pose against its bonded neighbours")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--reference-frames", type=int, default=None,
                    help="frames at rest the reference image averages (default: the rig's)")
@@ -189,6 +192,7 @@ def main(argv=None) -> int:
     from tracking.dic import DICTracker, init_state, settings_for_units
     from tracking.frame_sources import open_source
     from tracking.search import MIN_TEMPLATE_HALF
+    from tracking.units import bonds_from_outlines
 
     fps, mpp = 1000.0, 4e-4
     frames = args.out / "frames"
@@ -209,11 +213,13 @@ def main(argv=None) -> int:
     ref = cv2.imread(str(ref_path), cv2.IMREAD_UNCHANGED)
     tr = DICTracker(polygons, calib, cfg)
     slender = init_state(tr, ref).refs.tpl_half < MIN_TEMPLATE_HALF
+    # the lattice's ligaments, for the check of every pose against its neighbours
+    bonds = bonds_from_outlines(polygons) if args.neighbours else None
     load0 = os.getloadavg()
     cpu0 = _cpu_s()
     t0 = time.perf_counter()
     traj, _ = track_source(open_source(frames), polygons, calib, cfg, workers=args.workers,
-                           threads=args.threads,
+                           threads=args.threads, bonds=bonds,
                            reference=str(ref_path))
     wall = time.perf_counter() - t0
     cpu = _cpu_s() - cpu0
@@ -232,11 +238,13 @@ def main(argv=None) -> int:
         "machine": describe(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "design": _shown(args.design), "frames": int(traj.n_t),
         "units": int(traj.n_units), "slender_units": int(slender.sum()),
-        "reference_frames": n_ref,
+        "reference_frames": n_ref, "bonds": 0 if bonds is None else int(bonds.shape[0]),
         "settings": {"margin_px": cfg.margin_px, "min_points": cfg.min_points,
                      "prefilter_sigma_px": cfg.prefilter_sigma_px,
                      "sigma_floor_px": cfg.sigma_floor_px,
-                     "sigma_blur_share": cfg.sigma_blur_share},
+                     "sigma_blur_share": cfg.sigma_blur_share,
+                     "neighbour_px": cfg.neighbour_px,
+                     "neighbour_static_px": cfg.neighbour_static_px},
         "flag": {"wrong_px": WRONG_PX, "wrong_rad": WRONG_RAD,
                  "uncertain_sigmas": UNCERTAIN_SIGMAS},
         "wrong_without_flag": int((wrong & ~uncertain).sum()),

@@ -62,6 +62,7 @@ class TrackJob:
         reference: image file showing the reference configuration (None: the first frame).
         block: frames per result block. max_frames: stop after this many (0: all).
         threads: numba threads for this job's units (0: leave the process default).
+        bonds: [nb, 4] ligaments between this job's units (its own unit ids), None: none.
     """
 
     spec: SourceSpec
@@ -72,6 +73,7 @@ class TrackJob:
     block: int
     max_frames: int
     threads: int = 0
+    bonds: np.ndarray | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -209,7 +211,7 @@ def track_blocks(job: TrackJob, stop: Callable[[], bool] = lambda: False) -> Ite
     """Track the job's units through the source, yielding results every `job.block` frames."""
     if job.threads > 0:
         numba.set_num_threads(min(job.threads, numba.config.NUMBA_NUM_THREADS))
-    tracker = DICTracker(job.polygons_m, job.calib, job.cfg)
+    tracker = DICTracker(job.polygons_m, job.calib, job.cfg, job.bonds)
     try:
         state = init_state(tracker, reference_image(job.spec, job.reference))
     except FrameError as exc:
@@ -277,17 +279,17 @@ def _assemble(parts: list[list[Block]], splits: list[np.ndarray], n_units: int, 
 def run_tracking(
     spec: SourceSpec, polygons_m: np.ndarray, calib: Calibration, cfg: DICConfig,
     workers: int = 1, reference: str | None = None, block: int = 8, max_frames: int = 0,
-    progress: bool = False, threads: int = 0,
+    progress: bool = False, threads: int = 0, bonds: np.ndarray | None = None,
 ) -> Trajectory:
     """Track all units through the source; the trajectory of `track_source`."""
     return track_source(spec, polygons_m, calib, cfg, workers, reference, block, max_frames,
-                        progress, threads)[0]
+                        progress, threads, bonds)[0]
 
 
 def track_source(
     spec: SourceSpec, polygons_m: np.ndarray, calib: Calibration, cfg: DICConfig,
     workers: int = 1, reference: str | None = None, block: int = 8, max_frames: int = 0,
-    progress: bool = False, threads: int = 0,
+    progress: bool = False, threads: int = 0, bonds: np.ndarray | None = None,
 ) -> tuple[Trajectory, np.ndarray]:
     """Track all units, in this process (workers = 1) or split over worker processes.
 
@@ -299,6 +301,9 @@ def track_source(
         block: frames per result block. max_frames: stop after this many (0: all).
         progress: show a progress bar. threads: numba threads per worker (0: all cores shared
             out between the workers), while a reader thread decodes and prepares frames.
+        bonds: [nb, 4] the lattice's ligaments (`tracking.units.load_unit_bonds`) for the check
+            of every pose against its neighbours (None: no such check); a worker checks the
+            ligaments between its own units.
 
     Returns:
         The trajectory [n_t frames, n units] and bad [n_t]: True for frames that could not be
@@ -321,8 +326,8 @@ def track_source(
     workers = max(1, min(int(workers), n))
     splits = np.array_split(np.arange(n), workers)
     threads = threads or max(1, (os.cpu_count() or 1) // workers)
-    jobs = [TrackJob(spec, polygons_m[ids], calib, cfg, reference, block, max_frames, threads)
-            for ids in splits]
+    jobs = [TrackJob(spec, polygons_m[ids], calib, cfg, reference, block, max_frames, threads,
+                     _job_bonds(bonds, ids, n)) for ids in splits]
     total = count_frames(spec)
     if total is not None and max_frames:
         total = min(total, max_frames)
@@ -350,6 +355,17 @@ def track_source(
     finally:
         bar.close()
     return _assemble(parts, splits, n, calib.fps, complete)
+
+
+def _job_bonds(bonds: np.ndarray | None, ids: np.ndarray, n: int) -> np.ndarray | None:
+    """The ligaments [nb, 4] between units `ids` (of n), renumbered to their place in `ids`."""
+    if bonds is None:
+        return None
+    local = np.full(n, -1)
+    local[ids] = np.arange(ids.size)
+    b = np.asarray(bonds, np.int64).reshape(-1, 4)
+    b = b[(local[b[:, 0]] >= 0) & (local[b[:, 2]] >= 0)]
+    return np.stack([local[b[:, 0]], b[:, 1], local[b[:, 2]], b[:, 3]], axis=1)
 
 
 def _run_pool(jobs: list[TrackJob], parts: list[list[Block]], advance: Callable) -> bool:

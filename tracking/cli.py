@@ -21,7 +21,7 @@ from tracking.batch import save_tracks, track_source
 from tracking.calibration import CalibrationError, load_calibration
 from tracking.dic import DICConfig
 from tracking.frame_sources import SourceError, open_source
-from tracking.units import UnitsError, load_unit_polygons
+from tracking.units import UnitsError, load_unit_bonds, load_unit_polygons
 
 log = logging.getLogger("metarig.track")
 _DEFAULTS = DICConfig()
@@ -95,6 +95,7 @@ def track_main(argv: list[str] | None = None) -> int:
     try:
         calib = load_calibration(args.calibration)
         polys = load_unit_polygons(args.units)
+        bonds = load_unit_bonds(args.units, polys)  # a design file's ligaments, else None
         spec = open_source(args.source, args.topic)
         cfg = _config(args)
     except (CalibrationError, UnitsError, SourceError, ValueError) as exc:
@@ -105,7 +106,7 @@ def track_main(argv: list[str] | None = None) -> int:
         traj, bad = track_source(spec, polys, calib, cfg, args.workers, args.reference,
                                 args.block, args.max_frames,
                                 progress=not args.quiet and sys.stderr.isatty(),
-                                threads=args.threads)
+                                threads=args.threads, bonds=bonds)
     except SourceError as exc:
         print(f"metarig track: error: {exc}", file=sys.stderr)
         return 2

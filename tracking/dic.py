@@ -8,7 +8,8 @@ poor or whose subset leaves the frame, and refresh the reference of the units th
 compiled batch; the offline CLI and the live node call the same `track_frame`.
 
 The first frame tracked is found, not assumed (`tracking.first_frame`); every pose is checked
-(`tracking.checks`) and carries a standard error (`tracking.pose_sigma`).
+(`tracking.checks`, and against its bonded neighbours where the lattice is known:
+`tracking.neighbours`) and carries a standard error (`tracking.pose_sigma`).
 
 The problem and its state are `tracking.tracker_state`, the settings `tracking.dic_config`;
 this module re-exports the public names of both (the tracker's one import path).
@@ -28,6 +29,7 @@ from tracking.first_frame import acquire_frame as acquire_frame
 from tracking.first_frame import acquire_radius as acquire_radius
 from tracking.first_frame import from_neighbours
 from tracking.icgn import icgn
+from tracking.neighbours import implausible
 from tracking.pose_sigma import NOISE_AREA_SHARE as NOISE_AREA_SHARE
 from tracking.pose_sigma import SIGMA_SCALE as SIGMA_SCALE
 from tracking.pose_sigma import noise_correlation_factor as noise_correlation_factor
@@ -162,6 +164,10 @@ def track_frame(
         ok, new_alpha, new_t, src_zncc = _check_by_pieces(
             tracker, state, prep, ok, checked, new_alpha, new_t, src_zncc
         )
+    if tracker.bonds is not None and tracker.bonds.size and cfg.neighbour_px > 0:
+        ok, new_alpha, new_t, src_zncc, checked = _check_neighbours(
+            tracker, state, prep, ok, checked, new_alpha, new_t, src_zncc
+        )
     src_refs = [(refs, ok & ~checked, src_zncc), (state.refs0, ok & checked, src_zncc)]
     prev_alpha = np.where(ok & ~state.lost, state.alpha, np.nan)
     prev_t = np.where((ok & ~state.lost)[:, None], state.t, np.nan)
@@ -280,6 +286,60 @@ def _check_by_pieces(
             redo.size - fixed.size,
         )
     return ok, alpha, t, zncc
+
+
+def _check_neighbours(
+    tracker: DICTracker,
+    state: TrackerState,
+    prep: PreparedFrame,
+    ok: np.ndarray,
+    checked: np.ndarray,
+    alpha: np.ndarray,
+    t: np.ndarray,
+    zncc: np.ndarray,
+):
+    """Check every good pose against its bonded neighbours' motion (`tracking.neighbours`). An
+    implausible unit is registered again against the reference image from its plausible
+    neighbours' motion (`from_neighbours`); the pose found stands if it correlates to
+    `zncc_reacquire`, its ligaments pass and its pieces agree, else the unit is lost.
+
+    Returns (ok, alpha, t, zncc, checked) after the check (`checked`: now registered against
+    the reference image)."""
+    cfg = tracker.cfg
+    history = ~state.lost & np.isfinite(state.prev_alpha)
+    before = [(state.alpha, state.t), (state.prev_alpha, state.prev_t)]
+    bad = implausible(tracker, [(alpha, t), *before], ok, history)
+    if not bad.any():
+        return ok, alpha, t, zncc, checked
+    ok, alpha, t, zncc, checked = ok.copy(), alpha.copy(), t.copy(), zncc.copy(), checked.copy()
+    redo, anchors = np.flatnonzero(bad), np.flatnonzero(ok & ~bad)
+    fixed = np.zeros(redo.size, bool)
+    if anchors.size and state.refs0 is not None:
+        zero_a, zero_t = np.zeros_like(alpha), np.zeros_like(t)
+        a, w, zn = from_neighbours(
+            tracker, state.refs0, prep, redo, anchors, alpha, t, zero_a, zero_t
+        )
+        fixed = zn >= cfg.zncc_reacquire
+        if fixed.any():
+            trial_a, trial_t, known = alpha.copy(), t.copy(), ok & ~bad
+            trial_a[redo[fixed]], trial_t[redo[fixed]], known[redo[fixed]] = a[fixed], w[fixed], True
+            fixed &= ~implausible(tracker, [(trial_a, trial_t), *before], known, history)[redo]
+        if fixed.any() and state.pieces0 is not None:
+            fixed[fixed] = _pieces_agree(
+                tracker, prep, state.pieces0, redo[fixed], a[fixed], w[fixed], zn[fixed]
+            )[0]
+        take = redo[fixed]
+        alpha[take], t[take], zncc[take] = a[fixed], w[fixed], zn[fixed]
+        checked[take] = True
+    gone = redo[~fixed]  # lost: they keep their last good pose, as any lost unit
+    ok[gone], alpha[gone], t[gone] = False, state.alpha[gone], state.t[gone]
+    log.debug(
+        "%d poses disagree with their neighbours: %d found again, %d flagged lost",
+        redo.size,
+        redo.size - gone.size,
+        gone.size,
+    )
+    return ok, alpha, t, zncc, checked
 
 
 def _pieces_agree(

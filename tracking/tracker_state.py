@@ -37,6 +37,8 @@ class DICTracker:
         polygons_m: [n, nv, 2] reference outlines, sample frame, m.
         calib: camera calibration.
         cfg: tracker settings.
+        bonds: [nb, 4] int ligaments (unit a, vertex k, unit b, vertex l) for the check
+            against the neighbours (`tracking.units.bonds_from_outlines`), None: no check.
         polys_px: [n, nv, 2] reference outlines in rectified pixels.
         centroid_px: [n, 2] area centroids in rectified pixels.
     """
@@ -44,12 +46,21 @@ class DICTracker:
     polygons_m: np.ndarray
     calib: Calibration
     cfg: DICConfig = field(default_factory=DICConfig)
+    bonds: np.ndarray | None = None
     polys_px: np.ndarray = field(init=False)
     centroid_px: np.ndarray = field(init=False)
 
     def __post_init__(self):
         polys = validate_polygons(self.polygons_m)
         object.__setattr__(self, "polygons_m", polys)
+        if self.bonds is not None:
+            b = np.asarray(self.bonds, np.int64).reshape(-1, 4)
+            n, nv = polys.shape[:2]
+            if np.any(b < 0) or np.any(b[:, [0, 2]] >= n) or np.any(b[:, [1, 3]] >= nv) \
+                    or np.any(b[:, 0] == b[:, 2]):
+                raise ValueError("bonds must join vertices (< n_vertices) of two distinct "
+                                 "units (< n_units)")
+            object.__setattr__(self, "bonds", b)
         object.__setattr__(self, "polys_px", self.calib.sample_to_px(polys))
         object.__setattr__(self, "centroid_px", self.calib.sample_to_px(area_centroids(polys)))
 

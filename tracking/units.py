@@ -62,3 +62,56 @@ def load_unit_polygons(path: str | Path) -> np.ndarray:
     if not isinstance(data, dict) or "polygons_m" not in data:
         raise UnitsError(f"{path}: no top-level key 'polygons_m' (unit outlines in metres)")
     return validate_polygons(data["polygons_m"], where=str(path))
+
+
+# a ligament's two vertices are this close to its length apart (relative): the design engine
+# moves both with one shift, so in the outlines every ligament keeps its length exactly
+# (728 of 728 on the 24x16 focusing design; the nearest pair that is no ligament is 4e-5 off)
+BOND_LENGTH_TOL = 1e-6
+
+
+def bonds_from_outlines(polygons_m: np.ndarray, ligament_length_m: float | None = None
+                        ) -> np.ndarray:
+    """The lattice's ligaments found in its outlines: [nb, 4] int (unit a, vertex k, unit b,
+    vertex l), a < b, for every pair of vertices of two units that lie the ligament length
+    apart (within `BOND_LENGTH_TOL`). Without a length, the median distance of each vertex to
+    the nearest vertex of another unit is taken (the ligaments, in a lattice bonded at its
+    vertices). Empty [0, 4] when none is found."""
+    p = np.asarray(polygons_m, np.float64)
+    n, nv, _ = p.shape
+    v = p.reshape(-1, 2)
+    owner = np.repeat(np.arange(n), nv)
+
+    def blocks():  # distances to every other unit's vertices, in blocks of rows
+        for lo in range(0, v.shape[0], 1024):
+            d = np.linalg.norm(v[lo:lo + 1024, None, :] - v[None, :, :], axis=-1)
+            d[owner[lo:lo + 1024, None] == owner[None, :]] = np.inf
+            yield lo, d
+
+    length = ligament_length_m
+    if length is None:
+        length = float(np.median(np.concatenate([d.min(axis=1) for _, d in blocks()])))
+    if not np.isfinite(length) or length <= 0:
+        return np.zeros((0, 4), np.int64)
+    i, j = [], []
+    for lo, d in blocks():
+        a, b = np.nonzero((np.abs(d - length) <= BOND_LENGTH_TOL * length)
+                          & (owner[lo:lo + d.shape[0], None] < owner[None, :]))
+        i.append(a + lo)
+        j.append(b)
+    i, j = np.concatenate(i), np.concatenate(j)
+    return np.stack([owner[i], i % nv, owner[j], j % nv], axis=1).astype(np.int64)
+
+
+def load_unit_bonds(path: str | Path, polygons_m: np.ndarray) -> np.ndarray | None:
+    """The ligaments of a design file's lattice (`bonds_from_outlines` at its
+    `lattice.ligament_length_m`), None for a file without a lattice (plain outlines)."""
+    data = read_json(Path(path), UnitsError, "units")
+    lattice = data.get("lattice") if isinstance(data, dict) else None
+    if not isinstance(lattice, dict) or "ligament_length_m" not in lattice:
+        return None
+    try:
+        length = float(lattice["ligament_length_m"])
+    except (TypeError, ValueError):
+        raise UnitsError(f"{path}: lattice.ligament_length_m is not a number") from None
+    return bonds_from_outlines(polygons_m, length)

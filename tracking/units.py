@@ -103,15 +103,25 @@ def bonds_from_outlines(polygons_m: np.ndarray, ligament_length_m: float | None 
     return np.stack([owner[i], i % nv, owner[j], j % nv], axis=1).astype(np.int64)
 
 
-def load_unit_bonds(path: str | Path, polygons_m: np.ndarray) -> np.ndarray | None:
-    """The ligaments of a design file's lattice (`bonds_from_outlines` at its
-    `lattice.ligament_length_m`), None for a file without a lattice (plain outlines)."""
-    data = read_json(Path(path), UnitsError, "units")
+def design_bonds(data, polygons_m: np.ndarray, where: str = "design") -> np.ndarray | None:
+    """The ligaments of a parsed design (`bonds_from_outlines` at its
+    `lattice.ligament_length_m`), None for one without a lattice (plain outlines).
+
+    Raises:
+        UnitsError: the ligament length is no positive number (naming `where`)."""
     lattice = data.get("lattice") if isinstance(data, dict) else None
     if not isinstance(lattice, dict) or "ligament_length_m" not in lattice:
         return None
     try:
         length = float(lattice["ligament_length_m"])
     except (TypeError, ValueError):
-        raise UnitsError(f"{path}: lattice.ligament_length_m is not a number") from None
+        length = float("nan")
+    if not length > 0:
+        raise UnitsError(f"{where}: lattice.ligament_length_m is not a positive number")
     return bonds_from_outlines(polygons_m, length)
+
+
+def load_unit_bonds(path: str | Path, polygons_m: np.ndarray) -> np.ndarray | None:
+    """The ligaments of a design file's lattice (`design_bonds`), None for a file without a
+    lattice (plain outlines)."""
+    return design_bonds(read_json(Path(path), UnitsError, "units"), polygons_m, str(path))

@@ -5,7 +5,9 @@ Interfaces (node name `dic_tracker`):
   the callback only hands the frame to `LivePreview` (newest-frame slot), so it never waits
   for tracking and the camera is never blocked;
 - subscribes `/rig/design` (std_msgs/String JSON with `polygons_m`, latched) when
-  `units_path` is empty;
+  `units_path` is empty; where the design (or the units file) carries its lattice
+  (`lattice.ligament_length_m`), every pose is also checked against its bonded neighbours
+  (`tracking.neighbours`);
 - publishes `poses_topic` (metarig_msgs/UnitPose2DArray, default `/dic/poses`) at most
   `preview_rate_hz`: ids, x, y (reference centroid + displacement, m, sample frame), theta
   (rad, CCW), quality (ZNCC), lost (x, y, theta NaN); the stamp is the frame's;
@@ -35,7 +37,7 @@ from ros_nodes.nodes._params import TypedParams
 from tracking.calibration import CalibrationError
 from tracking.dic import DICTracker
 from tracking.live import LivePreview
-from tracking.units import UnitsError, load_unit_polygons
+from tracking.units import UnitsError, design_bonds, load_unit_bonds, load_unit_polygons
 from tracking.units import validate_polygons as _validate
 
 NAME = "dic_tracker"
@@ -62,18 +64,21 @@ class DICTrackerNode(Node):
         self.create_service(Trigger, T.DIC_RESET.name, self._on_reset)
         if cfg.units_path:
             try:
-                self._start(load_unit_polygons(cfg.units_path))
+                polys = load_unit_polygons(cfg.units_path)
+                self._start(polys, load_unit_bonds(cfg.units_path, polys))
             except UnitsError as e:
                 raise SystemExit(f"{NAME}: {e}") from None
         else:
             self.create_subscription(String, topics.RIG_DESIGN.name, self._on_design, LATCHED)
             self.get_logger().info(f"waiting for the unit outlines on {topics.RIG_DESIGN.name}")
 
-    def _start(self, polygons: np.ndarray) -> None:
+    def _start(self, polygons: np.ndarray, bonds: np.ndarray | None = None) -> None:
+        """Track these outlines; `bonds`: the lattice's ligaments, for the check of every pose
+        against its neighbours (None: a design without a lattice, no such check)."""
         cfg = self._params.config
         if self._preview is not None:
             self._preview.close()
-        tracker = DICTracker(polygons, self._calib, cfg.tracker)
+        tracker = DICTracker(polygons, self._calib, cfg.tracker, bonds)
         self._centroids = area_centroids(tracker.polygons_m)
         self._preview = LivePreview(tracker, cfg.preview_rate_hz, self._publish,
                                     cfg.threads).start()
@@ -84,8 +89,9 @@ class DICTrackerNode(Node):
 
     def _on_design(self, msg: String) -> None:
         try:
-            polys = json.loads(msg.data)["polygons_m"]
-            self._start(_validate(polys, where=topics.RIG_DESIGN.name))
+            design = json.loads(msg.data)
+            polys = _validate(design["polygons_m"], where=topics.RIG_DESIGN.name)
+            self._start(polys, design_bonds(design, polys, topics.RIG_DESIGN.name))
         except (ValueError, KeyError, TypeError) as e:
             self.get_logger().error(f"{topics.RIG_DESIGN.name} has no usable polygons_m: {e}")
 

@@ -138,6 +138,20 @@ def _interp(coef, ix, iy, tx, ty):
             + wy3 * _row(coef, iy + 2, ix, wx0, wx1, wx2, wx3))
 
 
+@njit(cache=True, fastmath=True, nogil=True)
+def _all_inside(dx, dy, n, ca, sa, ox, oy, h, w) -> bool:
+    """Whether the 4x4 spline support of every one of the n points (dx, dy) [M], rotated by
+    (ca, sa) and moved to (ox, oy), lies inside an [h, w] image (as `bspline_sample` needs)."""
+    for m in range(n):
+        px = ca * dx[m] - sa * dy[m] + ox
+        py = sa * dx[m] + ca * dy[m] + oy
+        ix = math.floor(px)
+        iy = math.floor(py)
+        if ix < 1 or iy < 1 or ix > w - 3 or iy > h - 3:
+            return False
+    return True
+
+
 @njit(cache=True, fastmath=True, parallel=True, nogil=True)
 def icgn_batch(
     coef, cx, cy, dx, dy, ft, jac, count, hinv, sumj, sumjf, df, rmax,
@@ -187,19 +201,21 @@ def icgn_batch(
             s0 = 0.0
             s1 = 0.0
             s2 = 0.0
-            # the whole subset lies within rmax of the centre: check the frame once per unit
+            # the whole subset lies within rmax of the centre: check the frame once per unit,
+            # point by point only near its edges, in a pass of its own (a test inside the
+            # summing loop below, even one never taken, kept it from vectorising: 2x slower)
             reach = rmax[b] + 1e-6
             safe = (ox - reach >= 1.0) and (oy - reach >= 1.0) and (ox + reach < w - 2.0) \
                 and (oy + reach < h - 2.0)
+            if not safe and not _all_inside(dxb, dyb, n, ca, sa, ox, oy, h, w):
+                inside[ii] = False
+                break
             for m in range(n):
                 ddx, ddy = dxb[m], dyb[m]
                 px = ca * ddx - sa * ddy + ox
                 py = sa * ddx + ca * ddy + oy
                 ix = math.floor(px)
                 iy = math.floor(py)
-                if not safe and (ix < 1 or iy < 1 or ix > w - 3 or iy > h - 3):
-                    inside[ii] = False
-                    break
                 g = _interp(coef, ix, iy, px - ix, py - iy)
                 sg += g
                 sgg += g * g
@@ -207,8 +223,6 @@ def icgn_batch(
                 s0 += j0b[m] * g
                 s1 += j1b[m] * g
                 s2 += j2b[m] * g
-            if not inside[ii]:
-                break
             gm = sg / n
             dg2 = sgg - n * gm * gm
             if not dg2 > 1e-9 * (1.0 + sgg):

@@ -11,9 +11,17 @@ Conventions: images are [rows, cols]; positions are (col, row) with pixel centre
 """
 
 import math
+import os
 
-import numpy as np
-from numba import njit, prange
+# numba's OpenMP threads otherwise spin between the batches of every frame (GNU OpenMP's
+# default "active" wait), burning a core while the reader thread decodes the next frame: on 2
+# cores 90 ms of CPU a frame against 60 and 14 s against 6.5 s of wall time for 100 frames of
+# the optimised design (benchmarks/bench_dic_design.py). Read when OpenMP starts, at the first
+# parallel call; a value set by the user is kept
+os.environ.setdefault("OMP_WAIT_POLICY", "passive")
+
+import numpy as np  # noqa: E402
+from numba import njit, prange  # noqa: E402
 
 _POLE = math.sqrt(3.0) - 2.0  # pole of the cubic B-spline interpolation filter
 

@@ -173,11 +173,15 @@ def build_refs(
     ph = patch_half if patch_half is not None else int(np.ceil(max(rin.max(), 1.0))) + 2
     corner = np.rint(centres_px).astype(np.int64) - ph
     patch = np.zeros((n, 2 * ph + 1, 2 * ph + 1), np.float32)
-    pad = np.pad(img, ph + 1, mode="constant")
+    size = 2 * ph + 1
+    reach = ph + 1  # a patch may stick out of the frame this far (zeros there)
     for b in range(n):
-        c, r = corner[b] + ph + 1
-        if 0 <= r and r + 2 * ph + 1 <= pad.shape[0] and 0 <= c and c + 2 * ph + 1 <= pad.shape[1]:
-            patch[b] = pad[r : r + 2 * ph + 1, c : c + 2 * ph + 1]
+        c, r = corner[b]
+        if -reach <= r and r + size <= shape[0] + reach and -reach <= c \
+                and c + size <= shape[1] + reach:
+            r0, c0 = max(r, 0), max(c, 0)
+            r1, c1 = min(r + size, shape[0]), min(c + size, shape[1])
+            patch[b, r0 - r : r1 - r, c0 - c : c1 - c] = img[r0:r1, c0:c1]
     return RefSet(
         centre_px=np.asarray(centres_px, np.float64).copy(),
         dx=dx, dy=dy, ft=ft, df=df, jac=jac, hinv=hinv, sumj=sumj, sumjf=sumjf, mask=mask, count=count, rmax=rmax,
@@ -202,10 +206,13 @@ def replace_refs(refs: RefSet, idx: np.ndarray, new: RefSet, in_place: bool = Fa
     m = max(refs.dx.shape[1], new.dx.shape[1])
     if in_place and m == refs.dx.shape[1]:
         for name in RefSet.__slots__:
-            new_a = getattr(new, name)
+            new_a, a = getattr(new, name), getattr(refs, name)
             if name in ("dx", "dy", "ft", "jac", "mask"):
-                new_a = _pad_to(new_a, m)
-            getattr(refs, name)[idx] = new_a
+                k = new_a.shape[-1]
+                a[idx, ..., :k] = new_a
+                a[idx, ..., k:] = 0
+            else:
+                a[idx] = new_a
         return refs
     out = {}
     for name in RefSet.__slots__:

@@ -58,7 +58,9 @@ def split_refs(refs: RefSet, parts: int = 2) -> Pieces:
     cxy = ((dx - mx) * (dy - my) * mask).sum(1)
     axis = 0.5 * np.arctan2(2.0 * cxy, cxx - cyy)
     along = (dx - mx) * np.cos(axis)[:, None] + (dy - my) * np.sin(axis)[:, None]
-    rank = np.argsort(np.argsort(np.where(mask, along, np.inf), axis=1, kind="stable"), axis=1)
+    by_axis = np.argsort(np.where(mask, along, np.inf), axis=1, kind="stable")
+    rank = np.empty_like(by_axis)  # the inverse permutation: each point's place along the axis
+    np.put_along_axis(rank, by_axis, np.arange(m)[None, :], axis=1)
     piece = np.where(mask, rank * parts // cnt, -1)
     src = np.repeat(np.arange(n), parts)
     pm = piece[src] == np.tile(np.arange(parts), n)[:, None]
@@ -66,14 +68,16 @@ def split_refs(refs: RefSet, parts: int = 2) -> Pieces:
     usable = np.repeat(np.min(k.reshape(n, parts), axis=1) >= MIN_PIECE_POINTS, parts)
     pm &= usable[:, None]
     k = np.where(usable, k, 0)
-    # each piece's points to the front, in their original order
-    order = np.argsort(~pm, axis=1, kind="stable")
+    # each piece's points to the front, in their original order (row-major nonzero: each
+    # row's columns ascending)
     width = max(int(k.max()), 1)
-    order = order[:, :width]
-    keep = np.take_along_axis(pm, order, 1)
+    rows, cols = np.nonzero(pm)
+    order = np.zeros((n * parts, width), np.int64)
+    order[rows, np.arange(rows.size) - np.repeat(np.cumsum(k) - k, k)] = cols
+    keep = np.arange(width)[None, :] < k[:, None]
 
     def gather(a):
-        return np.where(keep, np.take_along_axis(a[src].astype(np.float64), order, 1), 0.0)
+        return np.where(keep, a[src[:, None], order].astype(np.float64), 0.0)
 
     kk = np.maximum(k, 1)
     pdx, pdy = gather(refs.dx), gather(refs.dy)

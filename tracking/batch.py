@@ -47,7 +47,7 @@ from tracking.frame_sources import (
     iter_frames,
     recorded_reference,
 )
-from tracking.reference import subset_pixels
+from tracking.reference import unit_subsets
 
 log = logging.getLogger("metarig.track")
 
@@ -150,8 +150,9 @@ def check_outlines(tracker: DICTracker, reference: np.ndarray,
     lo, hi = np.percentile(prep.img, [1.0, 99.0])
     outside = n - int(inside.sum())
     flat = 0
+    subsets = unit_subsets(p, tracker.cfg.margin_px, (h, w))  # kept for the first reference
     for b in np.flatnonzero(inside):
-        pts = subset_pixels(p[b], tracker.cfg.margin_px, (h, w))
+        pts = subsets[b]
         if pts.shape[0] and prep.img[pts[:, 1], pts[:, 0]].std() < texture_frac * (hi - lo):
             flat += 1
     if 2 * (outside + flat) > n:

@@ -77,6 +77,16 @@ def test_rotation_ramp_to_0p3_rad_with_reference_updates():
     pos, rot = errors_px(scene, q, truth)
     assert pos < 0.01 and rot < 0.5
     assert np.all(np.abs(st.ref_alpha) > 0.15)  # references were refreshed on the way
+    # refreshed in place in the tracker's own arrays, never in the reference image's subsets
+    # (the drift-free check registers against those), which stay as first extracted
+    tr = DICTracker(scene.polygons_m, scene.calib, DICConfig())
+    fresh = init_state(tr, frames[0])
+    assert st.refs_own and st.refs.ft is not st.refs0.ft
+    for name in fresh.refs0.__slots__:
+        np.testing.assert_array_equal(getattr(st.refs0, name), getattr(fresh.refs0, name))
+        np.testing.assert_array_equal(getattr(st.pieces0.refs, name),
+                                      getattr(fresh.pieces0.refs, name))
+    assert not np.array_equal(st.refs.ft, st.refs0.ft)
 
 
 def test_noise_blur_shot_and_uneven_lighting():

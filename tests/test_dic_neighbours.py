@@ -99,3 +99,17 @@ def test_a_unit_found_on_its_neighbours_identical_texture_is_never_returned_as_g
     bad, lost0 = run(cfg)
     assert bad == 0
     assert lost0[3] and not any(lost0[:3]) and not any(lost0[8:])
+
+
+def test_each_worker_checks_the_ligaments_between_its_own_units():
+    from tracking.batch import _job_bonds
+
+    scene = make_scene(3, 2)
+    bonds = bonds_from_outlines(scene.polygons_m)
+    ids = np.array([3, 4, 5])  # the second row, as `track_source` splits 2 workers
+    local = _job_bonds(bonds, ids, scene.n)
+    assert {(int(a), int(b)) for a, _, b, _ in local} == {(0, 1), (1, 2)}  # 3-4 and 4-5
+    keep = np.isin(bonds[:, 0], ids) & np.isin(bonds[:, 2], ids)
+    np.testing.assert_array_equal(ids[local[:, [0, 2]]], bonds[keep][:, [0, 2]])
+    np.testing.assert_array_equal(local[:, [1, 3]], bonds[keep][:, [1, 3]])
+    assert _job_bonds(None, ids, scene.n) is None

@@ -10,8 +10,10 @@ from tracking.dic import DICConfig
 
 # the preview tracks a decimated stream (`preview_rate_hz` of a 1000 fps camera): units move
 # further between the frames it sees than between a camera's frames, so its search windows are
-# twice the offline tracker's
-LIVE_TRACKER = DICConfig(search_radius_px=24, lost_search_radius_px=48)
+# twice the offline tracker's, and of the neighbours' check only the ligaments' departure from
+# their rest vectors applies (their acceleration is bounded between a camera's frames: at the
+# largest value the bound is no test)
+LIVE_TRACKER = DICConfig(search_radius_px=24, lost_search_radius_px=48, neighbour_px=1000.0)
 
 
 @dataclass(frozen=True, slots=True)

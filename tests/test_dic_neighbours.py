@@ -54,6 +54,10 @@ def test_a_unit_moved_against_its_neighbours_is_implausible_and_they_are_not():
     exc = ligament_excess(tr, [(alpha[2], jumped), *poses[1:]], history)
     assert np.all(exc[(tr.bonds[:, 0] == 4) | (tr.bonds[:, 2] == 4)] > 0)
     assert implausible(tr, [(alpha[2], jumped), *poses[1:]], known, history)[4]
+    # with its history too: 30 px off in all three frames does not accelerate, but departs
+    history[4] = True
+    off = [(a, tt + np.where(np.arange(n)[:, None] == 4, [30.0, 0.0], 0.0)) for a, tt in poses]
+    assert implausible(tr, off, known, history).tolist() == [False] * 4 + [True, False]
 
 
 def test_a_unit_found_on_its_neighbours_identical_texture_is_never_returned_as_good():

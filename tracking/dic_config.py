@@ -29,16 +29,18 @@ class DICConfig:
             beyond it) is bounded by that instead.
         neighbour_px, neighbour_static_px: the check of every pose against its bonded
             neighbours (`tracking.neighbours`, where the tracker knows the lattice's ligaments):
-            a ligament whose end-to-end vector accelerates by more than neighbour_px in a frame
-            (second difference over three frames, both units tracked in all three), or, where
-            either unit lacks that history, departs more than neighbour_static_px from its
-            rest vector turned by its units' mean rotation, fails; a unit whose ligaments fail
-            to more than half of its tracked bonded neighbours is searched again from its
-            neighbours' motion and lost if that fails the check too. Set from the exact truth of the optimised 24x16
-            focusing design under its 7.5 mm pulse (benchmarks/bench_dic_design.py): at most
-            2.0 px and 7.6 px there (99.9 %: 0.77 and 4.0 px), so the bounds flag gross errors
-            (a match on a neighbour's or a self-similar texture), not fine ones (the pieces'
-            check's job).
+            a ligament whose end-to-end vector departs more than neighbour_static_px from its
+            rest vector turned by its units' mean rotation, or accelerates by more than
+            neighbour_px in a frame (second difference over three frames, both units tracked
+            in all three), fails; a unit whose ligaments fail to more than half of its tracked
+            bonded neighbours is searched again from its neighbours' motion and lost if that
+            fails the check too. Set from the exact truth of the optimised 24x16 focusing
+            design under its 7.5 mm pulse at 1000 fps (benchmarks/bench_dic_design.py): at
+            most 7.6 px and 2.0 px there (99.9 %: 4.0 and 0.77 px), so the bounds flag gross
+            errors (a match on a neighbour's or a self-similar texture), not fine ones (the
+            pieces' check's job). The acceleration bound holds between a camera's consecutive
+            frames, not between frames far apart (the live preview's: `ros_nodes.dic_params`
+            leaves it out).
         sigma_floor_px, sigma_blur_share: the systematic part of each pose's standard error
             (`tracking.pose_sigma`), in quadrature with the noise part. Both defaults are
             measured on the simulated rig's footage (exposure half a frame); on a real camera,
@@ -136,7 +138,7 @@ class DICConfig:
     neighbour_static_px: float = param(
         10.0,
         "largest departure of a ligament's end-to-end vector from its rest vector turned "
-        "by its units' mean rotation, where a unit has no history, px",
+        "by its units' mean rotation, px",
         0.0,
         1000.0,
     )

@@ -4,10 +4,11 @@ Where the tracker knows the lattice's ligaments (`DICTracker.bonds`), each ligam
 end-to-end vector is measured from the poses of the two units it joins: the vector from vertex
 k of unit a to vertex l of unit b. A real ligament bends, stretches and turns with its units,
 but smoothly; a unit registered on the wrong texture (a neighbour's, a self-similar stretch of
-its own) moves its ligaments' ends abruptly. With three frames of both units' poses the
-vector's second difference (its acceleration in px per frame squared) is bounded by
-`DICConfig.neighbour_px`; without that history, the vector's departure from its rest vector
-turned by the units' mean rotation by `DICConfig.neighbour_static_px`. A unit whose ligaments
+its own) moves its ligaments' ends abruptly. The vector's departure from its rest vector
+turned by the units' mean rotation is bounded by `DICConfig.neighbour_static_px`, and, with
+three frames of both units' poses, its second difference (its acceleration in px per frame
+squared) by `DICConfig.neighbour_px`, the finer test where it applies (not between frames
+far apart, as the live preview's: there only the first). A unit whose ligaments
 fail to more than half of its tracked bonded neighbours is implausible (`implausible`);
 `tracking.dic.track_frame` searches it again from its plausible neighbours' motion and flags it
 lost if that fails too.
@@ -31,11 +32,11 @@ def vertex_px(tracker: DICTracker, units: np.ndarray, verts: np.ndarray, alpha: 
 
 def ligament_excess(tracker: DICTracker, poses: list[tuple[np.ndarray, np.ndarray]],
                     history: np.ndarray) -> np.ndarray:
-    """How far each ligament's motion exceeds its bound (px; > 0 fails), from poses
-    [(alpha [n], t [n, 2])] of this frame and, where `history` [n] holds for both of its units,
-    the two frames before (the second difference against `neighbour_px`); elsewhere this
-    frame's departure from the rest vector turned by the mean rotation (`neighbour_static_px`).
-    """
+    """How far each ligament's motion exceeds its bounds (px; > 0 fails), from poses
+    [(alpha [n], t [n, 2])] of this frame and the two frames before: the larger of this frame's
+    departure from the rest vector turned by the mean rotation (over `neighbour_static_px`) and,
+    where `history` [n] holds for both of its units, the second difference (over
+    `neighbour_px`)."""
     cfg = tracker.cfg
     a, ka, b, kb = tracker.bonds.T
 
@@ -52,7 +53,8 @@ def ligament_excess(tracker: DICTracker, poses: list[tuple[np.ndarray, np.ndarra
         return static
     acc = np.linalg.norm(e[0] - 2.0 * e[1] + e[2], axis=-1) - cfg.neighbour_px
     with np.errstate(invalid="ignore"):
-        return np.where(history[a] & history[b] & np.isfinite(acc), acc, static)
+        return np.maximum(static, np.where(history[a] & history[b] & np.isfinite(acc), acc,
+                                           -np.inf))
 
 
 def implausible(tracker: DICTracker, poses: list[tuple[np.ndarray, np.ndarray]],

@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from design_engine._types import Array, BlockState, Float, Scalar
-from design_engine.physics.angles import bond_angles
+from design_engine.physics.angles import atan2, bond_angles
 from design_engine.physics.geometry import BlockGeometry
 from design_engine.physics.lattice import Lattice
 from design_engine.physics.material import Material
@@ -37,8 +37,9 @@ BondTerms = dict[str, Float[Array, " n_bonds"]]  # term name -> per-bond energy,
 
 
 def wrap(phi):
-    """Map angles onto [-pi, pi)."""
-    return jnp.mod(phi + PI, 2.0 * PI) - PI
+    """Map angles onto [-pi, pi) (by floor: XLA's CPU float remainder, `jnp.mod`, cost 12 us
+    per force evaluation on 1456 void angles, this 0.3 us)."""
+    return phi - 2.0 * PI * jnp.floor((phi + PI) / (2.0 * PI))
 
 
 class BondGeometry(eqx.Module):
@@ -152,8 +153,8 @@ def make_bond_measures(lattice: Lattice, *, linearized: bool = False):
             # shear angle: from the reference ligament carried by the mean rotation to the current one
             c, s = hc1 * hc2 - hs1 * hs2, hs1 * hc2 + hc1 * hs2  # cos, sin of the mean rotation
             carried = jnp.stack([c * r0[:, 0] - s * r0[:, 1], s * r0[:, 0] + c * r0[:, 1]], axis=-1)
-            shear = jnp.arctan2(carried[:, 0] * ell[:, 1] - carried[:, 1] * ell[:, 0],
-                                carried[:, 0] * ell[:, 0] + carried[:, 1] * ell[:, 1])
+            shear = atan2(carried[:, 0] * ell[:, 1] - carried[:, 1] * ell[:, 0],
+                          carried[:, 0] * ell[:, 0] + carried[:, 1] * ell[:, 1])
         return BondMeasures(strain=strain, shear=shear, bend=bend,
                             voids=wrap(void_angles(bonds.void_ref, bend)), rest_length=l0)
 
@@ -303,6 +304,31 @@ def make_energy(lattice: Lattice, *, linearized: bool = False, use_contact: bool
         for value in terms_fn(q, bonds, mat).values():
             per_bond = value if per_bond is None else per_bond + value
         return jnp.sum(per_bond)
+
+    return energy
+
+
+def make_contact_energy(lattice: Lattice, model: Model = DEFAULT_MODEL):
+    """Factory: `energy(theta [n_blocks], bonds, material) -> contact energy (mJ)` from the
+    units' rotations alone (rad), for a solver that steps the contact terms apart from the rest
+    (`fixed_step.FixedStepVerlet.contact_substeps`).
+
+    The units are rigid, so a void angle turns with the relative rotation of its two units only
+    (`void_angles`): no translation and no transcendental per bond is needed, and 1-D gathers
+    of the rotations keep the reverse pass a cheap segment sum. The contact law gets measures
+    whose strain and shear are NaN, so a contact law that read them would make the solve fail
+    loudly rather than step a wrong force.
+    """
+    b1 = np.asarray(lattice.bond_blocks[:, 0])
+    b2 = np.asarray(lattice.bond_blocks[:, 1])
+
+    def energy(theta, bonds: BondGeometry, mat: Material) -> Scalar:
+        bend = theta[b2] - theta[b1]
+        unknown = jnp.full_like(bend, jnp.nan)
+        m = BondMeasures(strain=unknown, shear=unknown, bend=bend,
+                         voids=wrap(void_angles(bonds.void_ref, bend)),
+                         rest_length=lattice.ligament_length)
+        return sum(jnp.sum(v) for v in model.contact(m, mat).values())
 
     return energy
 

@@ -92,11 +92,13 @@ def ledger_start(v, mass, aux) -> Ledger:
     return Ledger(0.5 * jnp.dot(v, mass * v) + potential, zero, zero, power, zero, zero)
 
 
-def ledger_step(led: Ledger, dt, v, v1, mass, damping, aux1) -> Ledger:
-    """The account after a step `dt` from velocity `v` to `v1`, `aux1` = (V, P) at its end."""
+def ledger_step(led: Ledger, dt, v, v1, mass, damping, aux1, extra_work=0.0) -> Ledger:
+    """The account after a step `dt` from velocity `v` to `v1`, `aux1` = (V, P) at its end;
+    `extra_work`: input work done within the step that P does not cover (the fast forces'
+    prescribed-motion work of a split step, summed over its substeps)."""
     potential, power = jax.lax.stop_gradient(aux1)
-    v, v1, dt = jax.lax.stop_gradient((v, v1, dt))
-    work = led.work + 0.5 * dt * (led.power + power)
+    v, v1, dt, extra_work = jax.lax.stop_gradient((v, v1, dt, extra_work))
+    work = led.work + 0.5 * dt * (led.power + power) + extra_work
     dissipated = led.dissipated + 0.5 * dt * (jnp.dot(v, damping * v) + jnp.dot(v1, damping * v1))
     change = 0.5 * jnp.dot(v1, mass * v1) + potential - led.e0
     drift = jnp.maximum(led.drift, jnp.abs(change - work + dissipated))
@@ -168,22 +170,33 @@ class FixedStepVerlet(AbstractFixedStep):
             them (less memory, one more forward pass).
         refined: the step is a refinement the policy took after a rejected solve
             (`policy.next_config`), which it does not refine again.
+        contact_substeps: with contact, the contact forces are stepped this many times per
+            step (multiple time stepping, see `integrate`); 1 steps them with the rest.
     """
 
     max_dt: float = eqx.field(static=True, default=0.05)
     remat: bool = eqx.field(static=True, default=False)
     refined: bool = eqx.field(static=True, default=False)
+    contact_substeps: int = eqx.field(static=True, default=1)
     stability_limited = True
 
     def __check_init__(self):
         if not self.max_dt > 0:
             raise ValueError(f"max_dt must be positive, got {self.max_dt} ms")
+        if not (isinstance(self.contact_substeps, int) and self.contact_substeps >= 1):
+            raise ValueError(f"contact_substeps must be a whole number >= 1, got "
+                             f"{self.contact_substeps}")
+
+    @property
+    def splits_contact(self) -> bool:
+        """True when the contact forces are stepped apart from the rest (`integrate`)."""
+        return self.contact_substeps > 1
 
     def make_integrator(self, grid: StepGrid, bond_blocks: np.ndarray, free: np.ndarray,
                         n_dof: int) -> Integrator:
-        def run(force, inv_mass, damping, y0, ts):
+        def run(force, inv_mass, damping, y0, ts, fast_force=None, fast_index=None):
             qs, vs, led = integrate(self, force, inv_mass, damping, y0, ts, 0.0, grid.n_pre,
-                                    grid.n_sub)
+                                    grid.n_sub, fast_force, fast_index)
             return qs, vs, jnp.asarray(True), energy_error(led)
 
         return run
@@ -193,7 +206,8 @@ class FixedStepVerlet(AbstractFixedStep):
 
     def summary(self) -> dict:
         return {"max_dt_s": self.max_dt * 1e-3, **({"refined": True} if self.refined else {}),
-                **({"remat": True} if self.remat else {})}
+                **({"remat": True} if self.remat else {}),
+                **({"contact_substeps": self.contact_substeps} if self.splits_contact else {})}
 
     def unstable_hint(self) -> str:
         return (" (the fixed step is above the stability limit 2/omega_max, or contact stiffened "
@@ -245,34 +259,82 @@ def march(step, carry, ts, t0: float, n_pre: int, n_sub: int, remat: bool = Fals
 
 
 def integrate(method: FixedStepVerlet, force, inv_mass, damping, y0, ts, t0: float, n_pre: int,
-              n_sub: int):
+              n_sub: int, fast_force=None, fast_index=None):
     """Integrate from t0 through the sample times.
+
+    With `fast_force` (and `method.contact_substeps` = n > 1) the step is split by multiple
+    time stepping (impulse r-RESPA): the slow forces (`force`: ligaments, damping, the
+    prescribed motion) kick at the ends of the step, and in between the fast contact forces are
+    stepped by n velocity-Verlet substeps of dt / n of the DOFs they act on (`fast_index`: the
+    rotations), while every other DOF drifts the whole step at its velocity. The contact
+    barrier's own frequency then limits the substep, not the step: the step stays at the
+    ligaments' limit while a void is pressed deep into the barrier. Symmetric, so second order
+    and symplectic like the plain scheme; the work-energy ledger (slow plus fast energy, the
+    fast forces' input work summed over the substeps) judges it the same way.
 
     Args:
         method: the scheme settings.
-        force: `force(q, t) -> (F, (V, P))` (see `Integrator`).
+        force: `force(q, t) -> (F, (V, P))` (see `Integrator`); with `fast_force`, the slow part.
         inv_mass, damping: [n] diagonal inverse mass and damping.
         y0: (q0, v0), each [n].
         ts: [n_t] sample times (the first may equal t0).
         n_pre: steps from t0 to ts[0] (static; 0 when ts[0] == t0).
         n_sub: steps between consecutive samples (static).
+        fast_force: None, or `fast_force(q[fast_index], t) -> (F [n_fast], (V, P))` of the
+            contact terms alone, which act on the DOFs `fast_index` only (static indices).
 
     Returns:
         (q [n_t, n], v [n_t, n]) at the sample times and the final `Ledger`.
     """
     half_c = 0.5 * inv_mass * damping
     mass = 1.0 / inv_mass
+    n_fast = method.contact_substeps if fast_force is not None else 1
+
+    if fast_force is not None:
+        # the fast force spread over every DOF by a gather (zero where it does not act): a
+        # scatter, and the reverse of one, took XLA's slow path
+        fast_index = np.asarray(fast_index)
+        spread = np.full(inv_mass.shape[0], fast_index.size)
+        spread[fast_index] = np.arange(fast_index.size)
+
+        def fast_force_all(q, t):
+            f, aux = fast_force(q[fast_index], t)
+            return jnp.concatenate([f, jnp.zeros(1, f.dtype)])[spread], aux
+
+    def drift_and_fast_kicks(q, v, ff, t, dt):
+        """The substeps between the slow half kicks: (q, v, (fast force, its (V, P)), the fast
+        forces' input work) at t + dt."""
+        if fast_force is None:
+            return q + dt * v, v, ff, 0.0
+        h = dt / n_fast
+        work = 0.0
+        power0 = ff[1][1]
+        for k in range(n_fast):
+            v = v + 0.5 * h * inv_mass * ff[0]
+            q = q + h * v
+            ff = fast_force_all(q, t + (k + 1) * h)
+            v = v + 0.5 * h * inv_mass * ff[0]
+            power1 = ff[1][1]
+            work = work + 0.5 * h * (power0 + power1)
+            power0 = power1
+        return q, v, ff, work
 
     def step(carry, t, dt):
-        q, v, f, led = carry
+        q, v, f, ff, led = carry
         v_half = v + 0.5 * dt * inv_mass * (f - damping * v)
-        q1 = q + dt * v_half
+        q1, v_half, ff1, fast_work = drift_and_fast_kicks(q, v_half, ff, t, dt)
         f1, aux1 = force(q1, t + dt)
         v1 = (v_half + 0.5 * dt * inv_mass * f1) / (1.0 + dt * half_c)
-        return (q1, v1, f1, ledger_step(led, dt, v, v1, mass, damping, aux1))
+        if ff1 is not None:  # the ledger sees the whole potential, and the fast input work
+            aux1 = (aux1[0] + ff1[1][0], aux1[1])
+        return (q1, v1, f1, ff1, ledger_step(led, dt, v, v1, mass, damping, aux1, fast_work))
 
     q0, v0 = y0
-    f0, aux0 = force(q0, jnp.asarray(t0, ts.dtype))
-    carry = (q0, v0, f0, ledger_start(v0, mass, aux0))
+    t_start = jnp.asarray(t0, ts.dtype)
+    f0, aux0 = force(q0, t_start)
+    ff0 = fast_force_all(q0, t_start) if fast_force is not None else None
+    if ff0 is not None:
+        aux0 = (aux0[0] + ff0[1][0], aux0[1])
+    carry = (q0, v0, f0, ff0, ledger_start(v0, mass, aux0))
     last, qs, vs = march(step, carry, ts, t0, n_pre, n_sub, method.remat)
-    return qs, vs, last[3]
+    return qs, vs, last[4]

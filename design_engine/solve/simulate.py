@@ -15,7 +15,8 @@ import numpy as np
 from design_engine._types import Array, DesignVector, Float, Int
 from design_engine.physics.dynamics import (VELOCITY_SCALE, make_dynamics_args, make_full_state,
                                             make_rhs)
-from design_engine.physics.energy import DEFAULT_MODEL, Model, followed_voids, make_energy
+from design_engine.physics.energy import (DEFAULT_MODEL, Model, followed_voids,
+                                          make_contact_energy, make_energy)
 from design_engine.physics.geometry import block_geometry
 from design_engine.physics.lattice import Lattice
 from design_engine.physics.loading import Loading, Supports, make_prescribed
@@ -126,14 +127,23 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
             under the closed stages, solved in float64 with the model's energy and
             differentiated by the implicit function theorem, `statics.make_static_solver`).
     """
-    energy_fn = make_energy(lattice, linearized=config.linearized, use_contact=config.use_contact,
-                            model=model)
+    # a fixed step that steps the contact terms apart (`FixedStepVerlet.contact_substeps`): the
+    # slow force without them, the fast one of them alone (from the rotations)
+    split = (config.use_contact and is_fixed_step(config.solver)
+             and getattr(config.solver, "splits_contact", False))
+    energy_fn = make_energy(lattice, linearized=config.linearized,
+                            use_contact=config.use_contact and not split, model=model)
+    contact_fn = make_contact_energy(lattice, model) if split else None
     rhs = make_rhs(supports, energy_fn, VELOCITY_SCALE)
     full = make_full_state(supports)
     _, prescribed = make_prescribed(supports)
     free = np.asarray(supports.free)
     constrained = np.asarray(supports.constrained)
     n_free, nb = free.size, lattice.n_blocks
+    free_rotations = np.flatnonzero(free % 3 == 2)  # where the free rotations sit in q_f
+    fixed_theta = np.flatnonzero(constrained % 3 == 2)  # where the prescribed ones sit in q_c
+    # unit k's rotation is entry theta_order[k] of [free rotations, prescribed rotations]
+    theta_order = np.argsort(np.concatenate([free[free_rotations], constrained[fixed_theta]]))
     bb = np.asarray(lattice.bond_blocks)
     fixed = is_fixed_step(config.solver)
     if fixed:
@@ -167,9 +177,24 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
             power = jnp.dot(grad[constrained], prescribed(t, args.loading)[1])
             return -grad[free], (potential, power)
 
+        def fast_force(theta_f, t):
+            # the contact terms on the free rotations alone; the prescribed rotations' reactions
+            # give the power their motion puts in
+            qc, qc_dot = prescribed(t, args.loading)
+
+            def contact(th_f, th_c):  # every unit's rotation by a gather (no scatter)
+                return contact_fn(jnp.concatenate([th_f, th_c])[theta_order], args.bonds,
+                                  args.material)
+
+            potential, (g_f, g_c) = jax.value_and_grad(contact, argnums=(0, 1))(
+                theta_f, qc[fixed_theta])
+            return -g_f, (potential, jnp.dot(g_c, qc_dot[fixed_theta]))
+
         q0, v0 = y0[:n_free], y0[n_free:] / VELOCITY_SCALE
         n = jnp.asarray(grid.n_steps)
-        qs, vs, converged, drift = integrate(force, args.inv_mass, args.damping, (q0, v0), ts)
+        fast = {"fast_force": fast_force, "fast_index": free_rotations} if split else {}
+        qs, vs, converged, drift = integrate(force, args.inv_mass, args.damping,
+                                             (q0, v0), ts, **fast)
         result = jnp.where(converged, 0, NOT_CONVERGED).astype(jnp.int32)
         return qs, vs, (result, n, n, jnp.asarray(0)), drift
 

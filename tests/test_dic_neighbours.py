@@ -72,16 +72,15 @@ def test_a_unit_found_on_its_neighbours_identical_texture_is_never_returned_as_g
     centres, weights = tex.centres_m.copy(), tex.weights.copy()
     centres[1], weights[1] = centres[0], weights[0]
     scene = replace(scene, textures=SpeckleTextures(centres, weights, tex.sigma_m))
+    # unit 0 drifts 0.3 px a frame with the others; a 50 px square over it, then its left part
+    truth = np.zeros((10, scene.n, 3))
+    truth[..., 0] = 0.3 * np.arange(10)[:, None] * scene.cfg.m_per_px
+    col, row = scene.calib.sample_to_px(scene.polygons_m[0].mean(axis=0)) - 25.0
+    rr, cc = np.mgrid[:scene.cfg.height_px, :scene.cfg.width_px]
+    box = (rr >= row) & (rr < row + 50) & (cc >= col)
+    hidden, part = box & (cc < col + 50), box & (cc < col + 19)
+    occ = [None] * 3 + [hidden] * 3 + [part] * 2 + [None] * 2
     rng = np.random.default_rng(3)
-    n_t = 10
-    truth = np.zeros((n_t, scene.n, 3))
-    truth[..., 0] = 0.3 * np.arange(n_t)[:, None] * scene.cfg.m_per_px
-    c = scene.calib.sample_to_px(scene.polygons_m[0].mean(axis=0))
-    hidden = np.zeros((scene.cfg.height_px, scene.cfg.width_px), bool)
-    hidden[int(c[1]) - 25:int(c[1]) + 25, int(c[0]) - 25:int(c[0]) + 25] = True
-    part = np.zeros_like(hidden)
-    part[int(c[1]) - 25:int(c[1]) + 25, int(c[0]) - 25:int(c[0]) - 6] = True
-    occ = [hidden if 3 <= k < 6 else part if 6 <= k < 8 else None for k in range(n_t)]
     frames = [scene.render(p, rng, occlusion=o) for p, o in zip(truth, occ, strict=True)]
     bonds = bonds_from_outlines(scene.polygons_m)
 

@@ -2,10 +2,11 @@
 accuracy re-check of the accepted solves.
 
 Runs `metarig design focusing --max-evals N` twice in one benchmark, one after the other on the
-same machine: "before" from a checkout of `--before REF` (a git worktree under OUT; default
-f3dda59, the policy that handed a fixed step outgrown by the contact barrier to Dopri8 and kept
-Dopri8 while the designs stayed in contact) and "after" from this checkout. Then a sample of the
-"after" run's evaluations is re-checked: each design re-evaluated with the configuration that
+same machine (or both at once with `--parallel`, so that each sees the same load): "before"
+from a checkout of `--before REF` (a git worktree under OUT; default f3dda59, the policy that
+handed a fixed step outgrown by the contact barrier to Dopri8 and kept Dopri8 while the designs
+stayed in contact) and "after" from this checkout (or from a worktree of `--after REF`). Then a
+sample of the "after" run's evaluations is re-checked: each design re-evaluated with the configuration that
 counted for it and with Dopri8 at rtol 1e-10 / atol 1e-8 (contact, float64): relative error of
 J and cosine of the gradients.
 
@@ -22,6 +23,8 @@ time, the objective and how many programs the evaluator had compiled
 
     .venv/bin/python benchmarks/bench_focusing_run.py --out runs/bench-focusing-run
     .venv/bin/python benchmarks/bench_focusing_run.py --evals 20 --recheck 3 --out /tmp/bfr
+    .venv/bin/python benchmarks/bench_focusing_run.py --out runs/bench-focusing-run-mts \
+        --before 9ea842d --after 2f7a1c0 --parallel
     .venv/bin/python benchmarks/bench_focusing_run.py --out runs/bench-focusing-run \
         --replay 6 12 --before 35c7535
 """
@@ -33,6 +36,7 @@ import subprocess
 import sys
 import time
 from collections import Counter
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -82,6 +86,8 @@ def _kind(config: dict) -> str:
     if name == "FixedStepVerlet":
         name = "Verlet" + (" refined" if config.get("refined") else "")
         name += " contact" if config["use_contact"] else " no contact"
+        if config.get("contact_substeps", 1) > 1:
+            name += f" x{config['contact_substeps']} substeps"
     return name
 
 
@@ -102,6 +108,7 @@ def summarise(folder: Path, ran: dict) -> dict:
                                          and _kind(e["solver"]["pulse"]["config"]) == k))
                             for k in set(kinds)},
         "refined": sum("re-solved once at" in ev for ev in events),
+        "substepped": sum("contact forces stepped" in ev for ev in events),
         "to_dopri8": sum("Dopri8" in ev for ev in events),
         "curve": [[float(walls[: i + 1].sum()), e["objective"], bool(e["feasible"])]
                   for i, e in enumerate(evals)],
@@ -120,7 +127,8 @@ def _config(summary: dict):
     if summary["solver"] == "FixedStepVerlet":
         solver = FixedStepVerlet(max_dt=summary["max_dt_s"] * 1e3,
                                  refined=bool(summary.get("refined", False)),
-                                 remat=bool(summary.get("remat", False)))
+                                 remat=bool(summary.get("remat", False)),
+                                 contact_substeps=int(summary.get("contact_substeps", 1)))
         return SolverConfig(solver=solver, use_contact=summary["use_contact"],
                             dtype=summary["dtype"])
     return SolverConfig(solver=getattr(diffrax, summary["solver"])(), rtol=summary["rtol"],
@@ -253,12 +261,14 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, default=Path("runs/bench-focusing-run"))
     p.add_argument("--evals", type=int, default=60)
     p.add_argument("--before", default=BEFORE_REF, help="git ref of the 'before' policy")
+    p.add_argument("--after", help="git ref of the 'after' policy (default: this checkout)")
     p.add_argument("--recheck", type=int, default=6, help="evaluations of the 'after' run "
                    "re-checked against tight Dopri8 (0: none)")
     p.add_argument("--only", choices=("before", "after"), help="run one side only")
     p.add_argument("--replay", nargs=2, type=int, metavar=("FIRST", "LAST"),
                    help="replay these evaluations of the stored 'after' run, before and after")
-    p.add_argument("--parallel", action="store_true", help="--replay: both sides at once")
+    p.add_argument("--parallel", action="store_true",
+                   help="both sides at once (the runs, or with --replay the replays)")
     args = p.parse_args(argv)
     out = args.out.resolve()
     out.mkdir(parents=True, exist_ok=True)
@@ -276,18 +286,27 @@ def main(argv=None) -> int:
     def save():
         path.write_text(json.dumps(report, indent=1))
 
-    sides = {"before": lambda: source_tree(out, args.before), "after": lambda: REPO}
-    for label, src in sides.items():
-        if args.only and label != args.only:
-            continue
+    sides = {"before": lambda: source_tree(out, args.before),
+             "after": lambda: source_tree(out, args.after) if args.after else REPO}
+    sides = {k: v for k, v in sides.items() if not args.only or k == args.only}
+
+    def run_side(label):
         print(f"{label}: metarig design {TASK} --max-evals {args.evals}", flush=True)
         load0 = os.getloadavg()[0]
-        ran = run_design(src(), out / label, args.evals)
+        ran = run_design(sides[label](), out / label, args.evals)
         res = summarise(out / label, ran)
         if ran["resumed"] and label in report["runs"]:
             res["wall_s"] = report["runs"][label].get("wall_s")
-        report["runs"][label] = res | {"load_start": load0, "load_end": os.getloadavg()[0]}
+        report["runs"][label] = res | {"load_start": load0, "load_end": os.getloadavg()[0],
+                                       "parallel": args.parallel}
         save()
+
+    if args.parallel:  # both sides at once: the same load on each
+        with ThreadPoolExecutor(len(sides)) as pool:
+            list(pool.map(run_side, sides))
+    else:
+        for label in sides:
+            run_side(label)
     if args.recheck and (out / "after" / "history.json").exists():
         print(f"re-check: {args.recheck} evaluations of 'after' against Dopri8 rtol "
               f"{RECHECK_RTOL:g}", flush=True)

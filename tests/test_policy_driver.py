@@ -131,3 +131,24 @@ def test_an_evaluation_after_one_in_contact_starts_with_contact(scene):
     out = solve_with_policy(scene, VERLET, Script(healthy(scene)),
                             previous=(contact, healthy(scene)))  # left contact: the choice
     assert out.config == VERLET
+
+
+def test_a_failed_fixed_step_with_contact_is_substepped_once_before_dopri8(scene):
+    """A fixed step with contact that diverged most likely met a barrier that outgrew it: the
+    same step with the contact forces substepped AFTER_FAILURE_SUBSTEPS times, once, then the
+    fallback (a fixed step without contact, or one already substepped as much, falls back at
+    once)."""
+    from design_engine.solve.policy import AFTER_FAILURE_SUBSTEPS
+
+    contact = SolverConfig(solver=VERLET.solver, use_contact=True, dtype="float64")
+    solve = Script(SimulationError("the state diverged"), SimulationError("again"),
+                   healthy(scene))
+    out = solve_with_policy(scene, contact, solve)
+    assert [s.kind for s in out.steps] == [START, RESOLVE, FALLBACK] and out.fell_back
+    assert solve.calls[1].solver.contact_substeps == AFTER_FAILURE_SUBSTEPS
+    assert solve.calls[1].solver.max_dt == contact.solver.max_dt and solve.calls[1].use_contact
+    assert out.steps[1].error == "the state diverged" and "stepped 4 times" in out.steps[1].reason
+    assert out.steps[2].error == "again" and out.config == fallback_config()[0]
+    out = solve_with_policy(scene, contact, Script(SimulationError("x"), healthy(scene)))
+    assert [s.kind for s in out.steps] == [START, RESOLVE] and not out.fell_back
+    assert decide(VERLET, scene, error=SimulationError("x")).kind == FALLBACK

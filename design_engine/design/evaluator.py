@@ -246,10 +246,18 @@ class TaskEvaluator:
         # reasons[1] is the choice's line about the step (`policy.choose_config`)
         step_reason = (f"fixed-step Verlet, dt = {new_dt * 1e3:.1f} us = {STABILITY_SAFETY:g} x "
                        "the stability limit of the current design")
+        # the last configuration, in contact, continues at the new step with its contact
+        # substeps (it would only be re-reached through a rejected solve and two compilations)
+        last = st.last_config
+        if last is not None and last.use_contact and is_fixed_step(last.solver):
+            last = dataclasses.replace(last, solver=dataclasses.replace(
+                last.solver, max_dt=new_dt, refined=False))
+        else:
+            last = None  # its step is the old one
         return dataclasses.replace(
             st, config=SolverConfig(solver=solver.with_max_dt(new_dt),
                                     use_contact=st.config.use_contact, dtype=st.config.dtype),
-            last_config=None,  # its step is the old one
+            last_config=last,
             reasons=st.reasons[:1] + (step_reason,) + st.reasons[2:]), (
             f"{name}: highest natural frequency rose to {hz:.0f} Hz; fixed step "
             f"{dt * 1e3:.1f} us was {dt / limit:.2f} x the stability limit, re-chosen to "

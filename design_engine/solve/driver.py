@@ -10,7 +10,9 @@ through `decide` (what to do after a solve) and, for one solve at a time, `solve
    while that was in contact (`policy.start_config`, optimisers only);
 2. after a solve that did not fail, `policy.next_config` says whether the result stands or which
    configuration solves again (contact, half the step, Dopri8);
-3. after a solve that failed (`SimulationError`), the fallback solves once
+3. after a fixed-step solve with contact that failed, the same step with its contact forces
+   substepped (`policy.after_failure`, once); after any other solve that failed
+   (`SimulationError`), the fallback solves once
    (`policy.fallback_config`; the reference Dopri5 when the fallback itself failed), except
    that an adaptive solve which used up its step budget fails at once when the caller asks so
    (an optimiser steps back rather than grinding on a near-singular contact);
@@ -25,7 +27,8 @@ from typing import Generic, TypeVar
 
 from design_engine.physics.scenes import Scene
 from design_engine.solve.fixed_step import is_fixed_step
-from design_engine.solve.policy import fallback_config, next_config, start_config
+from design_engine.solve.policy import (after_failure, fallback_config, next_config,
+                                        start_config)
 from design_engine.solve.simulate import SimulationError, SolverConfig, StepBudgetError
 
 R = TypeVar("R")
@@ -45,7 +48,7 @@ class Step:
     kind: str  # START, CONTINUED, RESOLVE or FALLBACK
     config: SolverConfig
     reason: str
-    error: str = ""  # for FALLBACK: the failure of the solve before
+    error: str = ""  # for FALLBACK, or a RESOLVE after a failure: the failure of the solve before
 
 
 @dataclass(frozen=True)
@@ -104,6 +107,9 @@ def decide(config: SolverConfig, scene: Scene, *, health: dict | None = None,
         raise PolicyFailed(f"{error}; over the evaluation's step budget "
                            "(budget.max_solve_steps): the design counts as failed, with no "
                            "fallback", (), budget=True)
+    retry = after_failure(config)
+    if retry is not None:  # a fixed step with contact: the barrier most likely outgrew it
+        return Step(RESOLVE, retry[0], retry[1], str(error))
     fb, reason = fallback_config()
     fb = fallback or fb
     if config == fb:

@@ -227,8 +227,8 @@ def main(argv=None) -> int:
                    "start (the loop before issue 28 item 4, with --design-seed -1 --identify "
                    "task)")
     p.add_argument("--no-control", action="store_true", help="skip the control and the repeats")
-    p.add_argument("--fps-also", type=float, default=None, help="measure round 1's, round 2's "
-                   "and the control's designs once more with the camera at this frame rate "
+    p.add_argument("--fps-also", type=float, default=None, help="measure round 1's, round 2's, "
+                   "the control's (and the oracle's) designs once more with the camera at this frame rate "
                    "(the design engine's objective holds motion faster than 1 kHz resolves)")
     p.add_argument("--oracle", action="store_true", help="also run round 2's step with the "
                    "specimen's effective material (what a perfect calibration would carry), "

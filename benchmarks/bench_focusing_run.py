@@ -10,7 +10,8 @@ sample of the "after" run's evaluations is re-checked: each design re-evaluated 
 counted for it and with Dopri8 at rtol 1e-10 / atol 1e-8 (contact, float64): relative error of
 J and cosine of the gradients.
 
-Run folders OUT/before and OUT/after resume (`metarig design --resume`; a resumed run's wall time
+Each run compiles into a cache of its own (OUT/jax-cache-before, -after), empty when the run
+starts afresh, as on a fresh machine. Run folders OUT/before and OUT/after resume (`metarig design --resume`; a resumed run's wall time
 is the sum of its evaluations' `wall_s`, stated as such); OUT/bench_focusing_run.json is written
 after every part and OUT/bench_focusing_run.png (best feasible J against wall time, and where
 each evaluation's time went) at the end.
@@ -24,7 +25,7 @@ time, the objective and how many programs the evaluator had compiled
     .venv/bin/python benchmarks/bench_focusing_run.py --out runs/bench-focusing-run
     .venv/bin/python benchmarks/bench_focusing_run.py --evals 20 --recheck 3 --out /tmp/bfr
     .venv/bin/python benchmarks/bench_focusing_run.py --out runs/bench-focusing-run-mts \
-        --before 9ea842d --after 2f7a1c0 --parallel
+        --before 9ea842d --after 17f6acc --parallel
     .venv/bin/python benchmarks/bench_focusing_run.py --out runs/bench-focusing-run \
         --replay 6 12 --before 35c7535
 """
@@ -32,6 +33,7 @@ time, the objective and how many programs the evaluator had compiled
 import argparse
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -69,7 +71,12 @@ def run_design(src: Path, folder: Path, evals: int) -> dict:
            "design", TASK, "--max-evals", str(evals), "--out", str(folder), "--no-plots"]
     if history.exists():
         cmd.append("--resume")
-    env = dict(os.environ, PYTHONPATH=str(src))
+    # a compilation cache of the run's own (empty at its start, as on a fresh machine), so
+    # that programs another run compiled do not count for it
+    cache = folder.parent / f"jax-cache-{folder.name}"
+    if not done:
+        shutil.rmtree(cache, ignore_errors=True)
+    env = dict(os.environ, PYTHONPATH=str(src), METARIG_JAX_CACHE=str(cache))
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, cwd=src, env=env)
     if proc.returncode != 0:

@@ -69,7 +69,7 @@ def compare_recording(source: str | Path, out: Path | None = None, poses: str = 
     _calibration(out, rec)  # a damaged calibration.json is refused before any work
     scene, polygons = run.design_scene(doc, where=str(rec.path))
     tracked = measured_poses(rec, poses, polygons, camera_calibration_path(run_dir, calibration),
-                             workers or os.cpu_count() or 1, progress, dic)
+                             workers or os.cpu_count() or 1, progress, dic, design=doc)
     run.check_poses(scene, tracked.poses, where=str(rec.path), lost_hint=(
         " (small units in pixels? try --margin-px 1.5 --min-points 16)"
         if tracked.tracked_here else ""))

@@ -59,9 +59,11 @@ def camera_calibration_path(run_dir: Path | None, given: str | None) -> Path | N
 
 
 def track_recording(mcap: Path, polygons_m: np.ndarray, calibration: Path, workers: int,
-                    progress: bool, dic=None):
+                    progress: bool, dic=None, bonds=None):
     """Track every frame of the recording with the offline tracker (all cores); `dic`: a
-    `tracking.dic.DICConfig` (None: the defaults, fitted to the smallest unit)."""
+    `tracking.dic.DICConfig` (None: the defaults, fitted to the smallest unit); `bonds`: the
+    lattice's ligaments for the tracker's check of each pose against its neighbours
+    (`tracking.units.design_bonds`; None: no such check)."""
     from tracking.batch import track_source
     from tracking.calibration import load_calibration
     from tracking.dic import settings_for_units
@@ -70,16 +72,19 @@ def track_recording(mcap: Path, polygons_m: np.ndarray, calibration: Path, worke
     spec = open_source(mcap, topics.IMAGE.name, kind="mcap")
     calib = load_calibration(calibration)
     dic = dic or settings_for_units(polygons_m, calib.m_per_px)
-    traj, _bad = track_source(spec, polygons_m, calib, dic, workers=workers, progress=progress)
+    traj, _bad = track_source(spec, polygons_m, calib, dic, workers=workers, progress=progress,
+                              bonds=bonds)
     return traj
 
 
 def measured_poses(rec, source: str, polygons_m: np.ndarray, calibration: Path | None,
-                   workers: int, progress: bool, dic=None) -> Tracked:
-    """The measurement to compare, by `source` (auto: dic, else track, else an error)."""
+                   workers: int, progress: bool, dic=None, design: dict | None = None) -> Tracked:
+    """The measurement to compare, by `source` (auto: dic, else track, else an error);
+    `design`: the design document, whose lattice gives the tracker its ligaments."""
     from metarig.polygon import area_centroids
     from tracking.calibration import CalibrationError
     from tracking.frame_sources import SourceError
+    from tracking.units import UnitsError, design_bonds
 
     ref = area_centroids(polygons_m)
     has_dic = bool(rec.pose_messages.get(topics.POSES.name))
@@ -99,8 +104,9 @@ def measured_poses(rec, source: str, polygons_m: np.ndarray, calibration: Path |
         raise CompareError(f"{rec.path}: tracking the frames needs a calibration "
                            "(calibration.json in the run folder, or --calibration FILE)")
     try:
-        traj = track_recording(rec.path, polygons_m, calibration, workers, progress, dic)
-    except (SourceError, CalibrationError) as exc:
+        bonds = design_bonds(design, polygons_m, str(rec.path)) if design is not None else None
+        traj = track_recording(rec.path, polygons_m, calibration, workers, progress, dic, bonds)
+    except (SourceError, CalibrationError, UnitsError) as exc:
         raise CompareError(str(exc)) from None
     if traj.n_t == rec.frame_t_s.size:  # stamps, not k / fps: dropped frames stay honest
         from dataclasses import replace
@@ -128,10 +134,11 @@ def pulse_inputs(source: Path, poses_source: str = "auto", calibration: str | No
     try:
         rec = read_recording(source)
         run_dir = source if source.is_dir() else None
-        scene, polygons = run.design_scene(recorded_design(rec, run_dir), where=str(rec.path))
+        doc = recorded_design(rec, run_dir)
+        scene, polygons = run.design_scene(doc, where=str(rec.path))
         tracked = measured_poses(rec, poses_source, polygons,
                                  camera_calibration_path(run_dir, calibration),
-                                 workers or os.cpu_count() or 1, progress=False)
+                                 workers or os.cpu_count() or 1, progress=False, design=doc)
         run.check_poses(scene, tracked.poses, where=str(rec.path), min_frames=5)
         measured = measured_input_of(scene, tracked.poses, tracked.t0_s, rec.shaker_t_s,
                                      rec.shaker_u_m, rec.stage_t_s, rec.stage_closing_m,

@@ -427,6 +427,30 @@ def test_the_fixed_step_follows_the_design(make_task):
         task.initial_design + 0.01)), rel=2e-3)
 
 
+def test_a_run_in_contact_continues_in_contact_at_the_re_chosen_step(make_task):
+    """When the step is re-chosen while the run is in contact, the evaluation continues with
+    the contact configuration (its substeps kept) at the new step: not at the old step, which
+    the check found too large, and not through a solve without contact that would be
+    rejected."""
+    from design_engine.solve.fixed_step import FixedStepVerlet
+    from design_engine.solve.simulate import SolverConfig
+
+    task = make_task(3)
+    evaluator = TaskEvaluator(task)
+    st = evaluator._state["pulse"]
+    old = 0.95 * 2.0 / st.omega
+    contact = SolverConfig(solver=FixedStepVerlet(max_dt=old, remat=True, contact_substeps=2))
+    evaluator._state["pulse"] = dataclasses.replace(
+        st, config=SolverConfig(solver=FixedStepVerlet(max_dt=old), use_contact=False,
+                                dtype="float32"),
+        last_config=contact, last_health={"void_margin": 0.0})
+    out = evaluator.evaluate(task.initial_design)
+    assert any("re-chosen" in e for e in out.events)
+    used = out.solver["pulse"]["config"]
+    assert used["use_contact"] and used["contact_substeps"] == 2
+    assert used["max_dt_s"] * 1e3 == pytest.approx(0.6 * 2.0 / st.omega, rel=1e-3)
+
+
 def test_a_fixed_step_that_would_shrink_past_a_quarter_gives_way_to_dopri8(make_task,
                                                                           monkeypatch):
     """When the highest frequency of the current design (set by a deep contact barrier) would

@@ -152,3 +152,23 @@ def test_a_failed_fixed_step_with_contact_is_substepped_once_before_dopri8(scene
     out = solve_with_policy(scene, contact, Script(SimulationError("x"), healthy(scene)))
     assert [s.kind for s in out.steps] == [START, RESOLVE] and not out.fell_back
     assert decide(VERLET, scene, error=SimulationError("x")).kind == FALLBACK
+
+
+def test_the_continued_configuration_is_read_after_the_check(scene):
+    """`previous` as a function is called after `check`, so an evaluation continues with the
+    configuration the check left (its re-chosen step), not the one from before it."""
+    order = []
+    contact = SolverConfig(solver=VERLET.solver, use_contact=True, dtype="float64")
+
+    def check():
+        order.append("check")
+        return VERLET
+
+    def previous():
+        order.append("previous")
+        return contact, healthy(scene, void_margin=0.0)
+
+    solve = Script(healthy(scene, void_margin=0.0))
+    out = solve_with_policy(scene, VERLET, solve, check=check, previous=previous)
+    assert order == ["check", "previous"] and solve.calls == [contact]
+    assert [s.kind for s in out.steps] == [START, CONTINUED]

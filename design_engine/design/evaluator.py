@@ -293,7 +293,8 @@ class TaskEvaluator:
 
         try:
             out = solve_with_policy(scene, st.config, solve, check=check,
-                                    previous=(st.last_config, st.last_health),
+                                    previous=lambda: (checked[0].last_config,
+                                                      checked[0].last_health),
                                     budget_fails_at_once=True, on_step=log)
         except PolicyFailed as exc:
             raise EvaluationFailed(f"{name}: {exc}", checked[0]) from None

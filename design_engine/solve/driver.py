@@ -120,7 +120,7 @@ def decide(config: SolverConfig, scene: Scene, *, health: dict | None = None,
 def solve_with_policy(scene: Scene, config: SolverConfig,
                       solve: Callable[[SolverConfig], tuple[R, dict | None]], *,
                       check: Callable[[], SolverConfig] | None = None,
-                      previous: tuple[SolverConfig | None, dict | None] | None = None,
+                      previous: tuple[SolverConfig | None, dict | None] | Callable | None = None,
                       budget_fails_at_once: bool = False,
                       fallback: SolverConfig | None = None,
                       on_step: Callable[[Step], None] | None = None) -> Outcome[R]:
@@ -131,7 +131,8 @@ def solve_with_policy(scene: Scene, config: SolverConfig,
     `policy.next_config`. `check() -> config`, when given, re-checks the configuration before
     the first solve (an optimiser's fixed-step check); its `SimulationError` counts as a failed
     solve. `previous` = (config, health) the caller's last evaluation ended with (optimisers:
-    `policy.start_config` may continue with it). `fallback` replaces the policy's fallback
+    `policy.start_config` may continue with it), or a function returning it, called after
+    `check` (whose re-checked step the continued configuration must take). `fallback` replaces the policy's fallback
     configuration. `on_step` sees each step after the first as it is taken (event logs).
     Raises `PolicyFailed` when every allowed configuration failed.
     """
@@ -142,6 +143,8 @@ def solve_with_policy(scene: Scene, config: SolverConfig,
         except SimulationError as exc:
             pending = exc
     steps = [Step(START, config, "")]
+    if pending is None and callable(previous):
+        previous = previous()
     if pending is None and previous is not None:
         start = start_config(config, previous[0], previous[1], scene)
         if start != config:

@@ -231,6 +231,17 @@ def test_an_evaluation_starts_where_the_last_one_in_contact_ended():
     # after Dopri8 the fixed step with contact gets its chance again (next_config judges it)
     assert start_config(choice, contact_config(), {"void_margin": 0.5 * span}, scene) == \
         with_contact(choice)
+    # a refined step continues while its last solve predicts the whole step would fail again
+    from design_engine.solve.policy import refined
+
+    inertia = float(np.min(scene.unit_inertias_kgm2())) * 1e9  # g mm^2
+    half = refined(contact)
+
+    def health(drift):  # 10 % into the barrier: its frequency is far below 1 / dt
+        return {"void_margin": 0.9 * span, "min_inertia": inertia, "energy_error": drift}
+
+    assert start_config(choice, half, health(0.1 * ENERGY_TOLERANCE), scene) == contact
+    assert start_config(choice, half, health(0.2 * ENERGY_TOLERANCE), scene) == half
 
 
 @pytest.fixture(scope="module")

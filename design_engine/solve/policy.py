@@ -325,8 +325,11 @@ def start_config(choice: SolverConfig, last: SolverConfig | None, health: dict |
     saves the no-contact solve that `next_config` would reject); else the choice. When the
     previous evaluation ended with Dopri8 after a rejected fixed step, the fixed step with
     contact gets its chance again (`with_contact(choice)`): it costs 1/15-1/25 of Dopri8 and a
-    design a step away may be accepted at it. Either way `next_config` still judges the result,
-    so this changes the cost, not the answer."""
+    design a step away may be accepted at it. A refined step (`refined`) continues only while
+    the last solve predicts that the whole step would be rejected again (its drift x 1 /
+    REFINE^2, Verlet being second order, above half the tolerance, or the barrier past the whole
+    step); else the whole step is back. Either way `next_config` still judges the result, so
+    this changes the cost, not the answer."""
     if last is None or health is None or last == choice or not last.use_contact:
         return choice
     span = float(scene.material.contact_cutoff - scene.material.contact_min)
@@ -334,6 +337,15 @@ def start_config(choice: SolverConfig, last: SolverConfig | None, health: dict |
         return choice
     if is_fixed_step(choice.solver) and not is_fixed_step(last.solver):
         return with_contact(choice)
+    if is_fixed_step(last.solver) and getattr(last.solver, "refined", False):
+        whole = dataclasses.replace(last, solver=dataclasses.replace(
+            last.solver, max_dt=last.solver.max_dt / REFINE, refined=False))
+        drift = float(health.get("energy_error", 0.0)) / REFINE**2
+        ratio = (whole.solver.max_dt / getattr(whole.solver, "contact_substeps", 1)
+                 * contact_frequency(float(health["void_margin"]), scene.material,
+                                     float(health["min_inertia"]), scene.model))
+        if drift <= 0.5 * ENERGY_TOLERANCE and ratio <= CONTACT_STEP_LIMIT:
+            return whole
     return last
 
 

@@ -14,12 +14,16 @@ The default policy, read off the work-precision and speed-up charts (README, `me
 - a solve whose voids reached the cutoff is repeated with contact at the same step in float64
   (from the first solve when the static equilibrium already reaches it), and that result stands
   while the barrier's own frequency at the deepest void, omega_c (`contact_frequency`), keeps
-  dt x omega_c <= CONTACT_STEP_LIMIT and the solve's work-energy drift stays within
-  ENERGY_TOLERANCE (`next_config`); past either, the solve is repeated once at REFINE x the step
-  when that is predicted to pass, else with adaptive Dopri8 at the reference tolerances with
-  contact, as is any failed fixed-step solve. An optimiser's next evaluation starts where the
-  last one ended while that was in contact, with the fixed step if that was Dopri8
-  (`start_config`);
+  h x omega_c <= CONTACT_STEP_LIMIT for the contact forces' step h and the solve's work-energy
+  drift stays within ENERGY_TOLERANCE (`next_config`). A barrier past h with the drift within
+  the tolerance keeps the step and substeps the contact forces (multiple time stepping,
+  `FixedStepVerlet.contact_substeps`, up to CONTACT_SUBSTEPS_MAX); a drift past the tolerance
+  repeats the solve once at REFINE x the step when that is predicted to pass, else with
+  adaptive Dopri8 at the reference tolerances with contact. A fixed step with contact that
+  failed is repeated once with AFTER_FAILURE_SUBSTEPS substeps, then (as any other failed
+  fixed-step solve) with Dopri8. An optimiser's next evaluation starts where the last one ended
+  while that was in contact (a refined step only while the last solve predicts the whole step
+  would fail), with the fixed step if that was Dopri8 (`start_config`);
 - the dynamic pre-compression ramp (`precompression="ramp"`, the reference's protocol):
   adaptive Dopri8 at the reference tolerances with contact (the ramp lasts 40-320 ms).
 `full_model=True` forces the reference configuration (Dopri5, spec tolerances).

@@ -13,7 +13,8 @@ from design_engine.physics.scenes import build_scene
 from design_engine.solve.driver import (CONTINUED, FALLBACK, REFERENCE_RETRY, RESOLVE, START,
                                         PolicyFailed, decide, solve_with_policy)
 from design_engine.solve.fixed_step import FixedStepVerlet
-from design_engine.solve.policy import ENERGY_TOLERANCE, contact_config, fallback_config
+from design_engine.solve.policy import (CONTACT_ENTRY_SUBSTEPS, ENERGY_TOLERANCE, contact_config,
+                                        fallback_config)
 from design_engine.solve.simulate import SimulationError, SolverConfig, StepBudgetError
 
 VERLET = SolverConfig(solver=FixedStepVerlet(max_dt=0.01), use_contact=False)
@@ -57,7 +58,8 @@ def test_voids_at_the_cutoff_are_re_solved_with_contact_at_the_same_step(scene):
     seen = []
     out = solve_with_policy(scene, VERLET, solve, on_step=seen.append)
     assert [s.kind for s in out.steps] == [START, RESOLVE] and seen == [out.steps[1]]
-    assert out.config.use_contact and out.config.solver == VERLET.solver
+    assert out.config.use_contact and out.config.solver.max_dt == VERLET.solver.max_dt
+    assert out.config.solver.contact_substeps == CONTACT_ENTRY_SUBSTEPS
     assert "contact cutoff" in out.resolves[0] and out.result == "result 2"
 
 
@@ -128,26 +130,31 @@ def test_an_evaluation_after_one_in_contact_starts_with_contact(scene):
     out = solve_with_policy(scene, VERLET, solve,
                             previous=(contact, healthy(scene, void_margin=0.0)))
     assert solve.calls == [contact] and [s.kind for s in out.steps] == [START, CONTINUED]
+    # a run that needed a fixed step with contact keeps it when the voids left the cutoff (the
+    # full model); Dopri8 only while they reach it
     out = solve_with_policy(scene, VERLET, Script(healthy(scene)),
-                            previous=(contact, healthy(scene)))  # left contact: the choice
+                            previous=(contact, healthy(scene)))
+    assert out.config == contact
+    out = solve_with_policy(scene, VERLET, Script(healthy(scene)),
+                            previous=(contact_config(), healthy(scene)))
     assert out.config == VERLET
 
 
 def test_a_failed_fixed_step_with_contact_is_substepped_once_before_dopri8(scene):
     """A fixed step with contact that diverged most likely met a barrier that outgrew it: the
-    same step with the contact forces substepped AFTER_FAILURE_SUBSTEPS times, once, then the
+    same step with the contact forces substepped CONTACT_SUBSTEPS_MAX times, once, then the
     fallback (a fixed step without contact, or one already substepped as much, falls back at
     once)."""
-    from design_engine.solve.policy import AFTER_FAILURE_SUBSTEPS
+    from design_engine.solve.policy import CONTACT_SUBSTEPS_MAX
 
     contact = SolverConfig(solver=VERLET.solver, use_contact=True, dtype="float64")
     solve = Script(SimulationError("the state diverged"), SimulationError("again"),
                    healthy(scene))
     out = solve_with_policy(scene, contact, solve)
     assert [s.kind for s in out.steps] == [START, RESOLVE, FALLBACK] and out.fell_back
-    assert solve.calls[1].solver.contact_substeps == AFTER_FAILURE_SUBSTEPS
+    assert solve.calls[1].solver.contact_substeps == CONTACT_SUBSTEPS_MAX
     assert solve.calls[1].solver.max_dt == contact.solver.max_dt and solve.calls[1].use_contact
-    assert out.steps[1].error == "the state diverged" and "stepped 4 times" in out.steps[1].reason
+    assert out.steps[1].error == "the state diverged" and "stepped 8 times" in out.steps[1].reason
     assert out.steps[2].error == "again" and out.config == fallback_config()[0]
     out = solve_with_policy(scene, contact, Script(SimulationError("x"), healthy(scene)))
     assert [s.kind for s in out.steps] == [START, RESOLVE] and not out.fell_back

@@ -99,7 +99,7 @@ def test_automatic_choice_says_what_it_picked_and_falls_back(small, monkeypatch)
     # a failed fixed step with contact first gets its contact forces substepped
     # (`policy.after_failure`), which cannot mend a step past the ligaments' own limit
     resolves = run.metrics["solver"]["resolves"]
-    assert len(resolves) == 2 and "contact forces stepped 4 times" in resolves[0]
+    assert len(resolves) == 2 and "contact forces stepped 8 times" in resolves[0]
     assert "fell back" in resolves[1]
 
 
@@ -219,8 +219,8 @@ def test_precompressed_scenes_step_from_the_static_state_and_the_ramp_uses_dopri
 
 
 def test_an_evaluation_starts_where_the_last_one_in_contact_ended():
-    """`start_config` keeps the contact configuration only while the voids still reached the
-    cutoff; the choice otherwise."""
+    """`start_config` keeps a fixed step with contact once a run needed it, and Dopri8 only
+    while the voids still reached the cutoff; the choice otherwise."""
     from design_engine.solve.policy import start_config, with_contact
 
     scene = build_scene("focusing-24x16", nx=8, ny=6, bias_angle_deg=44.0)
@@ -229,7 +229,9 @@ def test_an_evaluation_starts_where_the_last_one_in_contact_ended():
     contact = SolverConfig(solver=FixedStepVerlet(max_dt=0.02))
     assert start_config(choice, None, None, scene) == choice
     assert start_config(choice, contact, {"void_margin": 0.5 * span}, scene) == contact
-    assert start_config(choice, contact, {"void_margin": 2.0 * span}, scene) == choice
+    # a fixed step with contact continues after the voids left the cutoff (the full model)
+    assert start_config(choice, contact, {"void_margin": 2.0 * span}, scene) == contact
+    assert start_config(choice, contact_config(), {"void_margin": 2.0 * span}, scene) == choice
     assert start_config(choice, choice, {"void_margin": 0.5 * span}, scene) == choice
     # after Dopri8 the fixed step with contact gets its chance again (next_config judges it)
     assert start_config(choice, contact_config(), {"void_margin": 0.5 * span}, scene) == \

@@ -20,10 +20,12 @@ The default policy, read off the work-precision and speed-up charts (README, `me
   `FixedStepVerlet.contact_substeps`, up to CONTACT_SUBSTEPS_MAX); a drift past the tolerance
   repeats the solve once at REFINE x the step when that is predicted to pass, else with
   adaptive Dopri8 at the reference tolerances with contact. A fixed step with contact that
-  failed is repeated once with AFTER_FAILURE_SUBSTEPS substeps, then (as any other failed
-  fixed-step solve) with Dopri8. An optimiser's next evaluation starts where the last one ended
-  while that was in contact (a refined step only while the last solve predicts the whole step
-  would fail), with the fixed step if that was Dopri8 (`start_config`);
+  failed is repeated once with CONTACT_SUBSTEPS_MAX substeps, then (as any other failed
+  fixed-step solve) with Dopri8. A fixed step takes the contact terms with
+  CONTACT_ENTRY_SUBSTEPS substeps from its first solve with them. An optimiser's next
+  evaluation starts where the last one ended while that was in contact, with a fixed step with
+  contact for the rest of the run (a refined step only while the last solve predicts the whole
+  step would fail), with the fixed step if that was Dopri8 (`start_config`);
 - the dynamic pre-compression ramp (`precompression="ramp"`, the reference's protocol):
   adaptive Dopri8 at the reference tolerances with contact (the ramp lasts 40-320 ms).
 `full_model=True` forces the reference configuration (Dopri5, spec tolerances).
@@ -67,9 +69,11 @@ REFINE = 0.5
 # (dt / n) x omega_c within CONTACT_STEP_LIMIT. A substep costs the contact terms alone (about
 # a tenth of a force evaluation), where halving the step doubled every force evaluation
 CONTACT_SUBSTEPS_MAX = 8
-# a fixed step with contact that failed (diverged) is re-solved once with this many substeps
-# before Dopri8 (`after_failure`)
-AFTER_FAILURE_SUBSTEPS = 4
+# a fixed step takes the contact terms with this many substeps from its first solve with them
+# (`with_contact`): on the focusing run a solve in contact cost about 10 % more with 4 substeps
+# than with none (3.0 against 2.7 s), where entering with none cost a rejected solve and one
+# more compiled program each time the barrier outgrew the step
+CONTACT_ENTRY_SUBSTEPS = 4
 
 
 @dataclass(frozen=True)
@@ -236,13 +240,18 @@ def needs_contact(config: SolverConfig, min_void_margin: float, scene: Scene) ->
 
 def with_contact(config: SolverConfig) -> SolverConfig:
     """Configuration for a scene whose voids reached the contact cutoff: the same fixed step
-    with the contact terms in float64 (checked by `next_config`), or Dopri8 for an adaptive
+    with the contact terms in float64 and CONTACT_ENTRY_SUBSTEPS contact substeps (checked by
+    `next_config`), or Dopri8 for an adaptive
     solve. Float64 because in float32 a solve driven hard into the barrier can stay shallow and
     wrong, which no depth check sees: on 8x6 units with 44 deg bias under a 6 mm pulse, float32
     Verlet with contact reached 55 % of the barrier's depth and missed J by 53 %, float64
     reached 98 % (the check then moves on to Dopri8)."""
     if is_fixed_step(config.solver) and config.solver.stability_limited:
-        return SolverConfig(solver=config.solver, use_contact=True, dtype="float64")
+        solver = config.solver
+        if hasattr(solver, "contact_substeps"):
+            solver = dataclasses.replace(solver, contact_substeps=max(
+                solver.contact_substeps, CONTACT_ENTRY_SUBSTEPS))
+        return SolverConfig(solver=solver, use_contact=True, dtype="float64")
     return contact_config()
 
 
@@ -302,14 +311,14 @@ def next_config(config: SolverConfig, health: dict, scene: Scene) -> tuple[Solve
 def after_failure(config: SolverConfig) -> tuple[SolverConfig, str] | None:
     """After a fixed-step solve with contact that failed (diverged, went non-finite or through
     the barrier, most likely the barrier outgrowing its step): the same step with the contact
-    forces substepped AFTER_FAILURE_SUBSTEPS times, and why; None when it had as many (then
+    forces substepped CONTACT_SUBSTEPS_MAX times, and why; None when it had as many (then
     `fallback_config`). A substepped solve costs about a tenth of Dopri8's."""
     solver = config.solver
     if not (config.use_contact and is_fixed_step(solver) and solver.stability_limited
-            and getattr(solver, "contact_substeps", AFTER_FAILURE_SUBSTEPS)
-            < AFTER_FAILURE_SUBSTEPS):
+            and getattr(solver, "contact_substeps", CONTACT_SUBSTEPS_MAX)
+            < CONTACT_SUBSTEPS_MAX):
         return None
-    n = AFTER_FAILURE_SUBSTEPS
+    n = CONTACT_SUBSTEPS_MAX
     nxt = dataclasses.replace(config, solver=dataclasses.replace(solver, contact_substeps=n))
     return nxt, (f"re-solved with the contact forces stepped {n} times per step "
                  f"({solver.max_dt / n * 1e3:.1f} us)")
@@ -326,7 +335,9 @@ def start_config(choice: SolverConfig, last: SolverConfig | None, health: dict |
     """The configuration an optimiser's next evaluation starts with: the one the previous
     evaluation ended with (`last`, with its `solve_health`) while its voids still reached the
     contact cutoff, since the next design, a small step away, most likely needs it too (it
-    saves the no-contact solve that `next_config` would reject); else the choice. When the
+    saves the no-contact solve that `next_config` would reject); a fixed step with contact also
+    after the voids left the cutoff (it solves the full model, and a run that went back and
+    forth compiled a program for each at every new step); else the choice. When the
     previous evaluation ended with Dopri8 after a rejected fixed step, the fixed step with
     contact gets its chance again (`with_contact(choice)`): it costs 1/15-1/25 of Dopri8 and a
     design a step away may be accepted at it. A refined step (`refined`) continues only while
@@ -337,7 +348,7 @@ def start_config(choice: SolverConfig, last: SolverConfig | None, health: dict |
     if last is None or health is None or last == choice or not last.use_contact:
         return choice
     span = float(scene.material.contact_cutoff - scene.material.contact_min)
-    if float(health["void_margin"]) >= span:
+    if float(health["void_margin"]) >= span and not is_fixed_step(last.solver):
         return choice
     if is_fixed_step(choice.solver) and not is_fixed_step(last.solver):
         return with_contact(choice)

@@ -39,6 +39,7 @@ import os
 import shutil
 import subprocess
 import sys
+import threading
 import time
 from collections import Counter
 from concurrent.futures import ThreadPoolExecutor
@@ -196,7 +197,8 @@ def plot(report: dict, path: Path) -> None:
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4.2))
     colors = {"Dopri8": "C3", "failed": "k"}
     for k, (label, res) in enumerate(report["runs"].items()):
-        curve = np.array([[c[0], c[1] if c[2] else np.nan] for c in res["curve"]])
+        curve = np.array([[c[0], c[1] if c[2] and c[1] is not None else np.nan]
+                          for c in res["curve"]])  # a failed evaluation has no objective
         best = np.fmax.accumulate(np.nan_to_num(curve[:, 1], nan=-np.inf))
         a.plot(curve[:, 0] / 60, best * 1e3, "-", color=f"C{k}",
                label=f"{label}: {res['sum_eval_wall_s'] / 60:.1f} min")
@@ -298,8 +300,13 @@ def main(argv=None) -> int:
     report.update(evals=args.evals, before_ref=args.before, machine=describe(), seed=args.seed)
     report.setdefault("runs", {})
 
+    lock = threading.Lock()  # the two sides of --parallel save from their own threads
+
     def save():
-        path.write_text(json.dumps(report, indent=1))
+        with lock:
+            tmp = path.with_suffix(".json.tmp")
+            tmp.write_text(json.dumps(report, indent=1))
+            tmp.replace(path)
 
     sides = {"before": lambda: source_tree(out, args.before),
              "after": lambda: source_tree(out, args.after) if args.after else REPO}

@@ -70,9 +70,10 @@ REFINE = 0.5
 # a tenth of a force evaluation), where halving the step doubled every force evaluation
 CONTACT_SUBSTEPS_MAX = 8
 # a fixed step takes the contact terms with this many substeps from its first solve with them
-# (`with_contact`): on the focusing run a solve in contact cost about 10 % more with 4 substeps
-# than with none (3.0 against 2.7 s), where entering with none cost a rejected solve and one
-# more compiled program each time the barrier outgrew the step
+# (`with_contact`): on the focusing runs a solve in contact cost 10 % more with 4 substeps than
+# with none when run alone (3.0-3.5 against 2.6-2.9 s), up to 60 % beside another run, where
+# entering with none cost a rejected solve and one more compiled program (10-30 s) each time the
+# barrier outgrew the step (benchmarks/bench_focusing_run.py)
 CONTACT_ENTRY_SUBSTEPS = 4
 
 

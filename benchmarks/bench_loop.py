@@ -37,12 +37,12 @@ import sys
 import time
 from pathlib import Path
 
+from design_engine.calibration.fit import STIFFNESSES
 from machine import describe
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "results" / "bench_loop.json"
 TASK = "focusing-demo"
-STIFFNESSES = ("k_stretch", "k_shear", "k_bend")
 
 
 def specimen_config(perturb: float, seed: int, design: str = ""):

@@ -161,7 +161,7 @@ START = {"k_shear": 1190.0, "k_bend": 1.5e-3, "damping_ratio": 0.0186}
 def test_carried_material_carries_each_stiffness_the_calibration_determined(tmp_path):
     model = save_material(tmp_path / "m.toml", {"k_bend": 1.2e-3, "k_stretch": 1.1e5},
                           {"k_bend": 1e-4})
-    values, errors, dropped = carried_material(model, _calibration([], start=START))
+    values, errors, dropped, _ = carried_material(model, _calibration([], start=START))
     assert values["k_shear"] == 1000.0 and errors["k_shear"] == 20.0  # determined: carried
     assert values["k_bend"] == 1e-4 and errors["k_bend"] == 5e-3
     assert values["k_stretch"] == 1.1e5  # not fitted: the model's
@@ -179,7 +179,7 @@ def test_stiffnesses_determined_only_together_are_carried_as_one_common_scale(tm
     model = save_material(tmp_path / "m.toml", {"k_shear": 1190.0, "k_bend": 1.5e-3,
                                                 "k_stretch": 1.1e5})
     cal = _calibration(["k_bend", "damping_ratio"], start=START)
-    values, errors, dropped = carried_material(model, cal)
+    values, errors, dropped, _ = carried_material(model, cal)
     x = np.log([1000.0 / 1190.0, 1e-4 / 1.5e-3])
     w = 1.0 / np.array([20.0 / 1000.0, 5e-3 / 1e-4]) ** 2
     s = math.exp(float(w @ x / w.sum()))
@@ -221,7 +221,7 @@ def test_the_common_scale_follows_the_fits_correlation():
 
 def test_a_determined_damping_ratio_beside_a_common_scale_is_carried_as_the_ratio(tmp_path):
     model = save_material(tmp_path / "m.toml", {"damping_u": 0.05, "damping_theta": 6e-7})
-    values, errors, dropped = carried_material(model, _calibration(["k_bend"], start=START))
+    values, errors, dropped, _ = carried_material(model, _calibration(["k_bend"], start=START))
     assert values["damping_ratio"] == 0.03 and errors["damping_ratio"] == 0.002
     assert "damping_u" not in values and "damping_theta" not in values  # the ratio gives them
     assert dropped == []
@@ -239,14 +239,14 @@ def test_no_common_scale_for_a_single_fitted_stiffness():
     del cal["parameters"]["k_bend"]
     cal["fit"].remove("k_bend")
     assert common_stiffness_scale(cal) is None
-    values, _, _ = carried_material(None, cal)
+    values, _, _, _ = carried_material(None, cal)
     assert values["k_shear"] == 1000.0
 
 
 def test_the_common_scale_starts_from_the_model_where_the_calibration_gives_no_start(tmp_path):
     model = save_material(tmp_path / "m.toml", {"k_shear": 1190.0, "k_bend": 1.5e-3})
-    with_start, _, _ = carried_material(model, _calibration(["k_bend"], start=START))
-    without, _, _ = carried_material(model, _calibration(["k_bend"]))
+    with_start, _, _, _ = carried_material(model, _calibration(["k_bend"], start=START))
+    without, _, _, _ = carried_material(model, _calibration(["k_bend"]))
     assert without["k_shear"] == pytest.approx(with_start["k_shear"], rel=1e-12)
     assert common_stiffness_scale(_calibration(["k_bend"])) is None  # no start known
 
@@ -254,7 +254,7 @@ def test_the_common_scale_starts_from_the_model_where_the_calibration_gives_no_s
 def test_carried_material_drops_damping_derived_from_an_undetermined_ratio():
     from design_engine.physics.material import default_si
 
-    values, _, dropped = carried_material(None, _calibration(["damping_ratio"]))
+    values, _, dropped, _ = carried_material(None, _calibration(["damping_ratio"]))
     assert values == {**default_si(), "k_shear": 1000.0, "k_bend": 1e-4}  # the ratio: default
     assert set(dropped) == {"damping_ratio", "damping_u", "damping_theta"}
 
@@ -264,7 +264,7 @@ def test_a_calibration_that_determined_nothing_leaves_a_complete_model(tmp_path)
 
     model = save_material(tmp_path / "m.toml", {"k_shear": 900.0}, {"k_shear": 30.0})
     undetermined = ["k_shear", "k_bend", "damping_ratio"]
-    values, errors, dropped = carried_material(model, _calibration(undetermined))
+    values, errors, dropped, _ = carried_material(model, _calibration(undetermined))
     assert values == {**default_si(), "k_shear": 900.0} and errors == {"k_shear": 30.0}
     save_material(tmp_path / "next.toml", values, errors)  # loadable: not an empty file
     assert read_material_file(tmp_path / "next.toml")[0] == values

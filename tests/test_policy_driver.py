@@ -128,15 +128,15 @@ def test_an_evaluation_after_one_in_contact_starts_with_contact(scene):
     contact = SolverConfig(solver=VERLET.solver, use_contact=True, dtype="float64")
     solve = Script(healthy(scene, void_margin=0.0))
     out = solve_with_policy(scene, VERLET, solve,
-                            previous=(contact, healthy(scene, void_margin=0.0)))
+                            previous=lambda: (contact, healthy(scene, void_margin=0.0)))
     assert solve.calls == [contact] and [s.kind for s in out.steps] == [START, CONTINUED]
     # a run that needed a fixed step with contact keeps it when the voids left the cutoff (the
     # full model); Dopri8 only while they reach it
     out = solve_with_policy(scene, VERLET, Script(healthy(scene)),
-                            previous=(contact, healthy(scene)))
+                            previous=lambda: (contact, healthy(scene)))
     assert out.config == contact
     out = solve_with_policy(scene, VERLET, Script(healthy(scene)),
-                            previous=(contact_config(), healthy(scene)))
+                            previous=lambda: (contact_config(), healthy(scene)))
     assert out.config == VERLET
 
 

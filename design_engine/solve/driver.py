@@ -120,7 +120,8 @@ def decide(config: SolverConfig, scene: Scene, *, health: dict | None = None,
 def solve_with_policy(scene: Scene, config: SolverConfig,
                       solve: Callable[[SolverConfig], tuple[R, dict | None]], *,
                       check: Callable[[], SolverConfig] | None = None,
-                      previous: tuple[SolverConfig | None, dict | None] | Callable | None = None,
+                      previous: Callable[[], tuple[SolverConfig | None, dict | None]]
+                      | None = None,
                       budget_fails_at_once: bool = False,
                       fallback: SolverConfig | None = None,
                       on_step: Callable[[Step], None] | None = None) -> Outcome[R]:
@@ -130,10 +131,10 @@ def solve_with_policy(scene: Scene, config: SolverConfig,
     `health` (`simulate.solve_health` scalars, or None to skip the judging) feeds
     `policy.next_config`. `check() -> config`, when given, re-checks the configuration before
     the first solve (an optimiser's fixed-step check); its `SimulationError` counts as a failed
-    solve. `previous` = (config, health) the caller's last evaluation ended with (optimisers:
-    `policy.start_config` may continue with it), or a function returning it, called after
-    `check` (whose re-checked step the continued configuration must take). `fallback` replaces the policy's fallback
-    configuration. `on_step` sees each step after the first as it is taken (event logs).
+    solve. `previous() -> (config, health)`: what the caller's last evaluation ended with
+    (optimisers: `policy.start_config` may continue with it), asked after `check`, whose
+    re-checked step the continued configuration must take. `fallback` replaces the policy's
+    fallback configuration. `on_step` sees each step after the first as it is taken (event logs).
     Raises `PolicyFailed` when every allowed configuration failed.
     """
     pending = None
@@ -143,10 +144,8 @@ def solve_with_policy(scene: Scene, config: SolverConfig,
         except SimulationError as exc:
             pending = exc
     steps = [Step(START, config, "")]
-    if pending is None and callable(previous):
-        previous = previous()
     if pending is None and previous is not None:
-        start = start_config(config, previous[0], previous[1], scene)
+        start = start_config(config, *previous(), scene)
         if start != config:
             steps.append(Step(CONTINUED, start, CONTINUED_REASON))
     while True:

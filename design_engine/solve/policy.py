@@ -248,12 +248,32 @@ def with_contact(config: SolverConfig) -> SolverConfig:
     Verlet with contact reached 55 % of the barrier's depth and missed J by 53 %, float64
     reached 98 % (the check then moves on to Dopri8)."""
     if is_fixed_step(config.solver) and config.solver.stability_limited:
-        solver = config.solver
-        if hasattr(solver, "contact_substeps"):
-            solver = dataclasses.replace(solver, contact_substeps=max(
-                solver.contact_substeps, CONTACT_ENTRY_SUBSTEPS))
-        return SolverConfig(solver=solver, use_contact=True, dtype="float64")
+        config = SolverConfig(solver=config.solver, use_contact=True, dtype="float64")
+        if hasattr(config.solver, "contact_substeps"):
+            config = with_substeps(config, max(config.solver.contact_substeps,
+                                               CONTACT_ENTRY_SUBSTEPS))
+        return config
     return contact_config()
+
+
+def contact_step_ratio(solver, health: dict, scene: Scene) -> float:
+    """h x omega_c of a fixed-step solve with contact: the step its contact forces take (the
+    step over its substeps) times the barrier's frequency at the deepest void of `health`."""
+    return (solver.max_dt / getattr(solver, "contact_substeps", 1)
+            * contact_frequency(float(health["void_margin"]), scene.material,
+                                float(health["min_inertia"]), scene.model))
+
+
+def passes(drift: float, ratio: float) -> bool:
+    """Whether a fixed-step solve is predicted to pass `next_config` with this drift and
+    h x omega_c, with the margin a prediction needs (the drift within half the tolerance)."""
+    return drift <= 0.5 * ENERGY_TOLERANCE and ratio <= CONTACT_STEP_LIMIT
+
+
+def with_substeps(config: SolverConfig, n: int) -> SolverConfig:
+    """The same fixed-step configuration with its contact forces stepped `n` times a step."""
+    return dataclasses.replace(config, solver=dataclasses.replace(config.solver,
+                                                                  contact_substeps=n))
 
 
 def next_config(config: SolverConfig, health: dict, scene: Scene) -> tuple[SolverConfig, str] | None:
@@ -278,10 +298,8 @@ def next_config(config: SolverConfig, health: dict, scene: Scene) -> tuple[Solve
     if not (is_fixed_step(solver) and solver.stability_limited):
         return None
     drift = float(health.get("energy_error", 0.0))
-    ratio, substeps = 0.0, getattr(solver, "contact_substeps", 1)
-    if config.use_contact:  # of the step the contact forces take
-        ratio = solver.max_dt / substeps * contact_frequency(
-            margin, scene.material, float(health["min_inertia"]), scene.model)
+    substeps = getattr(solver, "contact_substeps", 1)
+    ratio = contact_step_ratio(solver, health, scene) if config.use_contact else 0.0
     faults = []
     if not drift <= ENERGY_TOLERANCE:
         faults.append(f"the work-energy balance drifted by {drift:.1e} of the energy the solve "
@@ -297,12 +315,10 @@ def next_config(config: SolverConfig, health: dict, scene: Scene) -> tuple[Solve
         while n * CONTACT_STEP_LIMIT < ratio * substeps and n < CONTACT_SUBSTEPS_MAX:
             n *= 2
         if ratio * substeps <= n * CONTACT_STEP_LIMIT:
-            nxt = dataclasses.replace(config, solver=dataclasses.replace(solver,
-                                                                         contact_substeps=n))
+            nxt = with_substeps(config, n)
             return nxt, (f"{what}: re-solved with the contact forces stepped {n} times per step "
                          f"({nxt.solver.max_dt / n * 1e3:.1f} us)")
-    if (not solver.refined and drift * REFINE**2 <= 0.5 * ENERGY_TOLERANCE
-            and ratio * REFINE <= CONTACT_STEP_LIMIT):
+    if not solver.refined and passes(drift * REFINE**2, ratio * REFINE):
         nxt = refined(config)
         return nxt, (f"{what}: re-solved once at {REFINE:g} x the step "
                      f"({nxt.solver.max_dt * 1e3:.1f} us)")
@@ -320,7 +336,7 @@ def after_failure(config: SolverConfig) -> tuple[SolverConfig, str] | None:
             < CONTACT_SUBSTEPS_MAX):
         return None
     n = CONTACT_SUBSTEPS_MAX
-    nxt = dataclasses.replace(config, solver=dataclasses.replace(solver, contact_substeps=n))
+    nxt = with_substeps(config, n)
     return nxt, (f"re-solved with the contact forces stepped {n} times per step "
                  f"({solver.max_dt / n * 1e3:.1f} us)")
 
@@ -356,11 +372,8 @@ def start_config(choice: SolverConfig, last: SolverConfig | None, health: dict |
     if is_fixed_step(last.solver) and getattr(last.solver, "refined", False):
         whole = dataclasses.replace(last, solver=dataclasses.replace(
             last.solver, max_dt=last.solver.max_dt / REFINE, refined=False))
-        drift = float(health.get("energy_error", 0.0)) / REFINE**2
-        ratio = (whole.solver.max_dt / getattr(whole.solver, "contact_substeps", 1)
-                 * contact_frequency(float(health["void_margin"]), scene.material,
-                                     float(health["min_inertia"]), scene.model))
-        if drift <= 0.5 * ENERGY_TOLERANCE and ratio <= CONTACT_STEP_LIMIT:
+        if passes(float(health.get("energy_error", 0.0)) / REFINE**2,
+                  contact_step_ratio(whole.solver, health, scene)):
             return whole
     return last
 

@@ -320,7 +320,7 @@ def make_objective(scene: Scene, config: SolverConfig | None = None, weights=Non
             return out, value_aux[1]
 
         outcome = solve_with_policy(scene, default_choice(scene).config, solve,
-                                    previous=(last["config"], last["health"]))
+                                    previous=lambda: (last["config"], last["health"]))
         last.update(config=outcome.config, health=outcome.health)
         return outcome.result
 

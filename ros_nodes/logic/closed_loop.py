@@ -223,9 +223,6 @@ def check_design_fits(path: Path, task) -> None:
 # --- materials between rounds -----------------------------------------------------------------
 
 
-STIFFNESSES = ("k_stretch", "k_shear", "k_bend")
-
-
 def common_stiffness_scale(calibration: dict, start: dict | None = None) -> dict | None:
     """The common factor of the fitted stiffnesses, when the calibration determined them only
     in combination (at least one of them determined, at least one undetermined), else None.
@@ -251,6 +248,8 @@ def common_stiffness_scale(calibration: dict, start: dict | None = None) -> dict
         sd(log s), "log_stderr_on_line": sd_line(log s), "start": their start values (SI)},
         or None.
     """
+    from design_engine.calibration.fit import STIFFNESSES
+
     params = calibration.get("parameters", {})
     fit = calibration.get("fit") or list(params)
     names = [n for n in fit if n in STIFFNESSES and n in params]
@@ -278,8 +277,10 @@ def common_stiffness_scale(calibration: dict, start: dict | None = None) -> dict
             "log_stderr_on_line": on_line, "start": start}
 
 
-def carried_material(model: Path | None, calibration: dict) -> tuple[dict, dict, list[str]]:
-    """(values, stderrs, names dropped) of the next round's model: `model`'s values (the
+def carried_material(model: Path | None,
+                     calibration: dict) -> tuple[dict, dict, list[str], dict | None]:
+    """(values, stderrs, names dropped, the common scale or None) of the next round's model:
+    `model`'s values (the
     default file's where it sets none: a complete material) updated with the calibrated
     parameters and the values derived from them, except those the calibration calls
     undetermined (and what derives from them).
@@ -324,7 +325,7 @@ def carried_material(model: Path | None, calibration: dict) -> tuple[dict, dict,
                 values[name], errors[name] = float(p["value"]), float(p["stderr"])
     else:
         dropped += sorted(n for n in derived if n in SI_UNITS)
-    return values, errors, dropped
+    return values, errors, dropped, scale
 
 
 # --- steps ------------------------------------------------------------------------------------
@@ -400,15 +401,12 @@ class _Round:
         if path.exists():
             return path
         prev = self.plan.out / f"round-{self.k - 1}"
-        cal = json.loads((prev / CALIBRATE / "calibration.json").read_text())
-        before = prev / MATERIAL_NAME
-        values, errors, dropped = carried_material(before if before.exists() else None, cal)
+        values, errors, dropped, scale = self.carried()
         from design_engine.physics.material_file import save_material
 
         self.dir.mkdir(parents=True, exist_ok=True)
         notes = [f"not carried (undetermined by the calibration): {', '.join(dropped)}"] \
             if dropped else []
-        scale = common_stiffness_scale(cal)
         if scale is not None:
             notes.append(f"determined only in combination: {', '.join(scale['names'])} carried "
                          f"as their start times one common scale {scale['value']:.4g} +- "
@@ -418,6 +416,13 @@ class _Round:
                       f"metarig loop: round {self.k - 1}'s model updated by its calibration "
                       f"({prev / CALIBRATE / 'calibration.json'})", note)
         return path
+
+    def carried(self):
+        """`carried_material` of round k-1's model and calibration (k > 1)."""
+        prev = self.plan.out / f"round-{self.k - 1}"
+        cal = json.loads((prev / CALIBRATE / "calibration.json").read_text())
+        before = prev / MATERIAL_NAME
+        return carried_material(before if before.exists() else None, cal)
 
     def start(self) -> list[str]:
         """The `metarig design` flags of the round's initial design: round k-1's design (warm
@@ -521,9 +526,7 @@ class _Round:
                             self.timings, self.skipped)
         doc["calibrated_from"] = str(run_dir)
         if self.k > 1:  # how round k-1's calibration made this round's model
-            prev = self.plan.out / f"round-{self.k - 1}" / CALIBRATE / "calibration.json"
-            doc["model_material"]["common_stiffness_scale"] = common_stiffness_scale(
-                json.loads(prev.read_text()))
+            doc["model_material"]["common_stiffness_scale"] = self.carried()[3]
         doc["design_start"] = self.start()
         doc["steps_wall_s"] = self.walls
         return doc

@@ -35,6 +35,21 @@ class PreviewStats:
 PublishFn = Callable[[int, FramePoses], None]
 
 
+def speckle_frame(tracker: DICTracker, seed: int = 0) -> np.ndarray:
+    """A uint8 frame of smoothed random speckle as large as the calibration's raw frames (or,
+    without one, the units' extent plus a margin): texture everywhere, for warming up."""
+    size = tracker.calib.image_size_px
+    if size is None:
+        w, h = (np.nanmax(tracker.polys_px.reshape(-1, 2), axis=0) + 32).astype(int)
+    else:
+        w, h = size
+    rng = np.random.default_rng(seed)
+    noise = rng.random((h + 2, w + 2))
+    smooth = (noise[:-2, :-2] + noise[1:-1, 1:-1] + noise[2:, 2:] + noise[1:-1, :-2]
+              + noise[:-2, 1:-1]) / 5
+    return np.clip(smooth * 255, 0, 255).astype(np.uint8)
+
+
 class LivePreview:
     """Tracks the newest offered frame at most `rate_hz` times per second on its own thread."""
 
@@ -58,6 +73,20 @@ class LivePreview:
     @property
     def tracker(self) -> DICTracker:
         return self._tracker
+
+    def warm_up(self) -> float:
+        """Compile the tracking kernels now, on a synthetic speckle frame and a shifted copy of
+        it, so that the first real frame is tracked at speed (a cold numba cache otherwise costs
+        the first frames 10-60 s, longer than a short capture). Returns the wall time it took;
+        best effort: a failure is logged and tracking compiles on its first frame instead."""
+        t0 = time.monotonic()
+        try:
+            frame = speckle_frame(self._tracker)
+            state = init_state(self._tracker, frame)
+            _track_frame(self._tracker, state, np.roll(frame, (1, 2), axis=(0, 1)))
+        except Exception:  # noqa: BLE001 - best effort; the real frames say what is wrong
+            log.exception("warming up the tracker failed")
+        return time.monotonic() - t0
 
     def start(self) -> "LivePreview":
         self._thread.start()

@@ -211,8 +211,10 @@ class Experiment:
                    "the specimen to be built (/rig/design)")
         if port.camera().get("state") == "error":
             raise RigError(f"camera: {port.camera().get('message')}")
+        # 120 s: a live tracker offers its service once its kernels are compiled, which a cold
+        # cache on a busy host makes take a minute
         for name in port.service_names():
-            self.until(lambda n=name: port.service_ready(n), f"service {name}", 60.0)
+            self.until(lambda n=name: port.service_ready(n), f"service {name}", 120.0)
         problems = port.device_problems()
         if problems:  # before anything moves
             raise RigError("; ".join(problems))

@@ -11,7 +11,10 @@ Interfaces (node name `dic_tracker`):
 - publishes `poses_topic` (metarig_msgs/UnitPose2DArray, default `/dic/poses`) at most
   `preview_rate_hz`: ids, x, y (reference centroid + displacement, m, sample frame), theta
   (rad, CCW), quality (ZNCC), lost (x, y, theta NaN); the stamp is the frame's;
-- service `~/reset_reference` (std_srvs/Trigger): the next frame becomes the reference.
+- service `~/reset_reference` (std_srvs/Trigger): the next frame becomes the reference. It is
+  offered only once the unit outlines are known and the tracking kernels are compiled
+  (`LivePreview.warm_up`), so that `metarig rig --live-dic` waits for it before the capture:
+  a cold numba cache otherwise left a short capture without a single live pose;
 - `/camera/reference_image` (latched): when the camera has taken one (the unloaded sample), it
   is the reference and the next frame's units are searched for in it, so that poses are from the
   unloaded design even on a pre-compressed sample.
@@ -61,7 +64,7 @@ class DICTrackerNode(Node):
         self.create_subscription(Image, topics.REFERENCE_IMAGE.name, self._on_reference, LATCHED)
         self._pub = self.create_publisher(UnitPose2DArray, cfg.poses_topic, STREAM)
         self.create_subscription(Image, cfg.image_topic, self._on_image, STREAM)
-        self.create_service(Trigger, T.DIC_RESET.name, self._on_reset)
+        self._reset_service = None  # offered once the tracker is warm: the rig waits for it
         if cfg.units_path:
             try:
                 polys = load_unit_polygons(cfg.units_path)
@@ -80,8 +83,12 @@ class DICTrackerNode(Node):
             self._preview.close()
         tracker = DICTracker(polygons, self._calib, cfg.tracker, bonds)
         self._centroids = area_centroids(tracker.polygons_m)
-        self._preview = LivePreview(tracker, cfg.preview_rate_hz, self._publish,
-                                    cfg.threads).start()
+        self._preview = LivePreview(tracker, cfg.preview_rate_hz, self._publish, cfg.threads)
+        took = self._preview.warm_up()
+        self._preview.start()
+        if self._reset_service is None:
+            self._reset_service = self.create_service(Trigger, T.DIC_RESET.name, self._on_reset)
+            self.get_logger().info(f"tracker warm in {took:.1f} s: {T.DIC_RESET.name} offered")
         if self._reference is not None:
             self._preview.reset_reference(self._reference)
         self.get_logger().info(f"tracking {tracker.n_units} units at <= "

@@ -16,7 +16,7 @@ this module re-exports the public names of both (the tracker's one import path).
 """
 
 import logging
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -51,6 +51,33 @@ log = logging.getLogger(__name__)
 # the pieces of `DICConfig.check_pieces` converge to this share of the check's floor (px): the
 # check compares them with a bound of at least the floor, so finer would only cost time
 PIECE_TOL_SHARE = 0.1
+
+
+@dataclass(frozen=True, slots=True)
+class WorkingPoses:
+    """One frame's poses while `track_frame` checks them (rectified pixel axes). Each check
+    takes a record and returns a new one, writing only its own copies of the arrays.
+
+    Attributes:
+        ok: [n] the pose is good; a unit that is not keeps its last good pose (it is lost).
+        checked: [n] the pose is registered against the reference image (`TrackerState.refs0`),
+            not against the unit's refreshed reference.
+        alpha: [n] rotation of each unit from the outline, rad.
+        t: [n, 2] centroid displacement of each unit from the outline, px.
+        zncc: [n] correlation of the registration each pose comes from.
+    """
+
+    ok: np.ndarray
+    checked: np.ndarray
+    alpha: np.ndarray
+    t: np.ndarray
+    zncc: np.ndarray
+
+    def copy(self) -> "WorkingPoses":
+        """The same poses in arrays of its own (for a check to write)."""
+        return WorkingPoses(
+            self.ok.copy(), self.checked.copy(), self.alpha.copy(), self.t.copy(), self.zncc.copy()
+        )
 
 
 def track_frame(
@@ -155,19 +182,11 @@ def track_frame(
     # new poses: good units move on, the others keep their last good pose and are lost
     new_alpha = np.where(ok, state.ref_alpha + np.nan_to_num(alpha), state.alpha)
     new_t = np.where(ok[:, None], state.ref_t + np.nan_to_num(w), state.t)
-    src_zncc, checked = zncc, np.zeros(n, bool)
-    if state.refs0 is not None:
-        ok, new_alpha, new_t, src_zncc, checked = _verify_against_reference(
-            tracker, state, prep, ok, new_alpha, new_t, zncc
-        )
-    if state.pieces is not None:
-        ok, new_alpha, new_t, src_zncc = _check_by_pieces(
-            tracker, state, prep, ok, checked, new_alpha, new_t, src_zncc
-        )
-    if tracker.bonds is not None and tracker.bonds.size and cfg.neighbour_px > 0:
-        ok, new_alpha, new_t, src_zncc, checked = _check_neighbours(
-            tracker, state, prep, ok, checked, new_alpha, new_t, src_zncc
-        )
+    poses = _check_poses(
+        tracker, state, prep, WorkingPoses(ok, np.zeros(n, bool), new_alpha, new_t, zncc)
+    )
+    ok, checked, new_alpha, new_t = poses.ok, poses.checked, poses.alpha, poses.t
+    src_zncc = poses.zncc
     src_refs = [(refs, ok & ~checked, src_zncc), (state.refs0, ok & checked, src_zncc)]
     prev_alpha = np.where(ok & ~state.lost, state.alpha, np.nan)
     prev_t = np.where((ok & ~state.lost)[:, None], state.t, np.nan)
@@ -190,28 +209,35 @@ def track_frame(
     return state, FramePoses(q=q, quality=src_zncc, lost=~ok, sigma=sigma)
 
 
+def _check_poses(
+    tracker: DICTracker, state: TrackerState, prep: PreparedFrame, poses: WorkingPoses
+) -> WorkingPoses:
+    """Run the checks the state and problem allow on a frame's poses, in order: against the
+    reference image, by pieces, against the bonded neighbours."""
+    if state.refs0 is not None:
+        poses = _verify_against_reference(tracker, state, prep, poses)
+    if state.pieces is not None:
+        poses = _check_by_pieces(tracker, state, prep, poses)
+    if tracker.bonds is not None and tracker.bonds.size and tracker.cfg.neighbour_px > 0:
+        poses = _check_neighbours(tracker, state, prep, poses)
+    return poses
+
+
 def _verify_against_reference(
-    tracker: DICTracker,
-    state: TrackerState,
-    prep: PreparedFrame,
-    ok: np.ndarray,
-    alpha: np.ndarray,
-    t: np.ndarray,
-    zncc: np.ndarray,
-):
+    tracker: DICTracker, state: TrackerState, prep: PreparedFrame, poses: WorkingPoses
+) -> WorkingPoses:
     """Check the poses registered against a refreshed reference with the reference image's own
     subsets (drift-free: a refreshed reference taken at a slightly wrong pose carries that error
     into every later frame, at a high correlation). Where the original subset registers well
     from the pose found, its pose is the one reported; where it registers poorly but agrees
     within `DICConfig.verify_px` / `verify_rad`, the pose stands; otherwise the unit is lost.
 
-    Returns (ok, alpha, t, zncc, checked): the verified flags, poses and correlations, and which
-    units the original reference now vouches for."""
+    Returns the verified poses; `checked` marks those the original reference now vouches for."""
     cfg = tracker.cfg
-    refreshed = ok & ((state.ref_alpha != 0.0) | np.any(state.ref_t != 0.0, axis=1))
-    checked = np.zeros_like(ok)
+    refreshed = poses.ok & ((state.ref_alpha != 0.0) | np.any(state.ref_t != 0.0, axis=1))
     if not refreshed.any():
-        return ok, alpha, t, zncc, checked
+        return poses
+    alpha, t = poses.alpha, poses.t
     idx = np.flatnonzero(refreshed)
     r = icgn(
         prep.coef, state.refs0, idx, alpha[idx], t[idx], cfg.max_iter, cfg.tol_px, cfg.max_move_px
@@ -223,40 +249,33 @@ def _verify_against_reference(
         np.hypot(*(r.w - t[idx]).T) + rmax * np.abs(r.alpha - alpha[idx]) <= cfg.verify_px
     )
     fair = r.inside & (z0 >= cfg.zncc_lost) & agree
-    ok, alpha, t, zncc = ok.copy(), alpha.copy(), t.copy(), zncc.copy()
+    p = poses.copy()
     take = idx[good]
-    alpha[take], t[take], zncc[take] = r.alpha[good], r.w[good], r.zncc[good]
-    checked[take] = True
+    p.alpha[take], p.t[take], p.zncc[take] = r.alpha[good], r.w[good], r.zncc[good]
+    p.checked[take] = True
     bad = idx[~good & ~fair]
     if bad.size:
         log.debug("%d poses disagree with the reference image: flagged lost", bad.size)
-    ok[bad] = False
-    return ok, alpha, t, zncc, checked
+    p.ok[bad] = False
+    return p
 
 
 def _check_by_pieces(
-    tracker: DICTracker,
-    state: TrackerState,
-    prep: PreparedFrame,
-    ok: np.ndarray,
-    checked: np.ndarray,
-    alpha: np.ndarray,
-    t: np.ndarray,
-    zncc: np.ndarray,
-):
+    tracker: DICTracker, state: TrackerState, prep: PreparedFrame, poses: WorkingPoses
+) -> WorkingPoses:
     """Check every good pose with its unit's pieces (`tracking.checks`), each against the
     reference it was registered with (the reference image's where `checked`). A unit whose
     pieces disagree is registered again from their own rigid motion; if its pieces disagree
     with that too, or it correlates below `zncc_lost`, it is lost.
 
-    Returns (ok, alpha, t, zncc): the flags, poses (from the reference image, px, rad) and
-    correlations after the check."""
+    Returns the poses after the check (`checked` unchanged)."""
     cfg = tracker.cfg
-    ok, alpha, t, zncc = ok.copy(), alpha.copy(), t.copy(), zncc.copy()
+    p = poses.copy()
+    ok, alpha, t, zncc = p.ok, p.alpha, p.t, p.zncc
     zero_a, zero_t = np.zeros_like(state.ref_alpha), np.zeros_like(state.ref_t)
     for refs, pieces, ra, rt, sel in (
-        (state.refs, state.pieces, state.ref_alpha, state.ref_t, ok & ~checked),
-        (state.refs0, state.pieces0, zero_a, zero_t, ok & checked),
+        (state.refs, state.pieces, state.ref_alpha, state.ref_t, ok & ~p.checked),
+        (state.refs0, state.pieces0, zero_a, zero_t, ok & p.checked),
     ):
         idx = np.flatnonzero(sel)
         if idx.size == 0:
@@ -285,33 +304,27 @@ def _check_by_pieces(
             fixed.size,
             redo.size - fixed.size,
         )
-    return ok, alpha, t, zncc
+    return p
 
 
 def _check_neighbours(
-    tracker: DICTracker,
-    state: TrackerState,
-    prep: PreparedFrame,
-    ok: np.ndarray,
-    checked: np.ndarray,
-    alpha: np.ndarray,
-    t: np.ndarray,
-    zncc: np.ndarray,
-):
+    tracker: DICTracker, state: TrackerState, prep: PreparedFrame, poses: WorkingPoses
+) -> WorkingPoses:
     """Check every good pose against its bonded neighbours' motion (`tracking.neighbours`). An
     implausible unit is registered again against the reference image from its plausible
     neighbours' motion (`from_neighbours`); the pose found stands if it correlates to
     `zncc_reacquire`, its ligaments pass and its pieces agree, else the unit is lost.
 
-    Returns (ok, alpha, t, zncc, checked) after the check (`checked`: now registered against
-    the reference image)."""
+    Returns the poses after the check (those found again are now `checked`: registered
+    against the reference image)."""
     cfg = tracker.cfg
     history = ~state.lost & np.isfinite(state.prev_alpha)
     before = [(state.alpha, state.t), (state.prev_alpha, state.prev_t)]
-    bad = implausible(tracker, [(alpha, t), *before], ok, history)
+    bad = implausible(tracker, [(poses.alpha, poses.t), *before], poses.ok, history)
     if not bad.any():
-        return ok, alpha, t, zncc, checked
-    ok, alpha, t, zncc, checked = ok.copy(), alpha.copy(), t.copy(), zncc.copy(), checked.copy()
+        return poses
+    p = poses.copy()
+    ok, alpha, t, zncc = p.ok, p.alpha, p.t, p.zncc
     redo, anchors = np.flatnonzero(bad), np.flatnonzero(ok & ~bad)
     fixed = np.zeros(redo.size, bool)
     if anchors.size and state.refs0 is not None:
@@ -330,7 +343,7 @@ def _check_neighbours(
             )[0]
         take = redo[fixed]
         alpha[take], t[take], zncc[take] = a[fixed], w[fixed], zn[fixed]
-        checked[take] = True
+        p.checked[take] = True
     gone = redo[~fixed]  # lost: they keep their last good pose, as any lost unit
     ok[gone], alpha[gone], t[gone] = False, state.alpha[gone], state.t[gone]
     log.debug(
@@ -339,7 +352,7 @@ def _check_neighbours(
         redo.size - gone.size,
         gone.size,
     )
-    return ok, alpha, t, zncc, checked
+    return p
 
 
 def _pieces_agree(

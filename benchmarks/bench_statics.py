@@ -4,6 +4,7 @@ own key there and keeps the others.
 
     .venv/bin/python benchmarks/bench_statics.py [--parts timing,hessian,branches,ramp]
                                                  [--strains 0.01,0.05,0.08]
+    .venv/bin/python benchmarks/bench_statics.py --parts warm --run RUN_DIR
 
 Parts:
 - `timing` (key `strains`): wall time of the equilibrium and of a value and gradient through it
@@ -21,6 +22,11 @@ Parts:
   Dopri8 at the reference tolerances with contact (contact -10/-5 deg, target (2,2)@(2,2)),
   beside the reference's own values; and the Dopri5 steps of the baseline (spec tolerances,
   ramp) at 8 %.
+- `warm` (not in the default parts; `--run` a `metarig design focus-vs-protect` run folder):
+  the equilibrium of each evaluation's design followed from the previous evaluation's
+  (`make_static_solver(..., guess=...)`, a continuation in the design) against the load
+  continuation from rest, at each of the task's strains: wall times (compiled), levels, and
+  whether both reached the same equilibrium (largest difference of the free DOFs).
 """
 
 import argparse
@@ -239,13 +245,50 @@ def part_ramp(strains=(0.0, 0.01, 0.02, 0.05, 0.08)) -> dict:
             "rows": rows, "baseline_dopri5_ramp_8pct": base}
 
 
+def part_warm(run: Path) -> dict:
+    """See the module docstring (`warm`)."""
+    from design_engine.design.task import load_task
+
+    task = load_task("focus-vs-protect")
+    xs = np.load(run / "checkpoint.npz")["x"]
+    out = {"run": str(run), "evaluations": len(xs), "scenes": {}}
+    for name, sc in task.scenes.items():
+        solver = make_static_solver(sc.lattice, sc.supports, model=sc.model)
+        cold = jax.jit(solver)
+        warm = jax.jit(lambda x, m, ld, t, g, f=solver: f(x, m, ld, t, g))
+        rows, prev = [], None
+        for k in range(len(xs)):
+            x = jnp.asarray(task.embed(xs[k]))
+            if k == 0:
+                cold(x, sc.material, sc.loading, 0.0)  # compiled before timing
+            (q, info), tc = timed(cold, x, sc.material, sc.loading, 0.0)
+            if prev is not None:
+                if k == 1:
+                    warm(x, sc.material, sc.loading, 0.0, prev)  # compiled before timing
+                (qw, iw), tw = timed(warm, x, sc.material, sc.loading, 0.0, prev)
+                diff = float(jnp.max(jnp.abs(q - qw)))
+                rows.append({"eval": k + 1, "design_change_mm": float(jnp.max(jnp.abs(
+                    x - prev[0]))), "cold_s": tc, "cold_levels": int(info["levels"]),
+                    "warm_s": tw, "warm_levels": int(iw["levels"]),
+                    "followed": int(iw["levels"]) <= 0, "max_difference": diff,
+                    "same_equilibrium": diff < 1e-6})
+                print(f"{name} evaluation {k + 1}: {rows[-1]}", flush=True)
+            prev = (x, q)
+        out["scenes"][name] = rows
+    return out
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--parts", default="timing,hessian,branches,ramp")
     p.add_argument("--strains", default="0.01,0.05,0.08", help="strains of the timing part")
+    p.add_argument("--run", type=Path, help="the warm part's `metarig design focus-vs-protect` "
+                   "run folder")
     args = p.parse_args(argv)
     parts = args.parts.split(",")
-    unknown = set(parts) - {"timing", "hessian", "branches", "ramp"}
+    if "warm" in parts and (args.run is None or not (args.run / "checkpoint.npz").exists()):
+        p.error("--parts warm needs --run DIR, a focus-vs-protect run folder with checkpoint.npz")
+    unknown = set(parts) - {"timing", "hessian", "branches", "ramp", "warm"}
     if unknown:
         p.error(f"unknown parts: {', '.join(sorted(unknown))}")
     doc = json.loads(OUT.read_text()) if OUT.exists() else {}
@@ -263,6 +306,8 @@ def main(argv=None) -> int:
             doc["branches"] = part_branches()
         elif part == "ramp":
             doc["ramp"] = part_ramp()
+        elif part == "warm":
+            doc["warm"] = part_warm(args.run)
         machine["load_after"] = os.getloadavg()
         doc.setdefault("machine_per_part", {})[part] = dict(machine)
         OUT.write_text(json.dumps(doc, indent=2) + "\n")

@@ -51,6 +51,7 @@ LOAD_GROWTH = 1.5  # step factor after a converged level (0.5 after a failed one
 MIN_LOAD_STEP = 1e-5  # the continuation gives up below this step of lambda
 NEWTON_ITERS = 40  # most damped Newton iterations per load level
 GRADIENT_TOL = 1e-10  # converged when max |dE/dq_f| is below this (N, N mm)
+DESIGN_LEVELS = 12  # most levels of a continuation in the design (`follow_design`)
 MAX_DAMPING_TRIES = 12  # tenfold increases of mu before a step is given up
 MIN_DAMPING, MAX_DAMPING = 1e-12, 1e3  # bounds of mu (relative to the largest Hessian diagonal)
 
@@ -143,6 +144,15 @@ def make_static_solver(lattice: Lattice, supports: Supports, *, use_contact: boo
         material: `Material`; loading: `Loading`.
         t_hold: time (ms) whose prescribed values are held (e.g. the end of the stage ramp,
             before the pulse).
+        guess: optional (x_from [n_design], q_from [n_free]): a nearby design and its
+            equilibrium's free DOFs (an optimiser's previous design, mm / rad; not
+            differentiated). The equilibrium is then followed from there to `x` at the full
+            load, by a continuation in the design (`follow_design`: the whole change first,
+            halved where Newton fails); the load continuation runs only when that does not
+            reach `x` within DESIGN_LEVELS levels. "levels" is then minus the design levels
+            taken. It follows the equilibrium the previous design was on, which is the one the
+            load continuation finds while the designs stay on one branch (checked along a run's
+            designs by `benchmarks/bench_statics.py --parts warm`).
 
     Returns q_f (the free DOFs at equilibrium, mm / rad, in `supports.free` order;
     differentiable by the implicit function theorem) and info (not differentiated):
@@ -240,12 +250,75 @@ def make_static_solver(lattice: Lattice, supports: Supports, *, use_contact: boo
         bonds = bond_geometry(lattice, block_geometry(lattice, x))
         return values(jnp.asarray(t_hold, x.dtype), loading), bonds
 
-    def equilibrium(x, material, loading: Loading, t_hold):
+    def follow_design(x_from, q_from, x_to, qc, ms, dtype):
+        """Continuation in the design at the full load: from the equilibrium `q_from` of design
+        `x_from` to design `x_to`, in steps of the design's change (the whole change first,
+        halved after a level that fails, grown by LOAD_GROWTH after one that converges), each
+        damped Newton from the tangent predictor (the implicit function's derivative along the
+        change, which turns the units with the voids the design moves). Returns (q, mu, reached, levels): reached when it got to `x_to`
+        within DESIGN_LEVELS levels."""
+        def bonds_at(lam):
+            return bond_geometry(lattice, block_geometry(lattice, x_from + lam * (x_to - x_from)))
+
+        def tangent(q, lam):
+            """dq/dlam along the equilibrium: -H^-1 d(dE/dq)/dlam (implicit function)."""
+            _, dg = jax.jvp(lambda a: grad(q, qc, bonds_at(a), ms), (lam,),
+                            (jnp.ones_like(lam),))
+            return -_solve(hess(q, qc, bonds_at(lam), ms), dg)
+
+        def level(carry):
+            q, t, lam, dlam, mu, k = carry
+            target = jnp.minimum(lam + dlam, 1.0)
+            bonds = bonds_at(target)
+            guess = q + (target - lam) * t  # the tangent predictor
+            good = (jnp.all(jnp.isfinite(guess)) & jnp.isfinite(total(guess, qc, bonds, ms))
+                    & admissible(guess, qc, bonds, ms))
+            q_new, mu_new, ok = jax.lax.cond(  # no Newton from a state past the asymptote
+                good, lambda: newton(guess, mu, qc, bonds, ms),
+                lambda: (q, mu, jnp.asarray(False)))
+            ok = (ok & jnp.all(jnp.isfinite(q_new))
+                  & admissible(q_new, qc, bonds, ms))
+            q_next = jnp.where(ok, q_new, q)
+            lam_next = jnp.where(ok, target, lam)
+            t_next = jax.lax.cond(ok & (lam_next < 1.0), lambda: tangent(q_next, lam_next),
+                                  lambda: t)
+            return (q_next, t_next, lam_next,
+                    jnp.where(ok, jnp.minimum(LOAD_GROWTH * dlam, 1.0), 0.5 * dlam),
+                    jnp.where(ok, mu_new, mu), k + 1)
+
+        def more(carry):
+            lam, dlam, k = carry[2], carry[3], carry[5]
+            return (lam < 1.0) & (dlam >= MIN_LOAD_STEP) & (k < DESIGN_LEVELS)
+
+        zero = jnp.asarray(0.0, dtype)
+        start = (q_from, tangent(q_from, zero), zero, jnp.asarray(1.0, dtype),
+                 jnp.asarray(1e-8, dtype), jnp.asarray(0))
+        q, _, lam, _, mu, k = jax.lax.while_loop(more, level, start)
+        return q, mu, lam >= 1.0, k
+
+    def from_guess(guess, qc_s, xs, ms, dtype):
+        """The equilibrium followed from a nearby design's (`follow_design`), else the load
+        continuation (see `equilibrium`). Returns (q, mu, lam, levels)."""
+        x_from, q_from = (jnp.asarray(a, dtype) for a in guess)
+        bonds_s = bond_geometry(lattice, block_geometry(lattice, xs))
+        usable = jnp.all(jnp.isfinite(x_from)) & jnp.all(jnp.isfinite(q_from))
+        q_w, mu_w, ok, k = follow_design(jnp.where(usable, x_from, xs),
+                                         jnp.where(usable, q_from, 0.0), xs, qc_s, ms, dtype)
+        ok = usable & ok
+        return jax.lax.cond(
+            ok, lambda: (q_w, mu_w, jnp.asarray(1.0, dtype), -k),
+            lambda: continuation(qc_s, bonds_s, ms, dtype))
+
+    def equilibrium(x, material, loading: Loading, t_hold, guess=None):
         x = jnp.asarray(x)
         xs, ms, ls = jax.lax.stop_gradient((x, material, loading))
         qc_s, bonds_s = constants(xs, ls, t_hold)
 
-        q_s, mu, lam, levels = continuation(qc_s, bonds_s, ms, x.dtype)
+        if guess is None:
+            q_s, mu, lam, levels = continuation(qc_s, bonds_s, ms, x.dtype)
+        else:
+            q_s, mu, lam, levels = from_guess(jax.lax.stop_gradient(guess), qc_s, xs, ms,
+                                              x.dtype)
         q_s = jax.lax.stop_gradient(q_s)
         h = jax.lax.stop_gradient(hess(q_s, qc_s, bonds_s, ms))
         qc, bonds = constants(x, loading, t_hold)

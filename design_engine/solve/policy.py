@@ -86,9 +86,10 @@ class Choice:
     omega_max: float | None = None  # rad/ms
 
 
-def make_frequency_estimator(scene: Scene, iterations: int):
+def make_frequency_estimator(scene: Scene, iterations: int, use_contact: bool = True):
     """Factory: jitted `estimate(x, v0, q_base=None) -> (omega_max, v)` for designs `x`
-    [n_design] (mm).
+    [n_design] (mm); `use_contact=False`: of the stiffness without the contact terms (the
+    ligaments', which a step whose contact forces are substepped must resolve).
 
     Power iteration on M^-1/2 K M^-1/2 with Hessian-vector products (no dense Hessian:
     `iterations` force-gradient products), started from `v0` [n_free] (unit vector), K taken at
@@ -98,7 +99,7 @@ def make_frequency_estimator(scene: Scene, iterations: int):
     below.
     """
     lat, free = scene.lattice, scene.supports.free
-    energy = make_energy(lat, model=scene.model)
+    energy = make_energy(lat, model=scene.model, use_contact=use_contact)
     material = scene.material
 
     @jax.jit
@@ -136,13 +137,15 @@ def initial_vector(scene: Scene) -> np.ndarray:
     return v0 / np.linalg.norm(v0)
 
 
-def max_angular_frequency(scene: Scene, iterations: int = 300, state=None) -> float:
+def max_angular_frequency(scene: Scene, iterations: int = 300, state=None,
+                          use_contact: bool = True) -> float:
     """Largest omega (rad/ms) of K phi = omega^2 M phi for the scene's design, K taken at
-    `state` ([n_blocks, 3] mm/rad; default the reference state at rest).
+    `state` ([n_blocks, 3] mm/rad; default the reference state at rest), with or without the
+    contact terms.
 
     Power iteration (see `make_frequency_estimator`): a few hundred force evaluations.
     """
-    omega, _ = make_frequency_estimator(scene, iterations)(
+    omega, _ = make_frequency_estimator(scene, iterations, use_contact)(
         jnp.asarray(scene.design), jnp.asarray(initial_vector(scene)), state)
     return float(omega)
 

@@ -150,9 +150,11 @@ def make_static_solver(lattice: Lattice, supports: Supports, *, use_contact: boo
             load, by a continuation in the design (`follow_design`: the whole change first,
             halved where Newton fails); the load continuation runs only when that does not
             reach `x` within DESIGN_LEVELS levels. "levels" is then minus the design levels
-            taken. It follows the equilibrium the previous design was on, which is the one the
-            load continuation finds while the designs stay on one branch (checked along a run's
-            designs by `benchmarks/bench_statics.py --parts warm`).
+            taken. It follows the equilibrium the previous design was on, which need not be
+            the one the stages reach: along a focus-vs-protect run's designs at 8 % it took
+            0.24-2.4 s against 10-13 s and reached the load continuation's equilibrium 3 times
+            in 4, the fourth 2.1 mm/rad off (`benchmarks/bench_statics.py --parts warm`), so
+            the solver policy does not use it.
 
     Returns q_f (the free DOFs at equilibrium, mm / rad, in `supports.free` order;
     differentiable by the implicit function theorem) and info (not differentiated):
@@ -255,8 +257,8 @@ def make_static_solver(lattice: Lattice, supports: Supports, *, use_contact: boo
         `x_from` to design `x_to`, in steps of the design's change (the whole change first,
         halved after a level that fails, grown by LOAD_GROWTH after one that converges), each
         damped Newton from the tangent predictor (the implicit function's derivative along the
-        change, which turns the units with the voids the design moves). Returns (q, mu, reached, levels): reached when it got to `x_to`
-        within DESIGN_LEVELS levels."""
+        change, which turns the units with the voids the design moves). Returns (q, mu,
+        reached, levels): reached when it got to `x_to` within DESIGN_LEVELS levels."""
         def bonds_at(lam):
             return bond_geometry(lattice, block_geometry(lattice, x_from + lam * (x_to - x_from)))
 

@@ -89,7 +89,7 @@ class Choice:
 def make_frequency_estimator(scene: Scene, iterations: int, use_contact: bool = True):
     """Factory: jitted `estimate(x, v0, q_base=None) -> (omega_max, v)` for designs `x`
     [n_design] (mm); `use_contact=False`: of the stiffness without the contact terms (the
-    ligaments', which a step whose contact forces are substepped must resolve).
+    ligaments' alone; `benchmarks/bench_outer_step.py` sets the two side by side).
 
     Power iteration on M^-1/2 K M^-1/2 with Hessian-vector products (no dense Hessian:
     `iterations` force-gradient products), started from `v0` [n_free] (unit vector), K taken at

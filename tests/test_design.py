@@ -584,3 +584,40 @@ def test_an_invalid_trial_design_is_not_simulated_and_the_run_steps_back(tmp_pat
     assert ev[2]["failed"] and ev[2]["objective"] is None and ev[2]["sim_s"] < 0.5
     assert "invalid geometry" in ev[2]["event"] and "self-intersecting" in ev[2]["event"]
     assert len(ev) == 6 and res.best != 2
+
+
+def test_a_scene_that_starts_in_contact_is_judged_on_its_objective_at_half_the_step(tmp_path):
+    """focus-vs-protect on 6x6 under a 2 mm pulse: the 8 % scene's static pre-compression
+    closes voids past the contact cutoff, so its fixed-step solve is also judged at half the
+    step. The estimate (the event's, or the record's when the solve stands) is 4/3 of the
+    relative change of J between the step and half of it, solved independently here (static
+    start included), and decides: Dopri8 above STEP_ERROR_TOLERANCE. The 1 % scene starts
+    clear of contact and is not judged so."""
+    from design_engine.design.task import preset_path
+    from design_engine.solve.policy import STEP_ERROR_TOLERANCE, refined
+    from design_engine.solve.run import make_objective
+
+    text = preset_path("focus-vs-protect").read_text().replace(
+        'precompression = "static"', 'precompression = "static"\namplitude_m = 0.002')
+    path = tmp_path / "fvp-2mm.toml"
+    path.write_text(text)
+    task = load_task(path, size=(6, 6), max_evals=1)
+    evaluator = TaskEvaluator(task)
+    config = evaluator._state["strain_8pct"].config  # its first solve's: contact terms on
+    out = evaluator.evaluate(task.initial_design)
+    events = " ".join(out.events)
+    assert "step_error" not in out.solver["strain_1pct"] and "strain_1pct: the objective" \
+        not in events
+    scene = task.scenes["strain_8pct"]
+    x = task.initial_design
+    j = float(make_objective(scene, config)[1](x)[0])
+    j_half = float(make_objective(scene, refined(config))[1](x)[0])
+    expected = 4 / 3 * abs(j - j_half) / abs(j)
+    rec = out.solver["strain_8pct"]
+    if expected > STEP_ERROR_TOLERANCE:
+        moved = re.search(r"strain_8pct: the objective moved by ([0-9.e+-]+) of itself", events)
+        assert moved and rec["config"]["solver"] == "Dopri8", events
+        assert float(moved.group(1)) == pytest.approx(expected, rel=0.01)
+    else:
+        assert rec["config"]["solver"] == "FixedStepVerlet", events
+        assert rec["step_error"] == pytest.approx(expected, rel=1e-6)

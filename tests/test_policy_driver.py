@@ -14,7 +14,7 @@ from design_engine.solve.driver import (CONTINUED, FALLBACK, REFERENCE_RETRY, RE
                                         PolicyFailed, decide, solve_with_policy)
 from design_engine.solve.fixed_step import FixedStepVerlet
 from design_engine.solve.policy import (CONTACT_ENTRY_SUBSTEPS, ENERGY_TOLERANCE, contact_config,
-                                        fallback_config)
+                                        fallback_config, with_contact)
 from design_engine.solve.simulate import SimulationError, SolverConfig, StepBudgetError
 
 VERLET = SolverConfig(solver=FixedStepVerlet(max_dt=0.01), use_contact=False)
@@ -179,3 +179,25 @@ def test_the_continued_configuration_is_read_after_the_check(scene):
     out = solve_with_policy(scene, VERLET, solve, check=check, previous=previous)
     assert order == ["check", "previous"] and solve.calls == [contact]
     assert [s.kind for s in out.steps] == [START, CONTINUED]
+
+
+def test_a_solve_that_starts_in_contact_is_judged_at_half_its_step_too(scene):
+    """`needs_step_check`: only a fixed step with contact whose solve started with a void past
+    the cutoff; its `step_error` (the evaluator's half-step estimate) above
+    STEP_ERROR_TOLERANCE sends it to Dopri8, within it the result stands."""
+    from design_engine.solve.policy import STEP_ERROR_TOLERANCE, needs_step_check, next_config
+
+    span = float(scene.material.contact_cutoff - scene.material.contact_min)
+    contact = with_contact(VERLET)
+    started = healthy(scene, void_margin=0.5 * span, start_void_margin=0.5 * span)
+    assert needs_step_check(contact, started, scene)
+    assert not needs_step_check(contact, healthy(scene, void_margin=0.5 * span,
+                                                 start_void_margin=2.0 * span), scene)
+    assert not needs_step_check(VERLET, started, scene)
+    assert not needs_step_check(contact_config(), started, scene)
+    assert next_config(contact, dict(started, step_error=0.5 * STEP_ERROR_TOLERANCE),
+                       scene) is None
+    nxt, why = next_config(contact, dict(started, step_error=2 * STEP_ERROR_TOLERANCE), scene)
+    assert nxt == contact_config() and "half the step" in why
+    nxt, _ = next_config(contact, dict(started, step_error=float("nan")), scene)
+    assert nxt == contact_config()

@@ -38,7 +38,8 @@ from design_engine.solve.driver import PolicyFailed, solve_with_policy
 from design_engine.solve.fixed_step import is_fixed_step
 from design_engine.solve.objectives import objective_term
 from design_engine.solve.policy import (STABILITY_SAFETY, choose_config, contact_config,
-                                        initial_vector, make_frequency_estimator)
+                                        initial_vector, make_frequency_estimator,
+                                        needs_step_check, next_config, refined)
 from design_engine.solve.run import prestressed_state
 from design_engine.solve.run import checked, compile_key, config_summary
 from design_engine.solve.simulate import (SimulationError, Solution, SolverConfig, make_simulator,
@@ -153,12 +154,16 @@ class TaskEvaluator:
             omega, v = est(jnp.asarray(x), v, state)
         return float(omega), np.asarray(v)
 
-    def _function(self, name: str, config: SolverConfig):
+    def _function(self, name: str, config: SolverConfig, forward: bool = False):
+        """The scene's compiled objective: value and gradient `(x, material, loading, ts,
+        weights)`, or with `forward` the value alone `(..., weights, initial)` from a given
+        start (free DOFs and their rates), without the static solve."""
         scene = self.task.scenes[name]
         terms = [t for t in self.task.terms if t.scene == name]
         key = compile_key(scene, config, "task", scene.sample_times) + tuple(
             (t.quantity, tuple(self.task.targets[t.target])) for t in terms) + (
-            None if self.task.spin_point is None else tuple(self.task.spin_point),)
+            None if self.task.spin_point is None else tuple(self.task.spin_point),
+            "forward" if forward else "gradient")
         if key in _PROGRAMS:
             return _PROGRAMS[key]
         sim = make_simulator(scene.lattice, scene.supports, config, scene.sample_times,
@@ -167,14 +172,16 @@ class TaskEvaluator:
         quantities = [t.quantity for t in terms]
         point = None if self.task.spin_point is None else jnp.asarray(self.task.spin_point)
 
-        def objective(x, material, loading, ts, weights):
-            sol = sim(x, material, loading, ts)
+        def objective(x, material, loading, ts, weights, initial=None):
+            sol = sim(x, material, loading, ts, initial)
             raw = [objective_term(q, sol, ids, point) for q, ids in zip(quantities, targets)]
             value = sum(weights[k] * OPTIMISER_SCALE[q] * raw[k] for k, q in enumerate(quantities))
-            aux = dict(solve_health(sol), terms=jnp.stack(raw), start_state=sol.q[0])
+            aux = dict(solve_health(sol), terms=jnp.stack(raw), start_state=sol.q[0],
+                       start_free=sol.start_free)
             return value, aux
 
-        fn = jax.jit(jax.value_and_grad(objective, has_aux=True))
+        fn = (jax.jit(lambda *args: objective(*args)[0]) if forward
+              else jax.jit(jax.value_and_grad(objective, has_aux=True)))
         _PROGRAMS[key] = fn
         self.compilations += 1
         return fn
@@ -208,6 +215,21 @@ class TaskEvaluator:
             raise SimulationError("non-finite gradient")
         values = {t.name: float(v) for t, v in zip(terms, np.asarray(aux["terms"]))}
         return float(value), grad, values, aux
+
+    def _step_error(self, name: str, config: SolverConfig, x: np.ndarray, value: float,
+                    aux: dict) -> float:
+        """The relative error of a fixed-step solve's objective `value`, estimated by solving
+        the same start forward at half the step (Richardson: 4/3 of the change, Verlet being
+        second order; `policy.STEP_ERROR_TOLERANCE`)."""
+        scene = self.task.scenes[name]
+        fn = self._function(name, refined(config), forward=True)
+        q0 = jnp.asarray(aux["start_free"])  # the static equilibrium, at t = 0
+        weights = jnp.asarray([t.weight for t in self.task.terms if t.scene == name])
+        half = float(fn(jnp.asarray(x), scene.material, scene.loading,
+                        jnp.asarray(scene.sample_times), weights, (q0, jnp.zeros_like(q0))))
+        if not np.isfinite(half):
+            return float("inf")
+        return 4.0 / 3.0 * abs(value - half) / max(abs(value), 1e-300)
 
     # --- the policy ------------------------------------------------------------------------
 
@@ -285,6 +307,9 @@ class TaskEvaluator:
 
         def solve(config):
             value, grad, terms, aux = self._solve(name, config, x)
+            # a solve that starts in contact and passed the other checks is judged on J too
+            if needs_step_check(config, aux, scene) and next_config(config, aux, scene) is None:
+                aux = dict(aux, step_error=self._step_error(name, config, x, value, aux))
             return (value, grad, terms, aux), aux
 
         def log(step):
@@ -307,8 +332,12 @@ class TaskEvaluator:
         st = dataclasses.replace(st, start_state=np.asarray(aux["start_state"]))
         if not out.fell_back:
             st = dataclasses.replace(st, last_config=out.config, last_health={
-                k: np.asarray(v) for k, v in aux.items() if k != "start_state"})
-        return value, grad, terms, self._record(out.config, why), events, st
+                k: np.asarray(v) for k, v in aux.items()
+                if k not in ("start_state", "start_free")})
+        record = self._record(out.config, why)
+        if "step_error" in out.health:  # the half-step check judged the solve that counted
+            record["step_error"] = float(out.health["step_error"])
+        return value, grad, terms, record, events, st
 
     def evaluate(self, x: np.ndarray) -> Evaluation:
         """Value and gradient of the scalarised objective at design `x` [n_design] (mm).

@@ -73,6 +73,10 @@ class Solution(eqx.Module):
         num_steps, num_accepted, num_rejected: solver statistics.
         min_void_margin: smallest unwrapped void angle minus the contact asymptote over the samples,
             rad; negative means a unit passed through the contact barrier (a failed step).
+        start_void_margin: the same at the first sample (for a static scene, the static
+            pre-compression's as the pulse has not arrived yet), rad.
+        start_free: [n_free] the free DOFs the solve started from at t = 0 (the static
+            equilibrium of a static scene, else zeros or the given initial state), mm / rad.
         static_residual: max |dE/dq_f| of the static pre-compression the solve started from
             (N, N mm; 0 without one); above `statics` tolerance the start was no equilibrium.
         energy_error: a fixed-step solve's work-energy drift relative to the energy it moved
@@ -91,6 +95,8 @@ class Solution(eqx.Module):
     num_accepted: Int[Array, ""]
     num_rejected: Int[Array, ""]
     min_void_margin: Float[Array, ""]
+    start_void_margin: Float[Array, ""]
+    start_free: Float[Array, " n_free"]
     static_residual: Float[Array, ""]
     energy_error: Float[Array, ""]
 
@@ -252,6 +258,8 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
             num_accepted=accepted,
             num_rejected=rejected,
             min_void_margin=jax.lax.stop_gradient(jnp.min(voids) - material.contact_min),
+            start_void_margin=jax.lax.stop_gradient(jnp.min(voids[0]) - material.contact_min),
+            start_free=jax.lax.stop_gradient(y0[:n_free]),
             static_residual=jax.lax.stop_gradient(residual),
             energy_error=jax.lax.stop_gradient(drift),
         )
@@ -262,14 +270,15 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
 def solve_health(sol: Solution, xp=jnp) -> dict:
     """Scalars that judge a solve (`health_failure`), cheap to return from a jitted or vmapped
     call: result code, steps, whether the state stayed finite, the largest displacement (mm) and
-    rotation (rad), the void margin (rad), the static start's residual (N, N mm), the smallest
+    rotation (rad), the void margin over the solve and at its start (rad), the static start's residual (N, N mm), the smallest
     rotary inertia (g mm^2) and the fixed step's work-energy drift (relative). `xp=np` computes
     them on the host for a solution already out of a jitted call (no op-by-op dispatch)."""
     q, qdot = xp.asarray(sol.q), xp.asarray(sol.qdot)
     return {"result": sol.result, "num_steps": sol.num_steps,
             "finite": xp.all(xp.isfinite(q)) & xp.all(xp.isfinite(qdot)),
             "max_disp": xp.max(xp.abs(q[..., :2])), "max_rot": xp.max(xp.abs(q[..., 2])),
-            "void_margin": sol.min_void_margin, "static_residual": sol.static_residual,
+            "void_margin": sol.min_void_margin, "start_void_margin": sol.start_void_margin,
+            "static_residual": sol.static_residual,
             "min_inertia": xp.min(xp.asarray(sol.inertia)), "energy_error": sol.energy_error}
 
 

@@ -21,7 +21,7 @@ feasible J against wall time, and where each evaluation's time went) at the end.
 
 `--replay FIRST LAST` instead replays evaluations FIRST..LAST of the stored "after" run (its
 designs, `checkpoint.npz`) through a fresh task evaluator, once from a checkout of `--before`
-and once from this one, side by side (both at once when `--parallel`): per evaluation its wall
+and once from this one (or from `--after`), side by side (both at once when `--parallel`): per evaluation its wall
 time, the objective and how many programs the evaluator had compiled
 (OUT/bench_focusing_replay.json).
 
@@ -244,12 +244,14 @@ json.dump(rows, open(sys.argv[4], "w"))
 """ % TASK
 
 
-def replay(out: Path, before: str, first: int, last: int, parallel: bool) -> dict:
+def replay(out: Path, before: str, first: int, last: int, parallel: bool,
+           after: str | None = None) -> dict:
     """Evaluations `first`..`last` of the stored "after" run through a fresh evaluator, from
-    the sources of `before` and of this checkout (see module docstring)."""
+    the sources of `before` and of `after` (default: this checkout; see module docstring)."""
     checkpoint = out / "after" / "checkpoint.npz"
     procs, files = {}, {}
-    for label, src in (("before", source_tree(out, before)), ("after", REPO)):
+    after_src = REPO if after is None else source_tree(out, after)
+    for label, src in (("before", source_tree(out, before)), ("after", after_src)):
         files[label] = out / f"replay_{label}.json"
         cmd = [sys.executable, "-c", REPLAY, str(checkpoint), str(first), str(last),
                str(files[label])]
@@ -258,8 +260,8 @@ def replay(out: Path, before: str, first: int, last: int, parallel: bool) -> dic
         procs[label] = (subprocess.Popen(cmd, cwd=src, env=env), t0, load0)
         if not parallel:
             procs[label][0].wait()
-    result = {"first": first, "last": last, "before_ref": before, "parallel": parallel,
-              "sides": {}}
+    result = {"first": first, "last": last, "before_ref": before, "after_ref": after,
+              "parallel": parallel, "sides": {}}
     for label, (proc, t0, load0) in procs.items():
         if proc.wait() != 0:
             raise SystemExit(f"replay {label} failed (exit {proc.returncode})")
@@ -290,7 +292,8 @@ def main(argv=None) -> int:
     out = args.out.resolve()
     out.mkdir(parents=True, exist_ok=True)
     if args.replay:
-        res = replay(out, args.before, *args.replay, args.parallel) | {"machine": describe()}
+        res = replay(out, args.before, *args.replay, args.parallel, args.after) | {
+            "machine": describe()}
         (out / "bench_focusing_replay.json").write_text(json.dumps(res, indent=1))
         for label, side in res["sides"].items():
             print(f"{label}: {side['wall_s']:.0f} s, {side['compilations']} programs")

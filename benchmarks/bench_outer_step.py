@@ -52,22 +52,15 @@ def designs(args, task) -> list[tuple[str, np.ndarray]]:
 
 def frequencies(scene, x) -> dict:
     """omega_max (rad/ms) at the static start with and without the contact terms, omega_c."""
-    import dataclasses
-
-    import jax.numpy as jnp
-
-    from design_engine.physics.dynamics import dof_masses
-    from design_engine.physics.geometry import block_geometry
     from design_engine.solve import policy
     from design_engine.solve.run import prestressed_state
 
-    sc = dataclasses.replace(scene, design=np.asarray(x))
+    sc = scene.with_design(np.asarray(x))
     state = prestressed_state(sc)
     full = policy.max_angular_frequency(sc, state=state)
     lig = policy.max_angular_frequency(sc, state=state, use_contact=False)
     margin = policy.static_void_margin(sc, state)
-    inertia = float(jnp.min(dof_masses(block_geometry(sc.lattice, jnp.asarray(x)),
-                                       sc.material).reshape(-1, 3)[:, 2]))
+    inertia = float(np.min(sc.unit_inertias_kgm2())) * 1e9  # g mm^2, as `solve_health`'s
     wc = policy.contact_frequency(margin, sc.material, inertia, sc.model)
     return {"omega_max": full, "omega_lig": lig, "omega_c": wc, "void_margin_deg":
             math.degrees(margin), "scene": sc}

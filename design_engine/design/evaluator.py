@@ -204,9 +204,8 @@ class TaskEvaluator:
         config = self._budgeted(config)
         fn = self._function(name, config)
         terms = [t for t in self.task.terms if t.scene == name]
-        weights = jnp.asarray([t.weight for t in terms])
         out = fn(jnp.asarray(x), scene.material, scene.loading, jnp.asarray(scene.sample_times),
-                 weights)
+                 self._weights(name))
         out = jax.block_until_ready(out)
         checked(out, config)
         (value, aux), grad = out
@@ -216,6 +215,10 @@ class TaskEvaluator:
         values = {t.name: float(v) for t, v in zip(terms, np.asarray(aux["terms"]))}
         return float(value), grad, values, aux
 
+    def _weights(self, name: str):
+        """The weights of the scene's terms, in the order its compiled objective takes them."""
+        return jnp.asarray([t.weight for t in self.task.terms if t.scene == name])
+
     def _step_error(self, name: str, config: SolverConfig, x: np.ndarray, value: float,
                     aux: dict) -> float:
         """The relative error of a fixed-step solve's objective `value`, estimated by solving
@@ -224,9 +227,9 @@ class TaskEvaluator:
         scene = self.task.scenes[name]
         fn = self._function(name, refined(config), forward=True)
         q0 = jnp.asarray(aux["start_free"])  # the static equilibrium, at t = 0
-        weights = jnp.asarray([t.weight for t in self.task.terms if t.scene == name])
         half = float(fn(jnp.asarray(x), scene.material, scene.loading,
-                        jnp.asarray(scene.sample_times), weights, (q0, jnp.zeros_like(q0))))
+                        jnp.asarray(scene.sample_times), self._weights(name),
+                        (q0, jnp.zeros_like(q0))))
         if not np.isfinite(half):
             return float("inf")
         return 4.0 / 3.0 * abs(value - half) / max(abs(value), 1e-300)

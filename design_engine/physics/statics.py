@@ -298,11 +298,11 @@ def make_static_solver(lattice: Lattice, supports: Supports, *, use_contact: boo
         q, _, lam, _, mu, k = jax.lax.while_loop(more, level, start)
         return q, mu, lam >= 1.0, k
 
-    def from_guess(guess, qc_s, xs, ms, dtype):
+    def from_guess(guess, qc_s, xs, bonds_s, ms, dtype):
         """The equilibrium followed from a nearby design's (`follow_design`), else the load
-        continuation (see `equilibrium`). Returns (q, mu, lam, levels)."""
+        continuation (see `equilibrium`; `bonds_s`: those of `xs`). Returns (q, mu, lam,
+        levels)."""
         x_from, q_from = (jnp.asarray(a, dtype) for a in guess)
-        bonds_s = bond_geometry(lattice, block_geometry(lattice, xs))
         usable = jnp.all(jnp.isfinite(x_from)) & jnp.all(jnp.isfinite(q_from))
         q_w, mu_w, ok, k = follow_design(jnp.where(usable, x_from, xs),
                                          jnp.where(usable, q_from, 0.0), xs, qc_s, ms, dtype)
@@ -319,8 +319,8 @@ def make_static_solver(lattice: Lattice, supports: Supports, *, use_contact: boo
         if guess is None:
             q_s, mu, lam, levels = continuation(qc_s, bonds_s, ms, x.dtype)
         else:
-            q_s, mu, lam, levels = from_guess(jax.lax.stop_gradient(guess), qc_s, xs, ms,
-                                              x.dtype)
+            q_s, mu, lam, levels = from_guess(jax.lax.stop_gradient(guess), qc_s, xs, bonds_s,
+                                              ms, x.dtype)
         q_s = jax.lax.stop_gradient(q_s)
         h = jax.lax.stop_gradient(hess(q_s, qc_s, bonds_s, ms))
         qc, bonds = constants(x, loading, t_hold)

@@ -183,7 +183,7 @@ def choose_config(scene: Scene, *, full_model: bool = False,
             except EquilibriumError as exc:
                 raise SimulationError(str(exc)) from None
         margin = static_void_margin(scene, state)
-        in_contact = margin < float(scene.material.contact_cutoff - scene.material.contact_min)
+        in_contact = past_cutoff(margin, scene)
     omega = max_angular_frequency(scene, state=state) if omega is None else omega
     dt = safety * 2.0 / omega
     reasons = (
@@ -242,11 +242,16 @@ def contact_config() -> SolverConfig:
     return SolverConfig(solver=diffrax.Dopri8())
 
 
+def past_cutoff(void_margin: float, scene: Scene) -> bool:
+    """Whether a void `void_margin` rad above the contact asymptote is past the contact cutoff,
+    where the contact law acts."""
+    return float(void_margin) < float(scene.material.contact_cutoff - scene.material.contact_min)
+
+
 def needs_contact(config: SolverConfig, min_void_margin: float, scene: Scene) -> bool:
     """True if a solve without contact let a void angle reach the contact cutoff (so its result
     differs from the full model's and must be recomputed with contact)."""
-    span = scene.material.contact_cutoff - scene.material.contact_min
-    return (not config.use_contact) and float(min_void_margin) < span
+    return (not config.use_contact) and past_cutoff(min_void_margin, scene)
 
 
 def with_contact(config: SolverConfig) -> SolverConfig:
@@ -269,8 +274,7 @@ def with_contact(config: SolverConfig) -> SolverConfig:
 def starts_in_contact(health: dict, scene: Scene) -> bool:
     """Whether the solve of `health` started with a void past the contact cutoff (a static
     pre-compression that loads the barrier before the pulse)."""
-    span = float(scene.material.contact_cutoff - scene.material.contact_min)
-    return float(health.get("start_void_margin", np.inf)) < span
+    return past_cutoff(health.get("start_void_margin", np.inf), scene)
 
 
 def needs_step_check(config: SolverConfig, health: dict, scene: Scene) -> bool:
@@ -396,8 +400,7 @@ def start_config(choice: SolverConfig, last: SolverConfig | None, health: dict |
     this changes the cost, not the answer."""
     if last is None or health is None or last == choice or not last.use_contact:
         return choice
-    span = float(scene.material.contact_cutoff - scene.material.contact_min)
-    if float(health["void_margin"]) >= span and not is_fixed_step(last.solver):
+    if not past_cutoff(health["void_margin"], scene) and not is_fixed_step(last.solver):
         return choice
     if is_fixed_step(choice.solver) and not is_fixed_step(last.solver):
         return with_contact(choice)

@@ -270,8 +270,9 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
 def solve_health(sol: Solution, xp=jnp) -> dict:
     """Scalars that judge a solve (`health_failure`), cheap to return from a jitted or vmapped
     call: result code, steps, whether the state stayed finite, the largest displacement (mm) and
-    rotation (rad), the void margin over the solve and at its start (rad), the static start's residual (N, N mm), the smallest
-    rotary inertia (g mm^2) and the fixed step's work-energy drift (relative). `xp=np` computes
+    rotation (rad), the void margin over the solve and at its start (rad), the static start's
+    residual (N, N mm), the smallest rotary inertia (g mm^2) and the fixed step's work-energy
+    drift (relative). `xp=np` computes
     them on the host for a solution already out of a jitted call (no op-by-op dispatch)."""
     q, qdot = xp.asarray(sol.q), xp.asarray(sol.qdot)
     return {"result": sol.result, "num_steps": sol.num_steps,

@@ -80,8 +80,8 @@ class SequencerNode(Node):
         for topic, key in _WATCHED.items():
             self.create_subscription(String, topic.name, self._keep(key), qos_profile(topic.qos))
         services = dict(_SERVICES)
-        if "dic_tracker" in config.get("node_parameters", {}):  # the live tracker is ready
-            services["dic_reset"] = (T.DIC_RESET, Trigger)     # once it offers this
+        if T.DIC_RESET.server in config.get("node_parameters", {}):  # a live tracker is
+            services["dic_reset"] = (T.DIC_RESET, Trigger)  # ready once it offers this
         self.clients_ = {name: self.create_client(srv_type, srv.name)
                          for name, (srv, srv_type) in services.items()}
         self._hold_ns: int | None = None  # stamp of the stage's `holding` diagnostics

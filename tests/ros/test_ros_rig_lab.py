@@ -46,9 +46,10 @@ def test_an_experiment_on_the_emulated_lab_devices_is_recorded_and_read_back(
     frames = run["frames"]
     assert frames["lost"] == frames["lost_at_camera"] == 0 and "expected" not in frames
     assert frames["received_at_camera"] == frames["published"]  # no frame lost uncounted
-    # 0.5 s at 100 Hz, started and stopped by service calls on the system clock (37-70 seen:
-    # the emulator slows down on a busy host rather than skip frames)
-    assert 20 <= frames["published"] == frames["recorded"] <= 70, frames
+    # 0.5 s at 100 Hz, started and stopped by service calls on the system clock: 37-73 seen (the
+    # emulator slows down on a busy host rather than skip frames, and the stop's service call
+    # can come late); the frames' stamps below bound the count by the capture window and rate
+    assert 20 <= frames["published"] == frames["recorded"], frames
     profile, msgs = read_mcap(out / "recording.mcap")
     assert profile == "ros2"
     images = [m for _, m in msgs[T.IMAGE.name]]

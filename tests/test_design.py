@@ -587,37 +587,50 @@ def test_an_invalid_trial_design_is_not_simulated_and_the_run_steps_back(tmp_pat
 
 
 def test_a_scene_that_starts_in_contact_is_judged_on_its_objective_at_half_the_step(tmp_path):
-    """focus-vs-protect on 6x6 under a 2 mm pulse: the 8 % scene's static pre-compression
-    closes voids past the contact cutoff, so its fixed-step solve is also judged at half the
-    step. The estimate (the event's, or the record's when the solve stands) is 4/3 of the
-    relative change of J between the step and half of it, solved independently here (static
-    start included), and decides: Dopri8 above STEP_ERROR_TOLERANCE. The 1 % scene starts
-    clear of contact and is not judged so."""
-    from design_engine.design.task import preset_path
+    """The protection scene of focus-vs-protect (8 %) alone, on 6x6 under a 1 mm pulse: its
+    static pre-compression closes voids past the contact cutoff, so its fixed-step solve is
+    also judged at half the step. The estimate (the record's when the solve stands, else the
+    event's) is 4/3 of the relative change of J between the step and half of it, the latter
+    solved independently here (static start included), and decides: Dopri8 above
+    STEP_ERROR_TOLERANCE (the rule itself, and that a scene clear of contact is not judged so:
+    test_policy_driver). Here it stands (4.4e-5 on a Xeon)."""
     from design_engine.solve.policy import STEP_ERROR_TOLERANCE, refined
     from design_engine.solve.run import make_objective
 
-    text = preset_path("focus-vs-protect").read_text().replace(
-        'precompression = "static"', 'precompression = "static"\namplitude_m = 0.002')
-    path = tmp_path / "fvp-2mm.toml"
+    text = preset_path("focus-vs-protect").read_text()
+    text = text[:text.index("[scenes.strain_1pct]")] + """
+[scenes.strain_8pct]
+preset = "protection-24x18"
+strain = 0.08
+contact_deg = [-10.0, -5.0]
+precompression = "static"
+amplitude_m = 0.001
+
+[[objective]]
+name = "protect"
+scene = "strain_8pct"
+target = "target"
+"""
+    path = tmp_path / "protect-1mm.toml"
     path.write_text(text)
     task = load_task(path, size=(6, 6), max_evals=1)
     evaluator = TaskEvaluator(task)
     config = evaluator._state["strain_8pct"].config  # its first solve's: contact terms on
     out = evaluator.evaluate(task.initial_design)
     events = " ".join(out.events)
-    assert "step_error" not in out.solver["strain_1pct"] and "strain_1pct: the objective" \
-        not in events
     scene = task.scenes["strain_8pct"]
     x = task.initial_design
-    j = float(make_objective(scene, config)[1](x)[0])
     j_half = float(make_objective(scene, refined(config))[1](x)[0])
-    expected = 4 / 3 * abs(j - j_half) / abs(j)
     rec = out.solver["strain_8pct"]
-    if expected > STEP_ERROR_TOLERANCE:
+    if rec["config"]["solver"] == "FixedStepVerlet":  # the solve stood: J is its own
+        j = out.terms["protect"]
+        expected = 4 / 3 * abs(j - j_half) / abs(j)
+        assert "strain_8pct: the objective" not in events
+        assert rec["step_error"] == pytest.approx(expected, rel=1e-5)
+        assert rec["step_error"] <= STEP_ERROR_TOLERANCE
+    else:  # the estimate went over: the fixed-step J, solved here too, says by how much
+        j = float(make_objective(scene, config)[1](x)[0])
+        expected = 4 / 3 * abs(j - j_half) / abs(j)
         moved = re.search(r"strain_8pct: the objective moved by ([0-9.e+-]+) of itself", events)
         assert moved and rec["config"]["solver"] == "Dopri8", events
         assert float(moved.group(1)) == pytest.approx(expected, rel=0.01)
-    else:
-        assert rec["config"]["solver"] == "FixedStepVerlet", events
-        assert rec["step_error"] == pytest.approx(expected, rel=1e-6)

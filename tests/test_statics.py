@@ -211,29 +211,46 @@ def test_a_static_start_that_did_not_converge_fails_the_solve(ramp_solve):
         check_solution(bad, config)
 
 
-def test_an_equilibrium_followed_from_a_nearby_design_is_the_same_with_the_same_gradient(
-        scene, solver, equilibrium):
-    """`guess=(x_from, q_from)`: the equilibrium of a design 0.3 mm away, followed from the
-    design's (a continuation in the design), equals the load continuation's, and so does the
-    implicit gradient through it; a guess that cannot be followed (non-finite) falls back to
-    the load continuation."""
-    warm = jax.jit(lambda x, m, ld, t, g: make_static_solver(scene.lattice, scene.supports)(
+@pytest.fixture(scope="module")
+def followed(scene):
+    """`guess=(x_from, q_from)`, jitted: the equilibrium followed from a nearby design's."""
+    return jax.jit(lambda x, m, ld, t, g: make_static_solver(scene.lattice, scene.supports)(
         x, m, ld, t, g))
+
+
+def _nearby(scene):
     x0 = jnp.asarray(scene.design)
     d = np.random.default_rng(2).normal(size=x0.size)
-    x1 = x0 + 0.3 * d / np.abs(d).max()
+    return x0, x0 + 0.3 * d / np.abs(d).max()
+
+
+def test_an_equilibrium_followed_from_a_nearby_design_is_the_same(scene, solver, equilibrium,
+                                                                  followed):
+    """The equilibrium of a design 0.3 mm away, followed from the design's (a continuation in
+    the design), equals the load continuation's; a guess that cannot be followed (non-finite)
+    falls back to the load continuation."""
+    x0, x1 = _nearby(scene)
     t = scene.loading.precompression_time
     q1, info1 = _solve(scene, solver, x1)
-    guess = (x0, equilibrium[0])
-    qw, infow = warm(x1, scene.material, scene.loading, t, guess)
+    qw, infow = followed(x1, scene.material, scene.loading, t, (x0, equilibrium[0]))
     assert int(infow["levels"]) < 0 < int(info1["levels"])  # followed: no load levels
     assert float(jnp.max(jnp.abs(qw - q1))) < 1e-8
-    w = jnp.asarray(np.random.default_rng(0).normal(size=q1.size))
-    g_cold = jax.grad(lambda x: jnp.dot(_solve(scene, solver, x)[0], w))(x1)
-    g_warm = jax.grad(lambda x: jnp.dot(warm(x, scene.material, scene.loading, t, guess)[0],
-                                        w))(x1)
-    np.testing.assert_allclose(np.asarray(g_warm), np.asarray(g_cold), rtol=1e-6, atol=1e-10)
     bad = (x0, jnp.full_like(equilibrium[0], jnp.nan))
-    qf, infof = warm(x1, scene.material, scene.loading, t, bad)
+    qf, infof = followed(x1, scene.material, scene.loading, t, bad)
     assert int(infof["levels"]) == int(info1["levels"])
     assert float(jnp.max(jnp.abs(qf - q1))) == 0.0
+
+
+@pytest.mark.slow
+def test_an_equilibrium_followed_from_a_nearby_design_has_the_same_gradient(
+        scene, solver, equilibrium, followed):
+    """... and so does the implicit gradient through it (the gradient programs of both solvers
+    compile: a slow test)."""
+    x0, x1 = _nearby(scene)
+    t = scene.loading.precompression_time
+    guess = (x0, equilibrium[0])
+    w = jnp.asarray(np.random.default_rng(0).normal(size=equilibrium[0].size))
+    g_cold = jax.grad(lambda x: jnp.dot(_solve(scene, solver, x)[0], w))(x1)
+    g_warm = jax.grad(lambda x: jnp.dot(followed(x, scene.material, scene.loading, t,
+                                                 guess)[0], w))(x1)
+    np.testing.assert_allclose(np.asarray(g_warm), np.asarray(g_cold), rtol=1e-6, atol=1e-10)

@@ -21,6 +21,22 @@ def stop_on_signals() -> None:
             signal.signal(sig, signal.default_int_handler)
 
 
+def note_stop_signals() -> threading.Event:
+    """Make Ctrl-C and SIGTERM set the returned event instead of raising (in the main thread;
+    elsewhere the event is never set).
+
+    For a ROS node's process: set before `rclpy.init`, rclpy's own handler (which chains to this
+    one) shuts the context down and wakes the executor, so the spin ends between callbacks. A
+    KeyboardInterrupt raised wherever the main thread happened to be could cut an rclpy object
+    in half (a Task without its fields, reported as a traceback at exit).
+    """
+    stop = threading.Event()
+    if threading.current_thread() is threading.main_thread():
+        for sig in STOP_SIGNALS:
+            signal.signal(sig, lambda _n, _f: stop.set())
+    return stop
+
+
 @contextmanager
 def deferred_stop() -> Iterator[None]:
     """Hold Ctrl-C/SIGTERM until the block is done, then raise KeyboardInterrupt.

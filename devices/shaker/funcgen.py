@@ -321,7 +321,8 @@ class FunctionGeneratorShaker:
             raise RuntimeError(f"{self.identity}: open() the function generator first")
         try:
             self._device.write(cmd)
-        except pyvisa.errors.VisaIOError as e:
+        except (pyvisa.errors.VisaIOError, pyvisa.errors.InvalidSession) as e:
+            # InvalidSession: the connection was closed under us (its resource manager, at exit)
             raise InstrumentError(f"{self.identity} did not take {_shown(cmd)!r}: {e}") from None
         if check:
             errors = self._drain_errors()
@@ -340,7 +341,7 @@ class FunctionGeneratorShaker:
     def _query(self, cmd: str) -> str:
         try:
             return self._device.query(cmd).strip()
-        except pyvisa.errors.VisaIOError as e:
+        except (pyvisa.errors.VisaIOError, pyvisa.errors.InvalidSession) as e:
             raise InstrumentError(f"{self.identity} did not answer {cmd!r}: {e}") from None
 
     def _drain_errors(self, most: int = 20) -> list[str]:

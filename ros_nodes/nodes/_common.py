@@ -9,7 +9,7 @@ from rclpy._rclpy_pybind11 import RCLError
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from metarig.signals import stop_on_signals
+from metarig.signals import note_stop_signals
 from ros_nodes import topics
 
 
@@ -80,15 +80,23 @@ def run_node(make: Callable[..., object], args=None, threads: int = 2, **node_kw
     """Init rclpy, build one node, spin it until Ctrl-C/shutdown (multi-threaded executor with
     `threads` threads; 1: the cheaper single-threaded executor)."""
     # SIGTERM stops a node like Ctrl-C does (files are finished, devices brought to rest), and
-    # SIGINT does even where the node was started with it ignored (a shell's background job)
-    stop_on_signals()
+    # SIGINT does even where the node was started with it ignored (a shell's background job):
+    # rclpy's handler shuts the context down, which ends the spin (no KeyboardInterrupt)
+    stop = note_stop_signals()
     # This rclpy (Jazzy 7.1) has no context-manager form of init(); try_shutdown is the `with`.
     try:
         apply_lab_ros(sys.argv if args is None else args)
         local_discovery_by_default()
         rclpy.init(args=args)
         try:
-            node = make(**node_kwargs)
+            if stop.is_set():  # stopped before rclpy's handler was there to hear it
+                return 0
+            try:
+                node = make(**node_kwargs)
+            except Exception:
+                if stop.is_set():  # the context went down under a node being built
+                    return 0
+                raise
             executor = (SingleThreadedExecutor() if threads <= 1
                         else MultiThreadedExecutor(num_threads=threads))
             executor.add_node(node)

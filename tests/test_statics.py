@@ -238,7 +238,7 @@ def test_an_equilibrium_followed_from_a_nearby_design_is_the_same(scene, solver,
     bad = (x0, jnp.full_like(equilibrium[0], jnp.nan))
     qf, infof = followed(x1, scene.material, scene.loading, t, bad)
     assert int(infof["levels"]) == int(info1["levels"])
-    assert float(jnp.max(jnp.abs(qf - q1))) == 0.0
+    assert float(jnp.max(jnp.abs(qf - q1))) < 1e-12  # the same continuation, another program
 
 
 @pytest.mark.slow

@@ -2,7 +2,7 @@
 pre-compression" section. Writes benchmarks/results/bench_statics.json; each part replaces its
 own key there and keeps the others.
 
-    .venv/bin/python benchmarks/bench_statics.py [--parts timing,hessian,branches,ramp]
+    .venv/bin/python benchmarks/bench_statics.py [--parts timing,hessian,branches,ramp,cholesky]
                                                  [--strains 0.01,0.05,0.08]
     .venv/bin/python benchmarks/bench_statics.py --parts warm --run RUN_DIR
 
@@ -22,6 +22,11 @@ Parts:
   Dopri8 at the reference tolerances with contact (contact -10/-5 deg, target (2,2)@(2,2)),
   beside the reference's own values; and the Dopri5 steps of the baseline (spec tolerances,
   ramp) at 8 %.
+- `cholesky` (key `cholesky`): the equilibrium and a value and gradient through it with the
+  Newton steps solved by the block Cholesky in the Hessian's banded order (the default,
+  `linalg.make_sparse_spd_solve`) against the dense Cholesky, side by side at `--strains`:
+  warm wall and CPU times (best of 3), load levels, and the largest differences of the
+  equilibrium and of the gradient.
 - `warm` (not in the default parts; `--run` a `metarig design focus-vs-protect` run folder):
   the equilibrium of each evaluation's design followed from the previous evaluation's
   (`make_static_solver(..., guess=...)`, a continuation in the design) against the load
@@ -278,9 +283,54 @@ def part_warm(run: Path) -> dict:
     return out
 
 
+def part_cholesky(strains: list[float]) -> dict:
+    """Banded block Cholesky (the default) against the dense one, side by side per strain."""
+    from design_engine.physics import linalg
+
+    def dense(n, rows, cols):
+        return linalg.make_sparse_spd_solve(n, rows, cols, min_blocks=10**9)
+
+    out = {}
+    for strain in strains:
+        s = build_scene(SCENE, strain=strain)
+        x, t = jnp.asarray(s.design), s.loading.precompression_time
+        w = jnp.asarray(np.random.default_rng(0).normal(size=s.supports.free.size))
+        row, results = {}, {}
+        for name, factory in (("banded", linalg.make_sparse_spd_solve), ("dense", dense)):
+            statics.make_sparse_spd_solve = factory
+            try:
+                eq = jax.jit(make_static_solver(s.lattice, s.supports))
+            finally:
+                statics.make_sparse_spd_solve = linalg.make_sparse_spd_solve
+            vg = jax.jit(jax.value_and_grad(
+                lambda x, eq=eq, s=s, t=t, w=w: jnp.dot(eq(x, s.material, s.loading, t)[0], w)))
+            (q, info), _ = timed(eq, x, s.material, s.loading, t)  # compiles
+            (_, g), _ = timed(vg, x)
+            eq_t = min(timed_cpu(eq, x, s.material, s.loading, t)[1:] for _ in range(3))
+            vg_t = min(timed_cpu(vg, x)[1:] for _ in range(3))
+            results[name] = (np.asarray(q), np.asarray(g))
+            row[name] = {"equilibrium_s": eq_t[0], "equilibrium_cpu_s": eq_t[1],
+                         "value_and_grad_s": vg_t[0], "value_and_grad_cpu_s": vg_t[1],
+                         "levels": int(info["levels"])}
+            print(f"{strain:.2f} {name}: equilibrium {eq_t[0]:.2f} s, value and gradient "
+                  f"{vg_t[0]:.2f} s, {int(info['levels'])} levels", flush=True)
+        solve = linalg.make_sparse_spd_solve(s.supports.free.size, *make_sparse_hessian(
+            s.lattice, np.asarray(s.supports.free), lambda q: q).pattern)
+        (qb, gb), (qd, gd) = results["banded"], results["dense"]
+        row.update(blocks=solve.blocks, block_size=solve.block_size,
+                   n_free=int(s.supports.free.size),
+                   speedup_equilibrium=row["dense"]["equilibrium_s"]
+                   / row["banded"]["equilibrium_s"],
+                   max_state_difference=float(np.max(np.abs(qb - qd))),
+                   max_gradient_difference_rel=float(np.max(np.abs(gb - gd))
+                                                     / np.max(np.abs(gd))))
+        out[f"{strain:g}"] = row
+    return out
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--parts", default="timing,hessian,branches,ramp")
+    p.add_argument("--parts", default="timing,hessian,branches,ramp,cholesky")
     p.add_argument("--strains", default="0.01,0.05,0.08", help="strains of the timing part")
     p.add_argument("--run", type=Path, help="the warm part's `metarig design focus-vs-protect` "
                    "run folder")
@@ -288,7 +338,7 @@ def main(argv=None) -> int:
     parts = args.parts.split(",")
     if "warm" in parts and (args.run is None or not (args.run / "checkpoint.npz").exists()):
         p.error("--parts warm needs --run DIR, a focus-vs-protect run folder with checkpoint.npz")
-    unknown = set(parts) - {"timing", "hessian", "branches", "ramp", "warm"}
+    unknown = set(parts) - {"timing", "hessian", "branches", "ramp", "cholesky", "warm"}
     if unknown:
         p.error(f"unknown parts: {', '.join(sorted(unknown))}")
     doc = json.loads(OUT.read_text()) if OUT.exists() else {}
@@ -306,6 +356,8 @@ def main(argv=None) -> int:
             doc["branches"] = part_branches()
         elif part == "ramp":
             doc["ramp"] = part_ramp()
+        elif part == "cholesky":
+            doc["cholesky"] = part_cholesky([float(v) for v in args.strains.split(",")])
         elif part == "warm":
             doc["warm"] = part_warm(args.run)
         machine["load_after"] = os.getloadavg()

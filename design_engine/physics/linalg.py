@@ -1,7 +1,11 @@
-"""Small dense linear algebra in plain jax (no LAPACK custom calls)."""
+"""Small linear algebra in jax: a dense SPD solve in plain jax (no LAPACK custom calls), the
+implicit-function point, and a sparse SPD solve by block Cholesky in banded order (LAPACK)."""
 
 import jax
 import jax.numpy as jnp
+import numpy as np
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import reverse_cuthill_mckee
 
 
 def spd_solve(A, b):
@@ -42,10 +46,6 @@ def make_sparse_spd_solve(n: int, rows, cols, min_blocks: int = 3):
     about n s^2 instead of n^3 / 3. With fewer than `min_blocks` blocks the dense Cholesky is
     used. A that is not positive definite gives non-finite values, as the dense Cholesky does.
     `solve.blocks` is the number of blocks (1: dense), `solve.block_size` their size."""
-    import numpy as np
-    from scipy.sparse import csr_matrix
-    from scipy.sparse.csgraph import reverse_cuthill_mckee
-
     rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
     pattern = csr_matrix((np.ones(rows.size), (rows, cols)), shape=(n, n))
     perm = np.asarray(reverse_cuthill_mckee(pattern, symmetric_mode=True), np.int64)
@@ -73,8 +73,9 @@ def make_sparse_spd_solve(n: int, rows, cols, min_blocks: int = 3):
     def gather(a, i, j, padded):
         return jnp.where(padded, 0.0, a[np.maximum(i, 0), np.maximum(j, 0)])
 
+    pad = size - n
+
     def solve(a, b):
-        pad = size - n
         diag = gather(a, i_d, j_d, pad_d) + jnp.asarray(eye_pad, a.dtype)  # [nb, s, s]
         sub = gather(a, i_s, j_s, pad_s)  # [nb - 1, s, s]: block (k, k - 1)
 

@@ -11,8 +11,9 @@ The default policy, read off the work-precision and speed-up charts (README, `me
   J by tens of percent). The contact terms are left out of the solve and every solve checks
   that all void angles stayed above the contact cutoff at every sample, in which case the
   contact energy was identically zero and the result equals the full model's;
-- a solve whose voids reached the cutoff is repeated with contact at the same step in float64
-  (from the first solve when the static equilibrium already reaches it), and that result stands
+- a solve whose voids reached the cutoff is repeated with contact at the same step and
+  precision (from the first solve, in float64, when the static equilibrium already reaches
+  it), and that result stands
   while the barrier's own frequency at the deepest void, omega_c (`contact_frequency`), keeps
   h x omega_c <= CONTACT_STEP_LIMIT for the contact forces' step h and the solve's work-energy
   drift stays within ENERGY_TOLERANCE (`next_config`). A barrier past h with the drift within
@@ -205,7 +206,7 @@ def choose_config(scene: Scene, *, full_model: bool = False,
     config = SolverConfig(solver=FixedStepVerlet(max_dt=dt, remat=True), use_contact=False,
                           dtype="float32")
     if in_contact:
-        config = with_contact(config)
+        config = with_contact(dataclasses.replace(config, dtype="float64"))
         reasons += (f"the static pre-compression already closes voids past the contact cutoff "
                     f"({np.degrees(margin):.2f} deg above the asymptote): contact terms on, "
                     "float64, from the first solve",)
@@ -255,15 +256,19 @@ def needs_contact(config: SolverConfig, min_void_margin: float, scene: Scene) ->
 
 
 def with_contact(config: SolverConfig) -> SolverConfig:
-    """Configuration for a scene whose voids reached the contact cutoff: the same fixed step
-    with the contact terms in float64 and CONTACT_ENTRY_SUBSTEPS contact substeps (checked by
-    `next_config`), or Dopri8 for an adaptive
-    solve. Float64 because in float32 a solve driven hard into the barrier can stay shallow and
-    wrong, which no depth check sees: on 8x6 units with 44 deg bias under a 6 mm pulse, float32
-    Verlet with contact reached 55 % of the barrier's depth and missed J by 53 %, float64
-    reached 98 % (the check then moves on to Dopri8)."""
+    """Configuration for a scene whose voids reached the contact cutoff: the same fixed step, in
+    the same precision, with the contact terms and CONTACT_ENTRY_SUBSTEPS contact substeps
+    (checked by `next_config`), or Dopri8 for an adaptive solve.
+
+    The precision is kept: float32 for contact entered under the pulse (the default choice),
+    float64 for a static pre-compression already in contact (`choose_config`). On the energy
+    chart (`benchmarks/bench_energy_check.py`) float32 with contact is as accurate as float64
+    where the step is right (the optimised 24x16 focusing design: 1.4e-5 of J; 12x10 at 5 and
+    8 %: 5.1e-5 and 1.4e-4 against float64's 6.8e-5 and 1.2e-4) and its wrong solves drift as
+    far past the tolerance (8x6 at 44 deg under 4 and 6 mm pulses: 3.1e-3 and 2.2e-3, J off by
+    37 % and 53 %), so the work-energy check rejects them in either precision."""
     if is_fixed_step(config.solver) and config.solver.stability_limited:
-        config = SolverConfig(solver=config.solver, use_contact=True, dtype="float64")
+        config = SolverConfig(solver=config.solver, use_contact=True, dtype=config.dtype)
         if hasattr(config.solver, "contact_substeps"):
             config = with_substeps(config, max(config.solver.contact_substeps,
                                                CONTACT_ENTRY_SUBSTEPS))

@@ -4,6 +4,7 @@ own key there and keeps the others.
 
     .venv/bin/python benchmarks/bench_statics.py [--parts timing,hessian,branches,ramp,cholesky]
                                                  [--strains 0.01,0.05,0.08]
+    .venv/bin/python benchmarks/bench_statics.py --parts leveltol [--seeds 2]
     .venv/bin/python benchmarks/bench_statics.py --parts warm --run RUN_DIR
 
 Parts:
@@ -27,6 +28,10 @@ Parts:
   `linalg.make_sparse_spd_solve`) against the dense Cholesky, side by side at `--strains`:
   warm wall and CPU times (best of 3), load levels, and the largest differences of the
   equilibrium and of the gradient.
+- `leveltol` (key `level_tol`; not in the default parts): the continuation's intermediate load
+  levels stopped at `statics.LEVEL_TOL` (the default) against all solved to `GRADIENT_TOL`,
+  side by side at `--strains` on the task's periodic start and `--seeds` seeded random starts:
+  warm wall and CPU times (best of 3), levels, and the largest difference of the equilibria.
 - `warm` (not in the default parts; `--run` a `metarig design focus-vs-protect` run folder):
   the equilibrium of each evaluation's design followed from the previous evaluation's
   (`make_static_solver(..., guess=...)`, a continuation in the design) against the load
@@ -328,17 +333,65 @@ def part_cholesky(strains: list[float]) -> dict:
     return out
 
 
+def part_level_tol(strains: list[float], seeds: int) -> dict:
+    """Intermediate load levels stopped at `statics.LEVEL_TOL` (the default) against every level
+    solved to `GRADIENT_TOL`, side by side per strain, on the task's periodic start and `seeds`
+    seeded random starts (`load_task(..., seed=k)`): warm wall times (best of 3), load levels,
+    and the largest differences of the equilibrium (whether both reached the same one)."""
+    from design_engine.design.task import load_task
+
+    designs = {"periodic": None} | {f"seed {k}": k for k in range(1, seeds + 1)}
+    out = {}
+    for strain in strains:
+        s = build_scene(SCENE, strain=strain)
+        t = s.loading.precompression_time
+        solvers = {}
+        for name, tol in (("level_tol", statics.LEVEL_TOL), ("every_level", statics.GRADIENT_TOL)):
+            saved, statics.LEVEL_TOL = statics.LEVEL_TOL, tol
+            try:
+                solvers[name] = jax.jit(make_static_solver(s.lattice, s.supports))
+                timed(solvers[name], jnp.asarray(s.design), s.material, s.loading, t)  # compiles
+            finally:
+                statics.LEVEL_TOL = saved
+        rows = {}
+        for label, seed in designs.items():
+            x = jnp.asarray(s.design if seed is None else load_task(
+                "focus-vs-protect", seed=seed).initial_design)
+            row, states = {}, {}
+            for name, eq in solvers.items():
+                (q, info), _ = timed(eq, x, s.material, s.loading, t)
+                best = min(timed_cpu(eq, x, s.material, s.loading, t)[1:] for _ in range(3))
+                states[name] = np.asarray(q)
+                row[name] = {"equilibrium_s": best[0], "equilibrium_cpu_s": best[1],
+                             "levels": int(info["levels"]),
+                             "gradient_norm": float(info["gradient_norm"]),
+                             "energy_mJ": float(info["energy"])}
+            row["speedup"] = row["every_level"]["equilibrium_s"] / row["level_tol"]["equilibrium_s"]
+            row["max_state_difference"] = float(np.max(np.abs(states["level_tol"]
+                                                              - states["every_level"])))
+            rows[label] = row
+            print(f"{strain:.2f} {label}: {row['level_tol']['equilibrium_s']:.2f} s against "
+                  f"{row['every_level']['equilibrium_s']:.2f} s, levels "
+                  f"{row['level_tol']['levels']}/{row['every_level']['levels']}, state "
+                  f"difference {row['max_state_difference']:.1e}", flush=True)
+        out[f"{strain:g}"] = rows
+    return {"level_tol": statics.LEVEL_TOL, "gradient_tol": statics.GRADIENT_TOL, "rows": out}
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--parts", default="timing,hessian,branches,ramp,cholesky")
     p.add_argument("--strains", default="0.01,0.05,0.08", help="strains of the timing part")
+    p.add_argument("--seeds", type=int, default=2, help="seeded random starts of the "
+                   "leveltol part, beside the periodic one")
     p.add_argument("--run", type=Path, help="the warm part's `metarig design focus-vs-protect` "
                    "run folder")
     args = p.parse_args(argv)
     parts = args.parts.split(",")
     if "warm" in parts and (args.run is None or not (args.run / "checkpoint.npz").exists()):
         p.error("--parts warm needs --run DIR, a focus-vs-protect run folder with checkpoint.npz")
-    unknown = set(parts) - {"timing", "hessian", "branches", "ramp", "cholesky", "warm"}
+    unknown = set(parts) - {"timing", "hessian", "branches", "ramp", "cholesky", "leveltol",
+                       "warm"}
     if unknown:
         p.error(f"unknown parts: {', '.join(sorted(unknown))}")
     doc = json.loads(OUT.read_text()) if OUT.exists() else {}
@@ -358,6 +411,9 @@ def main(argv=None) -> int:
             doc["ramp"] = part_ramp()
         elif part == "cholesky":
             doc["cholesky"] = part_cholesky([float(v) for v in args.strains.split(",")])
+        elif part == "leveltol":
+            doc["level_tol"] = part_level_tol([float(v) for v in args.strains.split(",")],
+                                              args.seeds)
         elif part == "warm":
             doc["warm"] = part_warm(args.run)
         machine["load_after"] = os.getloadavg()

@@ -591,8 +591,8 @@ def test_a_scene_that_starts_in_contact_is_judged_on_its_objective_at_half_the_s
     static pre-compression closes voids past the contact cutoff, so its fixed-step solve is
     also judged at half the step. The estimate (the record's when the solve stands, else the
     event's) is 4/3 of the relative change of J between the step and half of it, the latter
-    solved independently here (static start included), and decides: Dopri8 above
-    STEP_ERROR_TOLERANCE (the rule itself, and that a scene clear of contact is not judged so:
+    solved independently here (static start included), and decides: half the step or Dopri8
+    above STEP_ERROR_TOLERANCE (the rule itself, and that a scene clear of contact is not judged so:
     test_policy_driver). Here it stands (4.4e-5 on a Xeon)."""
     from design_engine.solve.policy import STEP_ERROR_TOLERANCE, refined
     from design_engine.solve.run import make_objective
@@ -622,7 +622,8 @@ target = "target"
     x = task.initial_design
     j_half = float(make_objective(scene, refined(config))[1](x)[0])
     rec = out.solver["strain_8pct"]
-    if rec["config"]["solver"] == "FixedStepVerlet":  # the solve stood: J is its own
+    if rec["config"]["solver"] == "FixedStepVerlet" and not rec["config"].get("refined"):
+        # the solve stood: J is its own
         j = out.terms["protect"]
         expected = 4 / 3 * abs(j - j_half) / abs(j)
         assert "strain_8pct: the objective" not in events
@@ -632,5 +633,5 @@ target = "target"
         j = float(make_objective(scene, config)[1](x)[0])
         expected = 4 / 3 * abs(j - j_half) / abs(j)
         moved = re.search(r"strain_8pct: the objective moved by ([0-9.e+-]+) of itself", events)
-        assert moved and rec["config"]["solver"] == "Dopri8", events
+        assert moved and (rec["config"]["solver"] == "Dopri8" or rec["config"]["refined"]), events
         assert float(moved.group(1)) == pytest.approx(expected, rel=0.01)

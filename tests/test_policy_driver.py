@@ -13,8 +13,9 @@ from design_engine.physics.scenes import build_scene
 from design_engine.solve.driver import (CONTINUED, FALLBACK, REFERENCE_RETRY, RESOLVE, START,
                                         PolicyFailed, decide, solve_with_policy)
 from design_engine.solve.fixed_step import FixedStepVerlet
-from design_engine.solve.policy import (CONTACT_ENTRY_SUBSTEPS, ENERGY_TOLERANCE, contact_config,
-                                        fallback_config, with_contact)
+from design_engine.solve.policy import (CONTACT_ENTRY_SUBSTEPS, ENERGY_TOLERANCE, REFINE,
+                                        contact_config, fallback_config, refined, start_config,
+                                        with_contact)
 from design_engine.solve.simulate import SimulationError, SolverConfig, StepBudgetError
 
 VERLET = SolverConfig(solver=FixedStepVerlet(max_dt=0.01), use_contact=False)
@@ -184,7 +185,8 @@ def test_the_continued_configuration_is_read_after_the_check(scene):
 def test_a_solve_that_starts_in_contact_is_judged_at_half_its_step_too(scene):
     """`needs_step_check`: only a fixed step with contact whose solve started with a void past
     the cutoff; its `step_error` (the evaluator's half-step estimate) above
-    STEP_ERROR_TOLERANCE sends it to Dopri8, within it the result stands."""
+    STEP_ERROR_TOLERANCE sends it to half the step (when predicted to pass) or Dopri8, within
+    it the result stands."""
     from design_engine.solve.policy import STEP_ERROR_TOLERANCE, needs_step_check, next_config
 
     span = float(scene.material.contact_cutoff - scene.material.contact_min)
@@ -197,7 +199,65 @@ def test_a_solve_that_starts_in_contact_is_judged_at_half_its_step_too(scene):
     assert not needs_step_check(contact_config(), started, scene)
     assert next_config(contact, dict(started, step_error=0.5 * STEP_ERROR_TOLERANCE),
                        scene) is None
+    # within 2x the tolerance the half step is predicted to pass (Verlet being second order:
+    # the estimate x 1/4 within half the tolerance): re-solved there, and judged again
     nxt, why = next_config(contact, dict(started, step_error=2 * STEP_ERROR_TOLERANCE), scene)
-    assert nxt == contact_config() and "half the step" in why
+    assert nxt == refined(contact) and "half the step" in why and "re-solved once at" in why
+    assert needs_step_check(nxt, started, scene)
+    # a refined step rejected again, or an estimate beyond the prediction: Dopri8
+    nxt, why = next_config(refined(contact), dict(started, step_error=2 * STEP_ERROR_TOLERANCE),
+                           scene)
+    assert nxt == contact_config() and "Dopri8" in why
+    nxt, _ = next_config(contact, dict(started, step_error=2.5 * STEP_ERROR_TOLERANCE), scene)
+    assert nxt == contact_config()
     nxt, _ = next_config(contact, dict(started, step_error=float("nan")), scene)
     assert nxt == contact_config()
+    # the next evaluation goes back to the whole step only when its estimate predicts that
+    # the whole step passes (the refined estimate x 4 within half the tolerance)
+    last = refined(contact)
+    assert start_config(contact, last, dict(started, step_error=0.1 * STEP_ERROR_TOLERANCE),
+                        scene) == contact
+    assert start_config(contact, last, dict(started, step_error=0.1 * STEP_ERROR_TOLERANCE
+                                            / REFINE**2), scene) == last
+
+
+def test_the_driver_judges_a_solve_that_starts_in_contact_at_half_its_step(scene):
+    """`solve_with_policy(step_error=...)`: the caller's half-step estimate is asked only for a
+    fixed step with contact that started in contact and passed the other checks, goes into the
+    health as "step_error", and an estimate over the tolerance re-solves at half the step (once,
+    judged again: asked again) or, when that is not predicted to pass, with Dopri8 (not asked:
+    an adaptive solve)."""
+    from design_engine.solve.policy import STEP_ERROR_TOLERANCE
+
+    span = float(scene.material.contact_cutoff - scene.material.contact_min)
+    contact = with_contact(VERLET)
+    started = healthy(scene, void_margin=0.5 * span, start_void_margin=0.5 * span)
+    asked = []
+
+    def estimate(*values):
+        def step_error(config, result, health):
+            asked.append((config, result))
+            return values[len(asked) - 1]
+        return step_error
+
+    out = solve_with_policy(scene, contact, Script(started),
+                            step_error=estimate(0.5 * STEP_ERROR_TOLERANCE))
+    assert asked == [(contact, "result 1")] and out.resolves == ()
+    assert out.health["step_error"] == 0.5 * STEP_ERROR_TOLERANCE
+    asked.clear()
+    out = solve_with_policy(scene, contact, Script(started, started),
+                            step_error=estimate(1.5 * STEP_ERROR_TOLERANCE,
+                                                0.4 * STEP_ERROR_TOLERANCE))
+    assert [a[0] for a in asked] == [contact, refined(contact)] and out.config == refined(contact)
+    assert out.result == "result 2" and "half the step" in out.resolves[0]
+    asked.clear()
+    out = solve_with_policy(scene, contact, Script(started, started),
+                            step_error=estimate(5 * STEP_ERROR_TOLERANCE))
+    assert len(asked) == 1 and out.config == contact_config()
+    asked.clear()  # a solve that did not start in contact, or drifted, is not asked
+    solve_with_policy(scene, contact, Script(healthy(scene, void_margin=0.5 * span,
+                                                     start_void_margin=2 * span)),
+                      step_error=estimate(1.0))
+    solve_with_policy(scene, contact, Script(dict(started, energy_error=1.0), started),
+                      step_error=estimate(0.0))
+    assert asked == []

@@ -38,10 +38,9 @@ from design_engine.solve.driver import PolicyFailed, solve_with_policy
 from design_engine.solve.fixed_step import is_fixed_step
 from design_engine.solve.objectives import objective_term
 from design_engine.solve.policy import (STABILITY_SAFETY, choose_config, contact_config,
-                                        initial_vector, make_frequency_estimator,
-                                        needs_step_check, next_config, refined)
-from design_engine.solve.run import prestressed_state
-from design_engine.solve.run import checked, compile_key, config_summary
+                                        initial_vector, make_frequency_estimator, refined)
+from design_engine.solve.run import (checked, compile_key, config_summary, prestressed_state,
+                                     relative_step_error)
 from design_engine.solve.simulate import (SimulationError, Solution, SolverConfig, make_simulator,
                                           solve_health)
 
@@ -230,9 +229,7 @@ class TaskEvaluator:
         half = float(fn(jnp.asarray(x), scene.material, scene.loading,
                         jnp.asarray(scene.sample_times), self._weights(name),
                         (q0, jnp.zeros_like(q0))))
-        if not np.isfinite(half):
-            return float("inf")
-        return 4.0 / 3.0 * abs(value - half) / max(abs(value), 1e-300)
+        return relative_step_error(value, half)
 
     # --- the policy ------------------------------------------------------------------------
 
@@ -310,10 +307,10 @@ class TaskEvaluator:
 
         def solve(config):
             value, grad, terms, aux = self._solve(name, config, x)
-            # a solve that starts in contact and passed the other checks is judged on J too
-            if needs_step_check(config, aux, scene) and next_config(config, aux, scene) is None:
-                aux = dict(aux, step_error=self._step_error(name, config, x, value, aux))
             return (value, grad, terms, aux), aux
+
+        def step_error(config, result, aux):
+            return self._step_error(name, config, x, result[0], aux)
 
         def log(step):
             events.append(f"{name}: {step.error}; {step.reason}" if step.error
@@ -323,7 +320,8 @@ class TaskEvaluator:
             out = solve_with_policy(scene, st.config, solve, check=check,
                                     previous=lambda: (checked[0].last_config,
                                                       checked[0].last_health),
-                                    budget_fails_at_once=True, on_step=log)
+                                    budget_fails_at_once=True, step_error=step_error,
+                                    on_step=log)
         except PolicyFailed as exc:
             raise EvaluationFailed(f"{name}: {exc}", checked[0]) from None
         st = checked[0]

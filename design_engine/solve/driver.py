@@ -9,7 +9,9 @@ through `decide` (what to do after a solve) and, for one solve at a time, `solve
 1. start with the caller's configuration, or with the one the previous evaluation ended with
    while that was in contact (`policy.start_config`, optimisers only);
 2. after a solve that did not fail, `policy.next_config` says whether the result stands or which
-   configuration solves again (contact, half the step, Dopri8);
+   configuration solves again (contact, half the step, Dopri8); a fixed step with contact that
+   started in contact and passed the other checks is first also judged on the caller's
+   objective at half its step (`step_error`, `policy.needs_step_check`);
 3. after a fixed-step solve with contact that failed, the same step with its contact forces
    substepped (`policy.after_failure`, once); after any other solve that failed
    (`SimulationError`), the fallback solves once
@@ -27,8 +29,8 @@ from typing import Generic, TypeVar
 
 from design_engine.physics.scenes import Scene
 from design_engine.solve.fixed_step import is_fixed_step
-from design_engine.solve.policy import (after_failure, fallback_config, next_config,
-                                        start_config)
+from design_engine.solve.policy import (after_failure, fallback_config, needs_step_check,
+                                        next_config, start_config)
 from design_engine.solve.simulate import SimulationError, SolverConfig, StepBudgetError
 
 R = TypeVar("R")
@@ -124,6 +126,7 @@ def solve_with_policy(scene: Scene, config: SolverConfig,
                       | None = None,
                       budget_fails_at_once: bool = False,
                       fallback: SolverConfig | None = None,
+                      step_error: Callable[[SolverConfig, R, dict], float] | None = None,
                       on_step: Callable[[Step], None] | None = None) -> Outcome[R]:
     """Solve under the policy, starting from `config` (the choice for this scene).
 
@@ -134,8 +137,12 @@ def solve_with_policy(scene: Scene, config: SolverConfig,
     solve. `previous() -> (config, health)`: what the caller's last evaluation ended with
     (optimisers: `policy.start_config` may continue with it), asked after `check`, whose
     re-checked step the continued configuration must take. `fallback` replaces the policy's
-    fallback configuration. `on_step` sees each step after the first as it is taken (event logs).
-    Raises `PolicyFailed` when every allowed configuration failed.
+    fallback configuration. `step_error(config, result, health) -> float`: the relative change
+    of the caller's objective when the same start is solved forward at half the step,
+    Richardson-scaled (`policy.STEP_ERROR_TOLERANCE`; inf for a failed half-step solve), asked
+    for a solve that `policy.needs_step_check` names once it passed the other checks; it goes
+    into the health as "step_error". `on_step` sees each step after the first as it is taken
+    (event logs). Raises `PolicyFailed` when every allowed configuration failed.
     """
     pending = None
     if check is not None:
@@ -153,6 +160,10 @@ def solve_with_policy(scene: Scene, config: SolverConfig,
         if pending is None:
             try:
                 result, health = solve(cfg)
+                if (step_error is not None and health is not None and not fallen_back
+                        and needs_step_check(cfg, health, scene)
+                        and next_config(cfg, health, scene) is None):
+                    health = dict(health, step_error=step_error(cfg, result, health))
             except SimulationError as exc:
                 pending = exc
         if pending is not None:

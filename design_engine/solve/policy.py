@@ -79,7 +79,9 @@ CONTACT_ENTRY_SUBSTEPS = 4
 # a fixed-step solve with contact that starts in contact (a static pre-compression past the
 # cutoff) is also judged on the objective itself: the evaluator solves the same start forward
 # at half the step, and a J that moves by more than this (x 4/3, Richardson: the error of the
-# whole step) goes to Dopri8. On such designs the work-energy balance does not bound J: on the
+# whole step) is solved again at REFINE x the step when that is predicted to pass (the estimate
+# x REFINE^2 within half of this; the refined solve is judged the same way, at half its step),
+# else with Dopri8. On such designs the work-energy balance does not bound J: on the
 # focus-vs-protect run's designs at 8 % the policy's step missed J by 6.2e-4 and 1.1e-3 at
 # drifts of 3.0e-5 and 2.5e-5 (`benchmarks/bench_outer_step.py`)
 STEP_ERROR_TOLERANCE = 1e-4
@@ -297,6 +299,12 @@ def contact_step_ratio(solver, health: dict, scene: Scene) -> float:
                                 float(health["min_inertia"]), scene.model))
 
 
+def step_error_passes(step_error: float) -> bool:
+    """Whether a predicted half-step estimate `step_error` passes STEP_ERROR_TOLERANCE with the
+    margin a prediction needs (within half of it)."""
+    return step_error <= 0.5 * STEP_ERROR_TOLERANCE
+
+
 def passes(drift: float, ratio: float) -> bool:
     """Whether a fixed-step solve is predicted to pass `next_config` with this drift and
     h x omega_c, with the margin a prediction needs (the drift within half the tolerance)."""
@@ -315,7 +323,9 @@ def next_config(config: SolverConfig, health: dict, scene: Scene) -> tuple[Solve
 
     - voids reached the contact cutoff without contact terms: `with_contact(config)`;
     - a `step_error` in `health` (the evaluator's half-step check, `needs_step_check`) above
-      STEP_ERROR_TOLERANCE: Dopri8;
+      STEP_ERROR_TOLERANCE: re-solved once at REFINE x the step when that is predicted to pass
+      (the estimate x REFINE^2 within half the tolerance; the refined solve is judged at half
+      its own step in turn), else, and for a refined step, Dopri8;
     - an explicit fixed-step solve whose work-energy balance drifted by more than
       ENERGY_TOLERANCE of the energy it moved (`Solution.energy_error`), or, with contact, whose
       barrier frequency at the deepest void (`contact_frequency`) exceeds CONTACT_STEP_LIMIT /
@@ -334,10 +344,14 @@ def next_config(config: SolverConfig, health: dict, scene: Scene) -> tuple[Solve
         return None
     step_error = health.get("step_error")
     if step_error is not None and not float(step_error) <= STEP_ERROR_TOLERANCE:
-        return contact_config(), (
-            f"the objective moved by {float(step_error):.2e} of itself at half the step "
-            f"(> {STEP_ERROR_TOLERANCE:g}; a solve that starts in contact, where the "
-            "work-energy balance does not bound it): re-solved with adaptive Dopri8")
+        what = (f"the objective moved by {float(step_error):.2e} of itself at half the step "
+                f"(> {STEP_ERROR_TOLERANCE:g}; a solve that starts in contact, where the "
+                "work-energy balance does not bound it)")
+        if not solver.refined and step_error_passes(float(step_error) * REFINE**2):
+            nxt = refined(config)
+            return nxt, (f"{what}: re-solved once at {REFINE:g} x the step "
+                         f"({nxt.solver.max_dt * 1e3:.1f} us), judged again at half of that")
+        return contact_config(), f"{what}: re-solved with adaptive Dopri8"
     drift = float(health.get("energy_error", 0.0))
     substeps = getattr(solver, "contact_substeps", 1)
     ratio = contact_step_ratio(solver, health, scene) if config.use_contact else 0.0
@@ -412,8 +426,9 @@ def start_config(choice: SolverConfig, last: SolverConfig | None, health: dict |
     if is_fixed_step(last.solver) and getattr(last.solver, "refined", False):
         whole = dataclasses.replace(last, solver=dataclasses.replace(
             last.solver, max_dt=last.solver.max_dt / REFINE, refined=False))
-        if passes(float(health.get("energy_error", 0.0)) / REFINE**2,
-                  contact_step_ratio(whole.solver, health, scene)):
+        if (passes(float(health.get("energy_error", 0.0)) / REFINE**2,
+                   contact_step_ratio(whole.solver, health, scene))
+                and step_error_passes(float(health.get("step_error", 0.0)) / REFINE**2)):
             return whole
     return last
 

@@ -20,7 +20,7 @@ from design_engine.solve.fixed_step import is_fixed_step
 from design_engine.solve.objectives import (angular_momentum, block_kinetic_energy, objective_term,
                                             peak_energy_along_units, region_energy,
                                             region_energy_ratio)
-from design_engine.solve.policy import Choice, choose_config
+from design_engine.solve.policy import Choice, choose_config, refined
 from design_engine.solve.simulate import (SimulationError, Solution, SolverConfig, check_solution,
                                           make_simulator, simulation_error, solve_health)
 from metarig.trajectory import Trajectory
@@ -158,7 +158,16 @@ def _run_with_policy(scene: Scene, config: SolverConfig | None, ts_ms=None, load
         walls.append(w)
         return sol, solve_health(sol, np)
 
-    out = solve_with_policy(scene, choice.config, solve)
+    def step_error(cfg, sol, _health):
+        try:
+            half, w = _simulate(scene, refined(cfg), ts_ms, loading)
+        except SimulationError:
+            return float("inf")
+        walls.append(w)
+        return relative_step_error(float(scene_objective(scene, sol)),
+                                   float(scene_objective(scene, half)))
+
+    out = solve_with_policy(scene, choice.config, solve, step_error=step_error)
     return out.result, sum(walls), out.config, choice.reasons + out.resolves, out.resolves
 
 
@@ -309,43 +318,68 @@ def make_objective(scene: Scene, config: SolverConfig | None = None, weights=Non
     programs: dict = {}
     last: dict = {"config": None, "health": None}
 
+    def program(cfg):
+        key = repr(cfg)
+        if key not in programs:
+            programs[key] = _jitted_objective(scene, cfg, weights)
+        return programs[key]
+
     def pick(i, x):
         def solve(cfg):
-            key = repr(cfg)
-            if key not in programs:
-                programs[key] = _jitted_objective(scene, cfg, weights)
-            out = programs[key][i](x)
+            out = program(cfg)[i](x)
             value_aux = out[0] if i == 0 else out
             checked(value_aux, cfg)
             return out, value_aux[1]
 
+        def step_error(cfg, out, _health):
+            try:
+                half = float(checked(program(refined(cfg))[1](x), cfg)[0])
+            except SimulationError:
+                return float("inf")
+            return relative_step_error(float((out[0] if i == 0 else out)[0]), half)
+
         outcome = solve_with_policy(scene, default_choice(scene).config, solve,
-                                    previous=lambda: (last["config"], last["health"]))
+                                    previous=lambda: (last["config"], last["health"]),
+                                    step_error=step_error)
         last.update(config=outcome.config, health=outcome.health)
         return outcome.result
 
     return (lambda x: pick(0, x)), (lambda x: pick(1, x))
 
 
+def scene_objective(scene: Scene, sol: Solution, weights=None):
+    """The scene's objective on a solution (traceable): the weighted sum of its target-region
+    energies J_Omega (default weights 1 for a single target, (0.5, 0.5) for two), or the target's
+    angular momentum J_L for spin scenes (see `make_objective`)."""
+    names = list(scene.targets)
+    if scene.spin_point is not None:
+        return objective_term("angular_momentum", sol, scene.targets[names[0]], scene.spin_point)
+    if weights is None:
+        weights = [1.0 / len(names)] * len(names) if len(names) > 1 else [1.0]
+    return sum(w * objective_term("kinetic_energy", sol, scene.targets[n])
+               for w, n in zip(weights, names))
+
+
+def relative_step_error(value: float, half: float) -> float:
+    """The relative error of a fixed-step objective `value` estimated from the same start solved
+    at half the step (`half`): Richardson, 4/3 of the change, Verlet being second order
+    (`policy.STEP_ERROR_TOLERANCE`); inf when the half-step value is not finite."""
+    if not np.isfinite(half):
+        return float("inf")
+    return 4.0 / 3.0 * abs(value - half) / max(abs(value), 1e-300)
+
+
 def _jitted_objective(scene: Scene, config: SolverConfig, weights):
     sim = make_simulator(scene.lattice, scene.supports, config, scene.sample_times,
                          model=scene.model)
     names = list(scene.targets)
-    if weights is None:
-        weights = [1.0 / len(names)] * len(names) if len(names) > 1 else [1.0]
-    if len(weights) != len(names):
+    if weights is not None and len(weights) != len(names):
         raise ValueError(f"{len(names)} targets ({names}) need as many weights, got {weights}")
     ts = jnp.asarray(scene.sample_times)
 
     def objective(x):
         sol = sim(x, scene.material, scene.loading, ts)
-        if scene.spin_point is not None:
-            value = objective_term("angular_momentum", sol, scene.targets[names[0]],
-                                   scene.spin_point)
-        else:
-            value = sum(w * objective_term("kinetic_energy", sol, scene.targets[n])
-                        for w, n in zip(weights, names))
-        return value, solve_health(sol)
+        return scene_objective(scene, sol, weights), solve_health(sol)
 
     return jax.jit(jax.value_and_grad(objective, has_aux=True)), jax.jit(objective)
 
@@ -362,5 +396,6 @@ def checked(value_aux, config: SolverConfig | None = None):
     return value_aux
 
 
-__all__ = ["SceneRun", "prestressed_state", "simulate_scene", "simulate_rig", "make_objective", "checked", "to_trajectory",
-           "scene_metrics", "compiled_simulator"]
+__all__ = ["SceneRun", "prestressed_state", "simulate_scene", "simulate_rig", "make_objective",
+           "checked", "to_trajectory", "scene_metrics", "scene_objective", "relative_step_error",
+           "compiled_simulator"]

@@ -1,0 +1,119 @@
+"""Does halving the fixed step converge J on the designs a run produced? The evidence behind the
+policy's half-step check (`policy.STEP_ERROR_TOLERANCE`) on scenes that start in contact.
+
+For each design (the task's start and evaluations `--evals` of a run folder) and scene, the
+policy's own configuration (`policy.choose_config` at that design: Verlet with contact and its
+substeps, at 0.6 x the stability limit) solves the scene's objective J forward at the step
+h and at h/2, h/4, ... (`--halvings`), and adaptive Dopri8 with contact solves it at rtol 1e-8 /
+atol 1e-4 (the policy's fallback) and at rtol 1e-10 / atol 1e-8 (the reference of the issue's
+re-check). Per row: each J, its relative error against the tight Dopri8, the half-step
+estimate the policy would compute at each step (4/3 |J(h) - J(h/2)| / |J(h)|), the fallback's
+own error, the work-energy drift of each fixed step and the wall time of each solve (compiled
+first). Whether the estimate bounds the true error, and whether halving approaches the
+reference, is what the policy's refinement on the estimate relies on.
+
+    .venv/bin/python benchmarks/bench_step_convergence.py --run runs/fvp20 --evals 5 9 \
+        --scenes strain_8pct --out benchmarks/results
+
+Writes OUT/bench_step_convergence.json after every row (rows it holds are skipped on a rerun).
+"""
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from machine import describe
+
+TIGHT = (1e-10, 1e-8)
+FALLBACK = (1e-8, 1e-4)
+
+
+def _solve(scene, config):
+    """(J, health, wall s) of the scene's objective, compiled before the timed call."""
+    import jax.numpy as jnp
+
+    from design_engine.solve.run import checked, make_objective
+
+    value = make_objective(scene, config)[1]
+    x = jnp.asarray(scene.design)
+    checked(value(x), config)
+    t0 = time.perf_counter()
+    j, aux = checked(value(x), config)
+    return float(j), {k: float(np.asarray(v)) for k, v in aux.items()
+                      if np.asarray(v).ndim == 0}, time.perf_counter() - t0
+
+
+def row_for(scene, halvings: int) -> dict:
+    import diffrax
+
+    from design_engine.solve.policy import choose_config, refined
+    from design_engine.solve.run import relative_step_error
+    from design_engine.solve.simulate import SimulationError, SolverConfig
+
+    ref_j, _, ref_s = _solve(scene, SolverConfig(solver=diffrax.Dopri8(), rtol=TIGHT[0],
+                                                 atol=TIGHT[1]))
+    fb_j, _, fb_s = _solve(scene, SolverConfig(solver=diffrax.Dopri8(), rtol=FALLBACK[0],
+                                               atol=FALLBACK[1]))
+    config = choose_config(scene).config
+    steps = []
+    for _ in range(halvings + 1):
+        try:
+            j, health, wall = _solve(scene, config)
+            steps.append({"dt_us": config.solver.max_dt * 1e3, "J": j,
+                          "J_rel_err": abs(j - ref_j) / abs(ref_j),
+                          "energy_error": health.get("energy_error"), "wall_s": wall})
+        except SimulationError as exc:
+            steps.append({"dt_us": config.solver.max_dt * 1e3, "error": str(exc)})
+        config = refined(config)
+    for a, b in zip(steps, steps[1:]):
+        if "J" in a and "J" in b:
+            a["step_error"] = relative_step_error(a["J"], b["J"])
+    return {"reference_J": ref_j, "reference_s": ref_s, "fallback_J": fb_j,
+            "fallback_rel_err": abs(fb_j - ref_j) / abs(ref_j), "fallback_s": fb_s,
+            "config": repr(choose_config(scene).config), "steps": steps}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--task", default="focus-vs-protect")
+    p.add_argument("--scenes", nargs="*", help="scenes of the task (default: all)")
+    p.add_argument("--run", type=Path, help="a `metarig design` run folder of the task")
+    p.add_argument("--evals", nargs="*", type=int, default=[])
+    p.add_argument("--no-start", action="store_true", help="skip the task's start design")
+    p.add_argument("--halvings", type=int, default=3)
+    p.add_argument("--out", type=Path, default=Path("runs/bench-step-convergence"))
+    args = p.parse_args(argv)
+    from design_engine.design.task import load_task
+
+    task = load_task(args.task)
+    designs = [] if args.no_start else [("start", np.asarray(task.initial_design))]
+    if args.run is not None:
+        if not (args.run / "checkpoint.npz").exists():
+            p.error(f"{args.run} holds no checkpoint.npz (a `metarig design` run folder)")
+        xs = np.load(args.run / "checkpoint.npz")["x"]
+        designs += [(f"eval {e}", task.embed(xs[e - 1])) for e in args.evals
+                    if 1 <= e <= len(xs)]
+    args.out.mkdir(parents=True, exist_ok=True)
+    path = args.out / "bench_step_convergence.json"
+    doc = json.loads(path.read_text()) if path.exists() else {"rows": {}}
+    doc.update(task=args.task, run=str(args.run) if args.run else None, machine=describe())
+    for label, x in designs:
+        for name in args.scenes or list(task.scenes):
+            key = f"{label} / {name}"
+            if key in doc["rows"]:
+                continue
+            row = row_for(task.scenes[name].with_design(x), args.halvings)
+            doc["rows"][key] = row
+            path.write_text(json.dumps(doc, indent=1))
+            errs = ", ".join(f"{s['dt_us']:.1f} us {s.get('J_rel_err', float('nan')):.1e}"
+                             f" (est {s.get('step_error', float('nan')):.1e})"
+                             for s in row["steps"])
+            print(f"{key}: fallback {row['fallback_rel_err']:.1e}; {errs}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

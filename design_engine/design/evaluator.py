@@ -8,9 +8,8 @@ that an optimisation needs:
   highest natural frequency of the *current* design is re-measured at the state the last solve
   started from (rest, or the previous design's static pre-compression) (a warm-started power
   iteration, `STEP_CHECK_ITERATIONS` Hessian-vector products, a few per cent of a solve) and
-  when the step exceeds `STEP_RECHECK` x 2/omega_max (for a static pre-compression measured
-  again at the current design's own equilibrium, one static solve) a new step of
-  `policy.STABILITY_SAFETY` x 2/omega_max is taken (one more compilation, recorded as an event), or, when that step would
+  when the step exceeds `STEP_RECHECK` x 2/omega_max a new step of `policy.STABILITY_SAFETY` x
+  2/omega_max is taken (one more compilation, recorded as an event), or, when that step would
   be below `MIN_STEP_FRACTION` of the first one (the contact barrier of a design pressed deep
   into contact sets the frequency), adaptive Dopri8 from then on; a solve that still goes
   non-finite is caught and redone with the fallback configuration;
@@ -253,21 +252,6 @@ class TaskEvaluator:
         dt = solver.max_dt
         if dt <= STEP_RECHECK * limit:
             return st, ""
-        scene = self.task.scenes[name]
-        if scene.loading.strain > 0.0 and scene.loading.is_static:
-            # before the step shrinks, measure at this design's own static equilibrium: at the
-            # previous design's, a void the design change moved may sit far deeper in the
-            # barrier (one run measured 1.2 MHz there and handed the scene to Dopri8 for good)
-            # (a cold power iteration: the warm vector may be the old void's local mode)
-            own = prestressed_state(scene.with_design(np.asarray(x)))
-            omega, vector = self._frequency(name, x, None, own)
-            if not (np.isfinite(omega) and omega > 0.0 and np.all(np.isfinite(vector))):
-                raise SimulationError(f"the highest natural frequency of this design came out "
-                                      f"{omega:g} rad/ms: no stable fixed step")
-            st = dataclasses.replace(st, omega=omega, vector=vector, start_state=own)
-            limit = 2.0 / omega
-            if dt <= STEP_RECHECK * limit:
-                return st, ""
         new_dt = STABILITY_SAFETY * limit
         hz = omega / (2 * np.pi) * 1e3
         if new_dt < MIN_STEP_FRACTION * st.first_dt:

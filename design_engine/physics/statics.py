@@ -17,8 +17,7 @@ would not stop a step there), and lowered threefold after a success, until max |
 GRADIENT_TOL at the full load (LEVEL_TOL at the levels before it). The Hessian is exact and
 sparse: one Hessian-vector product per colour and DOF of a distance-2 colouring of the bond
 graph (21 products for the 1146 free DOFs of 24x18; `make_sparse_hessian`); the solves are block
-Cholesky factorisations in the Hessian's
-banded order (`linalg.make_sparse_spd_solve`).
+Cholesky factorisations in the Hessian's banded order (`linalg.make_sparse_spd_solve`).
 
 The step bound is a margin for the branch a slow loading follows. A pre-compressed lattice has
 several equilibria under the same stage closing, and a coarse continuation may land on another

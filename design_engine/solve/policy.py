@@ -77,13 +77,15 @@ CONTACT_SUBSTEPS_MAX = 8
 # barrier outgrew the step (benchmarks/bench_focusing_run.py)
 CONTACT_ENTRY_SUBSTEPS = 4
 # a fixed-step solve with contact that starts in contact (a static pre-compression past the
-# cutoff) is also judged on the objective itself: the evaluator solves the same start forward
-# at half the step, and a J that moves by more than this (x 4/3, Richardson: the error of the
-# whole step) is solved again at REFINE x the step when that is predicted to pass (the estimate
-# x REFINE^2 within half of this; the refined solve is judged the same way, at half its step),
-# else with Dopri8. On such designs the work-energy balance does not bound J: on the
-# focus-vs-protect run's designs at 8 % the policy's step missed J by 6.2e-4 and 1.1e-3 at
-# drifts of 3.0e-5 and 2.5e-5 (`benchmarks/bench_outer_step.py`)
+# cutoff) is also judged on the objective itself: its caller solves the same start forward at
+# half the step (`driver.solve_with_policy(step_error=...)`), and a J that moves by more than
+# this (x 4/3, Richardson: the error of the whole step) is solved again at REFINE x the step
+# when that is predicted to pass (the estimate x REFINE^2 within half of this; the refined
+# solve is judged the same way, at half its step), else with Dopri8. On such designs the
+# work-energy balance does not bound J: on the focus-vs-protect run's designs at 8 % the
+# policy's step missed J by 6.2e-4 and 1.1e-3 at drifts of 3.0e-5 and 2.5e-5
+# (`benchmarks/bench_outer_step.py`); where this estimate accepts, it was within 0.6-1.7x of
+# the true error (`benchmarks/bench_step_convergence.py`)
 STEP_ERROR_TOLERANCE = 1e-4
 
 
@@ -322,7 +324,7 @@ def next_config(config: SolverConfig, health: dict, scene: Scene) -> tuple[Solve
     solve again with and why, or None when the result stands.
 
     - voids reached the contact cutoff without contact terms: `with_contact(config)`;
-    - a `step_error` in `health` (the evaluator's half-step check, `needs_step_check`) above
+    - a `step_error` in `health` (the caller's half-step check, `needs_step_check`) above
       STEP_ERROR_TOLERANCE: re-solved once at REFINE x the step when that is predicted to pass
       (the estimate x REFINE^2 within half the tolerance; the refined solve is judged at half
       its own step in turn), else, and for a refined step, Dopri8;

@@ -15,6 +15,10 @@ reference, is what the policy's refinement on the estimate relies on.
     .venv/bin/python benchmarks/bench_step_convergence.py --run runs/fvp20 --evals 5 9 \
         --scenes strain_8pct --out benchmarks/results
 
+`--adaptive-rtols R ...` instead times value and gradient by Dopri8 with contact at those rtols
+(atol 1e-4, the fallback's) against rtol 1e-10 on the same designs (key `adaptive`: relative
+error of J, gradient cosine, wall time): what the fallback's tolerance buys.
+
 Writes OUT/bench_step_convergence.json after every row (rows it holds are skipped on a rerun).
 """
 
@@ -44,6 +48,42 @@ def _solve(scene, config):
     j, aux = checked(value(x), config)
     return float(j), {k: float(np.asarray(v)) for k, v in aux.items()
                       if np.asarray(v).ndim == 0}, time.perf_counter() - t0
+
+
+def _value_and_grad(scene, config):
+    """(J, gradient [n_design], wall s) of the scene's objective, compiled before the timed
+    call."""
+    import jax.numpy as jnp
+
+    from design_engine.solve.run import checked, make_objective
+
+    vg = make_objective(scene, config)[0]
+    x = jnp.asarray(scene.design)
+    checked(vg(x)[0], config)
+    t0 = time.perf_counter()
+    (j, aux), g = vg(x)
+    checked((j, aux), config)
+    return float(j), np.asarray(g, np.float64), time.perf_counter() - t0
+
+
+def adaptive_row(scene, rtols: list[float]) -> dict:
+    """Value and gradient by Dopri8 with contact at each of `rtols` (atol as the fallback's)
+    against rtol 1e-10 / atol 1e-8: relative error of J, gradient cosine, wall time."""
+    import diffrax
+
+    from design_engine.solve.simulate import SolverConfig
+
+    ref_j, ref_g, ref_s = _value_and_grad(scene, SolverConfig(
+        solver=diffrax.Dopri8(), rtol=TIGHT[0], atol=TIGHT[1]))
+    rows = []
+    for rtol in rtols:
+        j, g, wall = _value_and_grad(scene, SolverConfig(solver=diffrax.Dopri8(), rtol=rtol,
+                                                         atol=FALLBACK[1]))
+        rows.append({"rtol": rtol, "atol": FALLBACK[1], "J_rel_err": abs(j - ref_j) / abs(ref_j),
+                     "grad_cosine": float(g @ ref_g / (np.linalg.norm(g)
+                                                       * np.linalg.norm(ref_g))),
+                     "value_and_grad_s": wall})
+    return {"reference_value_and_grad_s": ref_s, "rows": rows}
 
 
 def row_for(scene, halvings: int) -> dict:
@@ -84,6 +124,9 @@ def main(argv=None) -> int:
     p.add_argument("--evals", nargs="*", type=int, default=[])
     p.add_argument("--no-start", action="store_true", help="skip the task's start design")
     p.add_argument("--halvings", type=int, default=3)
+    p.add_argument("--adaptive-rtols", nargs="*", type=float, default=[],
+                   help="instead of the step sweep: value and gradient by Dopri8 at these "
+                   "rtols against rtol 1e-10 (key `adaptive`)")
     p.add_argument("--out", type=Path, default=Path("runs/bench-step-convergence"))
     args = p.parse_args(argv)
     from design_engine.design.task import load_task
@@ -103,6 +146,16 @@ def main(argv=None) -> int:
     for label, x in designs:
         for name in args.scenes or list(task.scenes):
             key = f"{label} / {name}"
+            if args.adaptive_rtols:
+                if key in doc.setdefault("adaptive", {}):
+                    continue
+                row = adaptive_row(task.scenes[name].with_design(x), args.adaptive_rtols)
+                doc["adaptive"][key] = row
+                path.write_text(json.dumps(doc, indent=1))
+                print(f"{key}: reference {row['reference_value_and_grad_s']:.1f} s; " + ", ".join(
+                    f"rtol {r['rtol']:g}: {r['J_rel_err']:.1e}, cosine {r['grad_cosine']:.7f}, "
+                    f"{r['value_and_grad_s']:.1f} s" for r in row["rows"]), flush=True)
+                continue
             if key in doc["rows"]:
                 continue
             row = row_for(task.scenes[name].with_design(x), args.halvings)

@@ -23,6 +23,7 @@ Writes OUT/bench_step_convergence.json after every row (rows it holds are skippe
 """
 
 import argparse
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -86,7 +87,7 @@ def adaptive_row(scene, rtols: list[float]) -> dict:
     return {"reference_value_and_grad_s": ref_s, "rows": rows}
 
 
-def row_for(scene, halvings: int) -> dict:
+def row_for(scene, halvings: int, dtype: str | None = None) -> dict:
     import diffrax
 
     from design_engine.solve.policy import choose_config, refined
@@ -98,7 +99,10 @@ def row_for(scene, halvings: int) -> dict:
     fb_j, _, fb_s = _solve(scene, SolverConfig(solver=diffrax.Dopri8(), rtol=FALLBACK[0],
                                                atol=FALLBACK[1]))
     config = choose_config(scene).config
+    if dtype is not None:
+        config = dataclasses.replace(config, dtype=dtype)
     steps = []
+    first = config
     for _ in range(halvings + 1):
         try:
             j, health, wall = _solve(scene, config)
@@ -113,7 +117,7 @@ def row_for(scene, halvings: int) -> dict:
             a["step_error"] = relative_step_error(a["J"], b["J"])
     return {"reference_J": ref_j, "reference_s": ref_s, "fallback_J": fb_j,
             "fallback_rel_err": abs(fb_j - ref_j) / abs(ref_j), "fallback_s": fb_s,
-            "config": repr(choose_config(scene).config), "steps": steps}
+            "config": repr(first), "steps": steps}
 
 
 def main(argv=None) -> int:
@@ -124,6 +128,8 @@ def main(argv=None) -> int:
     p.add_argument("--evals", nargs="*", type=int, default=[])
     p.add_argument("--no-start", action="store_true", help="skip the task's start design")
     p.add_argument("--halvings", type=int, default=3)
+    p.add_argument("--dtype", choices=("float32", "float64"), help="the fixed step in this "
+                   "precision instead of the policy's (rows keyed with it)")
     p.add_argument("--adaptive-rtols", nargs="*", type=float, default=[],
                    help="instead of the step sweep: value and gradient by Dopri8 at these "
                    "rtols against rtol 1e-10 (key `adaptive`)")
@@ -156,9 +162,11 @@ def main(argv=None) -> int:
                     f"rtol {r['rtol']:g}: {r['J_rel_err']:.1e}, cosine {r['grad_cosine']:.7f}, "
                     f"{r['value_and_grad_s']:.1f} s" for r in row["rows"]), flush=True)
                 continue
+            if args.dtype:
+                key += f" / {args.dtype}"
             if key in doc["rows"]:
                 continue
-            row = row_for(task.scenes[name].with_design(x), args.halvings)
+            row = row_for(task.scenes[name].with_design(x), args.halvings, args.dtype)
             doc["rows"][key] = row
             path.write_text(json.dumps(doc, indent=1))
             errs = ", ".join(f"{s['dt_us']:.1f} us {s.get('J_rel_err', float('nan')):.1e}"

@@ -109,8 +109,8 @@ def test_full_model_can_be_forced(small):
 
 def test_contact_left_out_only_while_it_is_exactly_zero_and_a_fast_solve_that_drifts_is_rejected():
     # voids of 2 deg close past the -10 deg cutoff under the pulse: the no-contact solve is
-    # detected as invalid and repeated with contact at the same step in float64. The scene is
-    # hypersensitive (Dopri8 at the reference tolerances is 1 % off its tight solution; Verlet
+    # detected as invalid and repeated with contact at the same step and precision (float32).
+    # The scene is hypersensitive (Dopri8 at the reference tolerances is 1 % off its tight solution; Verlet
     # at 0.3-0.9 x the limit misses J by 5-18 % with no failure): the contact solve's
     # work-energy balance drifts by ~4e-3 of the energy moved (smooth scenes: below 1e-5,
     # benchmarks/bench_energy_check.py), so it is rejected and Dopri8 decides.

@@ -347,12 +347,8 @@ def part_level_tol(strains: list[float], seeds: int) -> dict:
         t = s.loading.precompression_time
         solvers = {}
         for name, tol in (("level_tol", statics.LEVEL_TOL), ("every_level", statics.GRADIENT_TOL)):
-            saved, statics.LEVEL_TOL = statics.LEVEL_TOL, tol
-            try:
-                solvers[name] = jax.jit(make_static_solver(s.lattice, s.supports))
-                timed(solvers[name], jnp.asarray(s.design), s.material, s.loading, t)  # compiles
-            finally:
-                statics.LEVEL_TOL = saved
+            solvers[name] = jax.jit(make_static_solver(s.lattice, s.supports, level_tol=tol))
+            timed(solvers[name], jnp.asarray(s.design), s.material, s.loading, t)  # compiles
         rows = {}
         for label, seed in designs.items():
             x = jnp.asarray(s.design if seed is None else load_task(

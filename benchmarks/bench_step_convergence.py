@@ -90,8 +90,7 @@ def adaptive_row(scene, rtols: list[float]) -> dict:
 def row_for(scene, halvings: int, dtype: str | None = None) -> dict:
     import diffrax
 
-    from design_engine.solve.policy import choose_config, refined
-    from design_engine.solve.run import relative_step_error
+    from design_engine.solve.policy import choose_config, refined, relative_step_error
     from design_engine.solve.simulate import SimulationError, SolverConfig
 
     ref_j, _, ref_s = _solve(scene, SolverConfig(solver=diffrax.Dopri8(), rtol=TIGHT[0],

@@ -287,6 +287,42 @@ def jammed_reference(jammed):
     return simulate_scene(jammed, reference_method().config).metrics["target_ke_mean_J"]
 
 
+def test_a_forward_run_that_starts_in_contact_is_judged_at_half_its_step(jammed, jammed_choice,
+                                                                       monkeypatch):
+    """`simulate_scene` under the policy: the small scene in contact from its static start is
+    also solved at half its step from the same equilibrium, and `metrics["solver"]["step_error"]`
+    is 4/3 of the relative change of J, as independent solves at both steps give it (static
+    start included); below the tolerance the fixed step stands."""
+    from design_engine.solve import run as run_mod
+    from design_engine.solve.policy import STEP_ERROR_TOLERANCE, refined
+
+    estimates, original = [], run_mod.relative_step_error
+
+    def spy(value, half):
+        estimates.append(original(value, half))
+        return estimates[-1]
+
+    monkeypatch.setattr(run_mod, "relative_step_error", spy)
+    run = simulate_scene(jammed)
+    solver = run.metrics["solver"]
+    assert solver["solver"] == "FixedStepVerlet" and solver["resolves"] == []
+    config = jammed_choice.config
+    j = simulate_scene(jammed, config).metrics["target_ke_mean_J"]
+    j_half = simulate_scene(jammed, refined(config)).metrics["target_ke_mean_J"]
+    assert run.metrics["target_ke_mean_J"] == pytest.approx(j, rel=1e-9)
+    assert solver["step_error"] == pytest.approx(4 / 3 * abs(j - j_half) / abs(j), rel=1e-5)
+    assert estimates == [solver["step_error"]]
+    assert 0.0 < solver["step_error"] <= STEP_ERROR_TOLERANCE
+    # `make_objective` under the policy goes through the same check and keeps the fixed step
+    x = jammed.design
+    value, aux = run_mod.make_objective(jammed)[1](x)
+    assert len(estimates) == 2 and estimates[1] == pytest.approx(estimates[0], rel=1e-6)
+    assert float(value) == pytest.approx(float(run_mod.make_objective(jammed, config)[1](x)[0]),
+                                         rel=1e-9)
+    assert float(aux["start_void_margin"]) < float(jammed.material.contact_cutoff
+                                                   - jammed.material.contact_min)
+
+
 @pytest.fixture(scope="module")
 def jammed_sweep(jammed, jammed_reference):
     """The small scene's contact step sweep (see the test below), run once for the module."""

@@ -38,9 +38,10 @@ from design_engine.solve.driver import PolicyFailed, solve_with_policy
 from design_engine.solve.fixed_step import is_fixed_step
 from design_engine.solve.objectives import objective_term
 from design_engine.solve.policy import (STABILITY_SAFETY, choose_config, contact_config,
-                                        initial_vector, make_frequency_estimator, refined)
-from design_engine.solve.run import (checked, compile_key, config_summary, prestressed_state,
-                                     relative_step_error)
+                                        initial_vector, make_frequency_estimator, refined,
+                                        relative_step_error)
+from design_engine.solve.run import (at_rest_in, checked, compile_key, config_summary,
+                                     prestressed_state)
 from design_engine.solve.simulate import (SimulationError, Solution, SolverConfig, make_simulator,
                                           solve_health)
 
@@ -225,10 +226,9 @@ class TaskEvaluator:
         second order; `policy.STEP_ERROR_TOLERANCE`)."""
         scene = self.task.scenes[name]
         fn = self._function(name, refined(config), forward=True)
-        q0 = jnp.asarray(aux["start_free"])  # the static equilibrium, at t = 0
         half = float(fn(jnp.asarray(x), scene.material, scene.loading,
                         jnp.asarray(scene.sample_times), self._weights(name),
-                        (q0, jnp.zeros_like(q0))))
+                        at_rest_in(aux["start_free"])))  # the static equilibrium, at t = 0
         return relative_step_error(value, half)
 
     # --- the policy ------------------------------------------------------------------------

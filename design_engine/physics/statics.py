@@ -134,8 +134,12 @@ def make_sparse_hessian(lattice: Lattice, free: np.ndarray, grad_fn):
 
 def make_static_solver(lattice: Lattice, supports: Supports, *, use_contact: bool = True,
                        linearized: bool = False, n_load: int = N_LOAD,
-                       newton_iters: int = NEWTON_ITERS, model: Model = DEFAULT_MODEL):
+                       newton_iters: int = NEWTON_ITERS, level_tol: float = LEVEL_TOL,
+                       model: Model = DEFAULT_MODEL):
     """Factory: `equilibrium(x, material, loading, t_hold) -> (q_f [n_free], info)` (jit/grad).
+
+    `level_tol`: the residual max |dE/dq_f| at which the load levels before the full load stop
+    (the full load is always solved to GRADIENT_TOL).
 
     Args of the returned function:
         x: [n_design] design vector, mm.
@@ -230,7 +234,7 @@ def make_static_solver(lattice: Lattice, supports: Supports, *, use_contact: boo
             use = (jnp.isfinite(total(secant, qc, bonds, material)) & (lam > 0)
                    & admissible(secant, qc, bonds, material))
             q_new, mu_new, ok = newton(jnp.where(use, secant, q), mu, qc, bonds, material,
-                                       jnp.where(target < 1.0, LEVEL_TOL, GRADIENT_TOL))
+                                       jnp.where(target < 1.0, level_tol, GRADIENT_TOL))
             ok = ok & jnp.all(jnp.isfinite(q_new)) & admissible(q_new, qc, bonds, material)
             return (jnp.where(ok, q_new, q), jnp.where(ok, q, q_prev),
                     jnp.where(ok, target, lam), jnp.where(ok, lam, lam_prev),

@@ -301,6 +301,15 @@ def contact_step_ratio(solver, health: dict, scene: Scene) -> float:
                                 float(health["min_inertia"]), scene.model))
 
 
+def relative_step_error(value: float, half: float) -> float:
+    """The relative error of a fixed-step objective `value` estimated from the same start solved
+    at half the step (`half`): Richardson, 4/3 of the change, Verlet being second order
+    (`policy.STEP_ERROR_TOLERANCE`); inf when the half-step value is not finite."""
+    if not np.isfinite(half):
+        return float("inf")
+    return 4.0 / 3.0 * abs(value - half) / max(abs(value), 1e-300)
+
+
 def step_error_passes(step_error: float) -> bool:
     """Whether a predicted half-step estimate `step_error` passes STEP_ERROR_TOLERANCE with the
     margin a prediction needs (within half of it)."""

@@ -20,7 +20,7 @@ from design_engine.solve.fixed_step import is_fixed_step
 from design_engine.solve.objectives import (angular_momentum, block_kinetic_energy, objective_term,
                                             peak_energy_along_units, region_energy,
                                             region_energy_ratio)
-from design_engine.solve.policy import Choice, choose_config, refined
+from design_engine.solve.policy import Choice, choose_config, refined, relative_step_error
 from design_engine.solve.simulate import (SimulationError, Solution, SolverConfig, check_solution,
                                           make_simulator, simulation_error, solve_health)
 from metarig.trajectory import Trajectory
@@ -37,7 +37,8 @@ def compile_key(scene: Scene, config: SolverConfig, tag: str, ts_ms) -> tuple:
 
 
 def compiled_simulator(scene: Scene, config: SolverConfig, ts_ms=None):
-    """jit-compiled `simulate(x, material, loading, ts)` for this scene's topology (cached).
+    """jit-compiled `simulate(x, material, loading, ts, initial=None)` for this scene's topology
+    (cached).
 
     `ts_ms` (default the scene's sample times) fixes the step count of the fixed-step solver;
     the compiled function must then be called with those sample times.
@@ -120,12 +121,19 @@ def solver_stats(sol: Solution) -> dict:
             "num_rejected_steps": int(sol.num_rejected)}
 
 
-def _simulate(scene: Scene, config: SolverConfig, ts_ms=None, loading=None):
+def at_rest_in(start_free):
+    """The simulator's `initial` for a start at rest in the free DOFs `start_free` [n_free] (a
+    solution's `start_free`: a static scene's equilibrium, solved once)."""
+    q0 = jnp.asarray(start_free)
+    return q0, jnp.zeros_like(q0)
+
+
+def _simulate(scene: Scene, config: SolverConfig, ts_ms=None, loading=None, initial=None):
     ts_ms = scene.sample_times if ts_ms is None else ts_ms
     sim = compiled_simulator(scene, config, ts_ms)
     start = time.perf_counter()
     sol = sim(jnp.asarray(scene.design), scene.material, loading or scene.loading,
-              jnp.asarray(ts_ms))
+              jnp.asarray(ts_ms), initial)
     sol = jax.block_until_ready(sol)
     return check_solution(sol, config), time.perf_counter() - start
 
@@ -145,11 +153,12 @@ def default_choice(scene: Scene) -> Choice:
 def _run_with_policy(scene: Scene, config: SolverConfig | None, ts_ms=None, loading=None):
     """Solve with `config`, or with the automatic choice under the policy driver
     (`driver.solve_with_policy`: re-solves and fallback) when None. Returns (solution, wall s,
-    final config, reasons, re-solves), the re-solves being the reasons of every solve after the
-    first."""
+    final config, reasons, re-solves, half-step estimate), the re-solves being the reasons of
+    every solve after the first, the estimate the driver's `step_error` of the solve that
+    counted (None when it was not judged so)."""
     if config is not None:
         sol, wall = _simulate(scene, config, ts_ms, loading)
-        return sol, wall, config, ("configuration given by the caller",), ()
+        return sol, wall, config, ("configuration given by the caller",), (), None
     choice = default_choice(scene)
     walls = []
 
@@ -159,8 +168,8 @@ def _run_with_policy(scene: Scene, config: SolverConfig | None, ts_ms=None, load
         return sol, solve_health(sol, np)
 
     def step_error(cfg, sol, _health):
-        try:
-            half, w = _simulate(scene, refined(cfg), ts_ms, loading)
+        try:  # from the same start: the static equilibrium is not solved again
+            half, w = _simulate(scene, refined(cfg), ts_ms, loading, at_rest_in(sol.start_free))
         except SimulationError:
             return float("inf")
         walls.append(w)
@@ -168,7 +177,8 @@ def _run_with_policy(scene: Scene, config: SolverConfig | None, ts_ms=None, load
                                    float(scene_objective(scene, half)))
 
     out = solve_with_policy(scene, choice.config, solve, step_error=step_error)
-    return out.result, sum(walls), out.config, choice.reasons + out.resolves, out.resolves
+    return (out.result, sum(walls), out.config, choice.reasons + out.resolves, out.resolves,
+            out.health.get("step_error"))
 
 
 def prestressed_state(scene: Scene, config=None) -> np.ndarray:
@@ -202,15 +212,18 @@ def simulate_scene(scene: Scene, config: SolverConfig | None = None) -> SceneRun
 
     `config=None` uses the automatic per-scene choice (`policy.choose_config`, with fallback to
     the adaptive solver); `SolverConfig()` is the full reference model. `metrics["solver"]`
-    says which configuration gave the result (`choice`: why) and `resolves`: the reasons of the
-    solves the policy made after its first.
+    says which configuration gave the result (`choice`: why), `resolves`: the reasons of the
+    solves the policy made after its first, and `step_error` the half-step estimate when the
+    policy judged the result by it (a fixed step with contact that started in contact).
     """
-    sol, wall, config, reasons, resolves = _run_with_policy(scene, config)
+    sol, wall, config, reasons, resolves, step_error = _run_with_policy(scene, config)
     metrics = scene_metrics(scene, sol)
     metrics["solver"] = solver_stats(sol)
     metrics["solver"].update(config_summary(config))
     metrics["solver"]["choice"] = list(reasons)
     metrics["solver"]["resolves"] = list(resolves)
+    if step_error is not None:  # the half-step check judged the solve that counted
+        metrics["solver"]["step_error"] = float(step_error)
     return SceneRun(trajectory=to_trajectory(sol, scene.window_start, scene.sample_times),
                     solution=sol,
                     metrics=metrics, wall_s=wall)
@@ -331,9 +344,10 @@ def make_objective(scene: Scene, config: SolverConfig | None = None, weights=Non
             checked(value_aux, cfg)
             return out, value_aux[1]
 
-        def step_error(cfg, out, _health):
-            try:
-                half = float(checked(program(refined(cfg))[1](x), cfg)[0])
+        def step_error(cfg, out, health):
+            try:  # from the same start: the static equilibrium is not solved again
+                half = float(checked(program(refined(cfg))[1](x, at_rest_in(
+                    health["start_free"])), cfg)[0])
             except SimulationError:
                 return float("inf")
             return relative_step_error(float((out[0] if i == 0 else out)[0]), half)
@@ -360,15 +374,6 @@ def scene_objective(scene: Scene, sol: Solution, weights=None):
                for w, n in zip(weights, names))
 
 
-def relative_step_error(value: float, half: float) -> float:
-    """The relative error of a fixed-step objective `value` estimated from the same start solved
-    at half the step (`half`): Richardson, 4/3 of the change, Verlet being second order
-    (`policy.STEP_ERROR_TOLERANCE`); inf when the half-step value is not finite."""
-    if not np.isfinite(half):
-        return float("inf")
-    return 4.0 / 3.0 * abs(value - half) / max(abs(value), 1e-300)
-
-
 def _jitted_objective(scene: Scene, config: SolverConfig, weights):
     sim = make_simulator(scene.lattice, scene.supports, config, scene.sample_times,
                          model=scene.model)
@@ -377,9 +382,10 @@ def _jitted_objective(scene: Scene, config: SolverConfig, weights):
         raise ValueError(f"{len(names)} targets ({names}) need as many weights, got {weights}")
     ts = jnp.asarray(scene.sample_times)
 
-    def objective(x):
-        sol = sim(x, scene.material, scene.loading, ts)
-        return scene_objective(scene, sol, weights), solve_health(sol)
+    def objective(x, initial=None):
+        sol = sim(x, scene.material, scene.loading, ts, initial)
+        return scene_objective(scene, sol, weights), dict(solve_health(sol),
+                                                          start_free=sol.start_free)
 
     return jax.jit(jax.value_and_grad(objective, has_aux=True)), jax.jit(objective)
 
@@ -397,5 +403,4 @@ def checked(value_aux, config: SolverConfig | None = None):
 
 
 __all__ = ["SceneRun", "prestressed_state", "simulate_scene", "simulate_rig", "make_objective",
-           "checked", "to_trajectory", "scene_metrics", "scene_objective", "relative_step_error",
-           "compiled_simulator"]
+           "checked", "to_trajectory", "scene_metrics", "scene_objective", "compiled_simulator"]

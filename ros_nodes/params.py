@@ -119,7 +119,9 @@ class CameraNodeConfig:
                                    "(-1: when `start` is called; used once). The sequencer sets "
                                    "it to the time it holds, so that a camera whose clock lags "
                                    "under load cannot start the capture early", -1.0, 1e9)
-    supersample: int = param(2, "sim: sub-pixel samples per pixel side", 1, 8)
+    supersample: int = param(4, "sim: sub-pixel samples per pixel side (a pixel's light "
+                             "integrated on this many points squared: 2 aliases an outline's "
+                             "edge into grey steps that move the tracked poses)", 1, 8)
     seed: int = param(0, "seed of noise and speckle", 0, 2**31 - 1)
     snapshot_frames: int = param(8, "frames at rest that `~/snapshot` averages into the "
                                  "reference image (the reference's read noise is in every "

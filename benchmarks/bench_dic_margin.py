@@ -161,7 +161,8 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     for f in args.footage:
         if not (f / "truth.npz").is_file() or not (f / "reference-8.png").is_file():
-            p.error(f"{f}: no footage of bench_dic_design.py there (run it with --out {f})")
+            p.error(f"{f}: no footage of bench_dic_design.py there (run it with --out {f}, "
+                    f"and --supersample 2 for the 2 x 2 footage of the default second folder)")
     if min(args.margins) < 0:
         p.error("--margins must be >= 0")
     n_t = np.load(args.footage[0] / "truth.npz")["q"].shape[0]

@@ -15,6 +15,11 @@ reference, is what the policy's refinement on the estimate relies on.
     .venv/bin/python benchmarks/bench_step_convergence.py --run runs/fvp20 --evals 5 9 \
         --scenes strain_8pct --out benchmarks/results
 
+`--newmark-iterations K` solves the same steps by implicit Newmark (trapezoidal, with contact,
+K chord iterations on the factored stiffness of the start: `solve.implicit_step`) instead of
+the policy's Verlet: whether an implicit step buys accuracy per second where Verlet needs small
+steps.
+
 `--adaptive-rtols R ...` instead times value and gradient by Dopri8 with contact at those rtols
 (atol 1e-4, the fallback's) against rtol 1e-10 on the same designs (key `adaptive`: relative
 error of J, gradient cosine, wall time): what the fallback's tolerance buys.
@@ -87,9 +92,11 @@ def adaptive_row(scene, rtols: list[float]) -> dict:
     return {"reference_value_and_grad_s": ref_s, "rows": rows}
 
 
-def row_for(scene, halvings: int, dtype: str | None = None) -> dict:
+def row_for(scene, halvings: int, dtype: str | None = None,
+            newmark_iterations: int | None = None) -> dict:
     import diffrax
 
+    from design_engine.solve.implicit_step import ImplicitNewmark
     from design_engine.solve.policy import choose_config, refined, relative_step_error
     from design_engine.solve.simulate import SimulationError, SolverConfig
 
@@ -100,6 +107,9 @@ def row_for(scene, halvings: int, dtype: str | None = None) -> dict:
     config = choose_config(scene).config
     if dtype is not None:
         config = dataclasses.replace(config, dtype=dtype)
+    if newmark_iterations is not None:  # implicit Newmark at the policy's step, with contact
+        config = dataclasses.replace(config, solver=ImplicitNewmark(
+            max_dt=config.solver.max_dt, iterations=newmark_iterations), use_contact=True)
     steps = []
     first = config
     for _ in range(halvings + 1):
@@ -110,7 +120,9 @@ def row_for(scene, halvings: int, dtype: str | None = None) -> dict:
                           "energy_error": health.get("energy_error"), "wall_s": wall})
         except SimulationError as exc:
             steps.append({"dt_us": config.solver.max_dt * 1e3, "error": str(exc)})
-        config = refined(config)
+        config = (refined(config) if newmark_iterations is None else dataclasses.replace(
+            config, solver=dataclasses.replace(config.solver,
+                                               max_dt=config.solver.max_dt / 2)))
     for a, b in zip(steps, steps[1:]):
         if "J" in a and "J" in b:
             a["step_error"] = relative_step_error(a["J"], b["J"])
@@ -129,6 +141,9 @@ def main(argv=None) -> int:
     p.add_argument("--halvings", type=int, default=3)
     p.add_argument("--dtype", choices=("float32", "float64"), help="the fixed step in this "
                    "precision instead of the policy's (rows keyed with it)")
+    p.add_argument("--newmark-iterations", type=int, help="the fixed step by implicit Newmark "
+                   "(trapezoidal, contact on) with this many chord iterations instead of the "
+                   "policy's Verlet, at the same steps (rows keyed `/ newmark K`)")
     p.add_argument("--adaptive-rtols", nargs="*", type=float, default=[],
                    help="instead of the step sweep: value and gradient by Dopri8 at these "
                    "rtols against rtol 1e-10 (key `adaptive`)")
@@ -147,6 +162,7 @@ def main(argv=None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / "bench_step_convergence.json"
     doc = json.loads(path.read_text()) if path.exists() else {"rows": {}}
+    # each row says its machine (`machine` here: the last run's)
     doc.update(task=args.task, run=str(args.run) if args.run else None, machine=describe())
     for label, x in designs:
         for name in args.scenes or list(task.scenes):
@@ -155,7 +171,7 @@ def main(argv=None) -> int:
                 if key in doc.setdefault("adaptive", {}):
                     continue
                 row = adaptive_row(task.scenes[name].with_design(x), args.adaptive_rtols)
-                doc["adaptive"][key] = row
+                doc["adaptive"][key] = row | {"machine": describe()}
                 path.write_text(json.dumps(doc, indent=1))
                 print(f"{key}: reference {row['reference_value_and_grad_s']:.1f} s; " + ", ".join(
                     f"rtol {r['rtol']:g}: {r['J_rel_err']:.1e}, cosine {r['grad_cosine']:.7f}, "
@@ -163,9 +179,12 @@ def main(argv=None) -> int:
                 continue
             if args.dtype:
                 key += f" / {args.dtype}"
+            if args.newmark_iterations:
+                key += f" / newmark {args.newmark_iterations}"
             if key in doc["rows"]:
                 continue
-            row = row_for(task.scenes[name].with_design(x), args.halvings, args.dtype)
+            row = row_for(task.scenes[name].with_design(x), args.halvings, args.dtype,
+                          args.newmark_iterations) | {"machine": describe()}
             doc["rows"][key] = row
             path.write_text(json.dumps(doc, indent=1))
             errs = ", ".join(f"{s['dt_us']:.1f} us {s.get('J_rel_err', float('nan')):.1e}"

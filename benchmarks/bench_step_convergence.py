@@ -20,6 +20,10 @@ K chord iterations on the factored stiffness of the start: `solve.implicit_step`
 the policy's Verlet: whether an implicit step buys accuracy per second where Verlet needs small
 steps.
 
+`--gradients` instead solves value and gradient by the policy's fixed step at h, h/2, ... and
+compares both with Dopri8's at rtol 1e-10 (key `gradients`: `J_rel_err`, `grad_cosine`,
+`grad_rel_err`, `value_and_grad_s`): what the half-step check on J says of the gradient.
+
 `--adaptive-rtols R ...` instead times value and gradient by Dopri8 with contact at those rtols
 (atol 1e-4, the fallback's) against rtol 1e-10 on the same designs (key `adaptive`: relative
 error of J, gradient cosine, wall time): what the fallback's tolerance buys.
@@ -92,6 +96,35 @@ def adaptive_row(scene, rtols: list[float]) -> dict:
     return {"reference_value_and_grad_s": ref_s, "rows": rows}
 
 
+def gradient_row(scene, halvings: int) -> dict:
+    """Value and gradient by the policy's own fixed-step configuration at the design (as
+    `row_for`) at h, h/2, ... against Dopri8 at rtol 1e-10 / atol 1e-8: relative error of J,
+    gradient cosine and relative error, wall time (compiled first)."""
+    import diffrax
+
+    from design_engine.solve.policy import choose_config, refined
+    from design_engine.solve.simulate import SimulationError, SolverConfig
+
+    ref_j, ref_g, ref_s = _value_and_grad(scene, SolverConfig(
+        solver=diffrax.Dopri8(), rtol=TIGHT[0], atol=TIGHT[1]))
+    config = choose_config(scene).config
+    steps = []
+    for _ in range(halvings + 1):
+        try:
+            j, g, wall = _value_and_grad(scene, config)
+            steps.append({"dt_us": config.solver.max_dt * 1e3,
+                          "J_rel_err": abs(j - ref_j) / abs(ref_j),
+                          "grad_cosine": float(g @ ref_g / (np.linalg.norm(g)
+                                                            * np.linalg.norm(ref_g))),
+                          "grad_rel_err": float(np.linalg.norm(g - ref_g)
+                                                / np.linalg.norm(ref_g)),
+                          "value_and_grad_s": wall})
+        except SimulationError as exc:
+            steps.append({"dt_us": config.solver.max_dt * 1e3, "error": str(exc)})
+        config = refined(config)
+    return {"reference_value_and_grad_s": ref_s, "steps": steps}
+
+
 def row_for(scene, halvings: int, dtype: str | None = None,
             newmark_iterations: int | None = None) -> dict:
     import diffrax
@@ -144,6 +177,9 @@ def main(argv=None) -> int:
     p.add_argument("--newmark-iterations", type=int, help="the fixed step by implicit Newmark "
                    "(trapezoidal, contact on) with this many chord iterations instead of the "
                    "policy's Verlet, at the same steps (rows keyed `/ newmark K`)")
+    p.add_argument("--gradients", action="store_true", help="instead of the forward step "
+                   "sweep: value and gradient by the policy's fixed step at h, h/2, ... against "
+                   "Dopri8 rtol 1e-10 (key `gradients`)")
     p.add_argument("--adaptive-rtols", nargs="*", type=float, default=[],
                    help="instead of the step sweep: value and gradient by Dopri8 at these "
                    "rtols against rtol 1e-10 (key `adaptive`)")
@@ -167,6 +203,17 @@ def main(argv=None) -> int:
     for label, x in designs:
         for name in args.scenes or list(task.scenes):
             key = f"{label} / {name}"
+            if args.gradients:
+                if key in doc.setdefault("gradients", {}):
+                    continue
+                row = gradient_row(task.scenes[name].with_design(x), args.halvings)
+                doc["gradients"][key] = row | {"machine": describe()}
+                path.write_text(json.dumps(doc, indent=1))
+                print(f"{key}: " + ", ".join(
+                    f"{r['dt_us']:.1f} us J {r.get('J_rel_err', float('nan')):.1e} cosine "
+                    f"{r.get('grad_cosine', float('nan')):.7f}" for r in row["steps"]),
+                      flush=True)
+                continue
             if args.adaptive_rtols:
                 if key in doc.setdefault("adaptive", {}):
                     continue

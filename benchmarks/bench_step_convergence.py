@@ -200,44 +200,42 @@ def main(argv=None) -> int:
     doc = json.loads(path.read_text()) if path.exists() else {"rows": {}}
     # each row says its machine (`machine` here: the last run's)
     doc.update(task=args.task, run=str(args.run) if args.run else None, machine=describe())
+    # the mode: (key of the results part, row of one scene, its printed line)
+    if args.gradients:
+        part, make = "gradients", lambda sc: gradient_row(sc, args.halvings)
+
+        def line(row):
+            return ", ".join(f"{r['dt_us']:.1f} us J {r.get('J_rel_err', float('nan')):.1e} "
+                             f"cosine {r.get('grad_cosine', float('nan')):.7f}"
+                             for r in row["steps"])
+    elif args.adaptive_rtols:
+        part, make = "adaptive", lambda sc: adaptive_row(sc, args.adaptive_rtols)
+
+        def line(row):
+            return f"reference {row['reference_value_and_grad_s']:.1f} s; " + ", ".join(
+                f"rtol {r['rtol']:g}: {r['J_rel_err']:.1e}, cosine {r['grad_cosine']:.7f}, "
+                f"{r['value_and_grad_s']:.1f} s" for r in row["rows"])
+    else:
+        part = "rows"
+
+        def make(sc):
+            return row_for(sc, args.halvings, args.dtype, args.newmark_iterations)
+
+        def line(row):
+            return f"fallback {row['fallback_rel_err']:.1e}; " + ", ".join(
+                f"{s['dt_us']:.1f} us {s.get('J_rel_err', float('nan')):.1e}"
+                f" (est {s.get('step_error', float('nan')):.1e})" for s in row["steps"])
+    suffix = "".join(f" / {v}" for v in (args.dtype, args.newmark_iterations and
+                                          f"newmark {args.newmark_iterations}") if v)
     for label, x in designs:
         for name in args.scenes or list(task.scenes):
-            key = f"{label} / {name}"
-            if args.gradients:
-                if key in doc.setdefault("gradients", {}):
-                    continue
-                row = gradient_row(task.scenes[name].with_design(x), args.halvings)
-                doc["gradients"][key] = row | {"machine": describe()}
-                path.write_text(json.dumps(doc, indent=1))
-                print(f"{key}: " + ", ".join(
-                    f"{r['dt_us']:.1f} us J {r.get('J_rel_err', float('nan')):.1e} cosine "
-                    f"{r.get('grad_cosine', float('nan')):.7f}" for r in row["steps"]),
-                      flush=True)
+            key = f"{label} / {name}" + (suffix if part == "rows" else "")
+            if key in doc.setdefault(part, {}):
                 continue
-            if args.adaptive_rtols:
-                if key in doc.setdefault("adaptive", {}):
-                    continue
-                row = adaptive_row(task.scenes[name].with_design(x), args.adaptive_rtols)
-                doc["adaptive"][key] = row | {"machine": describe()}
-                path.write_text(json.dumps(doc, indent=1))
-                print(f"{key}: reference {row['reference_value_and_grad_s']:.1f} s; " + ", ".join(
-                    f"rtol {r['rtol']:g}: {r['J_rel_err']:.1e}, cosine {r['grad_cosine']:.7f}, "
-                    f"{r['value_and_grad_s']:.1f} s" for r in row["rows"]), flush=True)
-                continue
-            if args.dtype:
-                key += f" / {args.dtype}"
-            if args.newmark_iterations:
-                key += f" / newmark {args.newmark_iterations}"
-            if key in doc["rows"]:
-                continue
-            row = row_for(task.scenes[name].with_design(x), args.halvings, args.dtype,
-                          args.newmark_iterations) | {"machine": describe()}
-            doc["rows"][key] = row
+            row = make(task.scenes[name].with_design(x)) | {"machine": describe()}
+            doc[part][key] = row
             path.write_text(json.dumps(doc, indent=1))
-            errs = ", ".join(f"{s['dt_us']:.1f} us {s.get('J_rel_err', float('nan')):.1e}"
-                             f" (est {s.get('step_error', float('nan')):.1e})"
-                             for s in row["steps"])
-            print(f"{key}: fallback {row['fallback_rel_err']:.1e}; {errs}", flush=True)
+            print(f"{key}: {line(row)}", flush=True)
     return 0
 
 

@@ -125,6 +125,25 @@ def bench_pulse(nx=24, ny=16, fit=("k_stretch", "k_shear", "k_bend", "damping_u"
             "parameters": summary(fitted, {n: si(true, n) for n in f})}
 
 
+def calibrate_run(run: Path, cal: Path, truth: dict, flags: list[str]):
+    """`metarig calibrate RUN --out CAL -q FLAGS...`: (its calibration.json, each fitted or
+    derived constant that `truth` (SI) holds against it, wall s)."""
+    import subprocess
+
+    t0 = time.perf_counter()
+    subprocess.run([sys.executable, "-m", "metarig", "calibrate", str(run), "--out", str(cal),
+                    "-q", *flags], check=True, cwd=ROOT)
+    wall = time.perf_counter() - t0
+    doc = json.loads((cal / "calibration.json").read_text())
+    derived = doc.get("derived", {})
+    rows = {n: {"truth": truth[n], "value": p["value"], "stderr": p["stderr"],
+                "rel_error": p["value"] / truth[n] - 1,
+                "z": (p["value"] - truth[n]) / p["stderr"] if p["stderr"] else None,
+                "derived": n in derived}
+            for n, p in {**doc["parameters"], **derived}.items() if n in truth}
+    return doc, rows, wall
+
+
 def bench_rig(out=ROOT / "runs" / "bench-calibrate"):
     """The whole chain: `metarig rig` (24x16 periodic focusing sample, 7.5 mm pulse at 30 Hz,
     1000 fps, 1000x700 px at 0.4 mm/px, camera noise on; the true material is the default),
@@ -163,18 +182,9 @@ def bench_rig(out=ROOT / "runs" / "bench-calibrate"):
         start = out / f"start-{name}.toml"
         save_material(start, {k: d[k] * f for k, f in factors.items()}, None,
                       "bench_calibrate: the default material, 20 % off")
-        t0 = time.perf_counter()
-        subprocess.run([sys.executable, "-m", "metarig", "calibrate", str(run), "--out",
-                        str(out / f"cal-{name}"), "--material", str(start), "--poses", poses,
-                        "-q", *(["--fit", fit] if fit else [])], check=True, cwd=ROOT)
-        wall = time.perf_counter() - t0
-        doc = json.loads((out / f"cal-{name}" / "calibration.json").read_text())
-        rows = {}
-        for n, p in {**doc["parameters"], **doc.get("derived", {})}.items():
-            t = truth[n]
-            rows[n] = {"truth": t, "value": p["value"], "stderr": p["stderr"],
-                       "rel_error": p["value"] / t - 1, "z": (p["value"] - t) / p["stderr"],
-                       "derived": n in doc.get("derived", {})}
+        doc, rows, wall = calibrate_run(run, out / f"cal-{name}", truth,
+                                        ["--material", str(start), "--poses", poses,
+                                         *(["--fit", fit] if fit else [])])
         res[name] = {"poses": poses, "start_factors": factors, "wall_s": wall,
                      "residual_m": doc["residual"], "n_residuals": doc["n_residuals"],
                      "iterations": doc["iterations"], "windows_frames": doc.get("windows_frames"),
@@ -218,18 +228,7 @@ def bench_rig_precompressed(out=ROOT / "runs" / "bench-calibrate", perturb=0.2, 
         part = {"rig_s": rig_s, "true_parameter_factors": specimen.factors}
         for poses in ("track", "truth"):
             cal = out / f"cal-precompressed-{name}-{poses}"
-            t0 = time.perf_counter()
-            subprocess.run([sys.executable, "-m", "metarig", "calibrate", str(run), "--out",
-                            str(cal), "--poses", poses, "-q"], check=True, cwd=ROOT)
-            wall = time.perf_counter() - t0
-            doc = json.loads((cal / "calibration.json").read_text())
-            rows = {}
-            for n, p in doc["parameters"].items():
-                if n in truth:
-                    t = truth[n]
-                    rows[n] = {"truth": t, "value": p["value"], "stderr": p["stderr"],
-                               "rel_error": p["value"] / t - 1,
-                               "z": (p["value"] - t) / p["stderr"] if p["stderr"] else None}
+            doc, rows, wall = calibrate_run(run, cal, truth, ["--poses", poses])
             part[poses] = {"wall_s": wall, "residual_m": doc["residual"],
                            "weighted_by_pose_sigma": doc.get("weighted_by_pose_sigma"),
                            "parameters": rows}

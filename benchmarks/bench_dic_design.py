@@ -60,6 +60,7 @@ DESIGN = ROOT / "design_engine" / "studies" / "fixtures" / "focusing-contact-24x
 # steps that follow the edge's sub-pixel position, which moved the poses of noise-free renders by
 # up to 2.4 mrad (p99 1.2) on this design, against 2.2 (0.93) at 4 and 1.9 (0.90) at 8
 SUPERSAMPLE = 4
+FPS, MPP = 1000.0, 4e-4  # the footage: frame rate, 1/s, and image scale, m/px
 WRONG_PX, WRONG_RAD = 0.5, 0.01  # a pose further off than this is wrong
 UNCERTAIN_SIGMAS = 3.0  # a pose whose stated error reaches a bound in this many sigma says so
 
@@ -100,6 +101,25 @@ def film_design(folder: Path, fps: float, m_per_px: float, duration_s: float, se
         truth.append(q)
     calib = Calibration(fps=fps, m_per_px=m_per_px, origin_px=origin, y_up=True)
     return np.array(truth), np.array(stamps), specimen.polygons_m, calib
+
+
+def load_footage(folder: Path):
+    """(truth q [n_t, n, 3], stamps s, polygons m, calibration, supersample) of footage this
+    benchmark filmed into `folder` (its `truth.npz`; footage of before `--supersample`: 2)."""
+    from tracking.calibration import Calibration
+
+    d = np.load(folder / "truth.npz")
+    calib = Calibration(fps=FPS, m_per_px=MPP, origin_px=tuple(d["origin_px"]), y_up=True)
+    filmed = int(d["supersample"]) if "supersample" in d else 2
+    return d["q"], d["t"], d["polygons_m"], calib, filmed
+
+
+def slender_units(polygons: np.ndarray, calib, cfg, reference: np.ndarray) -> np.ndarray:
+    """[n] units no search template fits in under tracker settings `cfg`."""
+    from tracking.dic import DICTracker, init_state
+    from tracking.search import MIN_TEMPLATE_HALF
+
+    return init_state(DICTracker(polygons, calib, cfg), reference).refs.tpl_half < MIN_TEMPLATE_HALF
 
 
 def camera_config(width_px: int, height_px: int, origin_px, fps: float, m_per_px: float,
@@ -243,24 +263,18 @@ def main(argv=None) -> int:
     if n_ref < 1:
         p.error("--reference-frames must be >= 1")
     from tracking.batch import track_source
-    from tracking.dic import DICTracker, init_state, settings_for_units
+    from tracking.dic import settings_for_units
     from tracking.frame_sources import open_source
-    from tracking.search import MIN_TEMPLATE_HALF
     from tracking.units import bonds_from_outlines
 
-    fps, mpp = 1000.0, 4e-4
+    fps, mpp = FPS, MPP
     frames = args.out / "frames"
     truth_file = args.out / "truth.npz"
     if truth_file.exists():  # resume: the footage is already there
-        d = np.load(truth_file)
-        truth, stamps, polygons = d["q"], d["t"], d["polygons_m"]
-        filmed = int(d["supersample"]) if "supersample" in d else 2  # older footage: 2
+        truth, stamps, polygons, calib, filmed = load_footage(args.out)
         if filmed != args.supersample:
             p.error(f"{args.out} holds footage rendered at --supersample {filmed}; "
                     f"pass that or another --out")
-        from tracking.calibration import Calibration
-
-        calib = Calibration(fps=fps, m_per_px=mpp, origin_px=tuple(d["origin_px"]), y_up=True)
     else:
         truth, stamps, polygons, calib = film_design(frames, fps, mpp, args.duration_s,
                                                      args.seed, args.design, args.supersample)
@@ -270,8 +284,7 @@ def main(argv=None) -> int:
     ref_path = reference(args.out, n_ref, polygons, calib.origin_px, fps, mpp, args.seed,
                          args.supersample)
     ref = cv2.imread(str(ref_path), cv2.IMREAD_UNCHANGED)
-    tr = DICTracker(polygons, calib, cfg)
-    slender = init_state(tr, ref).refs.tpl_half < MIN_TEMPLATE_HALF
+    slender = slender_units(polygons, calib, cfg, ref)
     # the lattice's ligaments, for the check of every pose against its neighbours
     bonds = bonds_from_outlines(polygons) if args.neighbours else None
     load0 = os.getloadavg()

@@ -27,30 +27,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from bench_dic_design import camera_config, score
+from bench_dic_design import FPS, MPP, camera_config, load_footage, score, slender_units
 from machine import describe
 
 ROOT = Path(__file__).resolve().parents[1]
-MPP, FPS = 4e-4, 1000.0
-
-
-def _footage(folder: Path):
-    """(truth q, polygons, calibration, supersample) of a `bench_dic_design.py` folder."""
-    from tracking.calibration import Calibration
-
-    d = np.load(folder / "truth.npz")
-    calib = Calibration(fps=FPS, m_per_px=MPP, origin_px=tuple(d["origin_px"]), y_up=True)
-    ss = int(d["supersample"]) if "supersample" in d else 2
-    return d["q"], d["polygons_m"], calib, ss
-
-
-def _slender(polygons, calib, reference: np.ndarray) -> np.ndarray:
-    """[n] units no search template fits in, at the default settings."""
-    from tracking.dic import DICTracker, init_state, settings_for_units
-    from tracking.search import MIN_TEMPLATE_HALF
-
-    tr = DICTracker(polygons, calib, settings_for_units(polygons, MPP))
-    return init_state(tr, reference).refs.tpl_half < MIN_TEMPLATE_HALF
 
 
 def tracked(folder: Path, margins: list[float]) -> list[dict]:
@@ -60,9 +40,11 @@ def tracked(folder: Path, margins: list[float]) -> list[dict]:
     from tracking.frame_sources import open_source
     from tracking.units import bonds_from_outlines
 
-    truth, polygons, calib, ss = _footage(folder)
+    truth, _, polygons, calib, ss = load_footage(folder)
     ref_path = folder / "reference-8.png"
-    slender = _slender(polygons, calib, cv2.imread(str(ref_path), cv2.IMREAD_UNCHANGED))
+    # the slender units of the default settings: the same units at every margin
+    slender = slender_units(polygons, calib, settings_for_units(polygons, MPP),
+                            cv2.imread(str(ref_path), cv2.IMREAD_UNCHANGED))
     bonds = bonds_from_outlines(polygons)
     rows = []
     for m in margins:
@@ -91,7 +73,7 @@ def noise_free(folder: Path, margins: list[float], supersamples: list[int],
     from tracking.icgn import icgn
     from tracking.reference import build_refs
 
-    truth, polygons, calib, _ = _footage(folder)
+    truth, _, polygons, calib, _ = load_footage(folder)
     h, w = cv2.imread(str(folder / "frames" / "00000.png"), cv2.IMREAD_UNCHANGED).shape
     rows = []
     for ss in supersamples:
@@ -100,19 +82,20 @@ def noise_free(folder: Path, margins: list[float], supersamples: list[int],
         tex = make_speckle_textures(polygons, ccfg, np.random.default_rng(0))
         rng = np.random.default_rng(1)  # unused without noise
         ref = render_frame(ccfg, polygons, np.zeros((len(polygons), 3)), tex, rng)
-        shots = {k: render_frame(ccfg, polygons, truth[k], tex, rng) for k in frames}
+        base = settings_for_units(polygons, MPP)
+        tr = DICTracker(polygons, calib, base)  # the margin does not enter the prepared frames
+        pr = prepare_frame(tr, ref)
+        shots = {k: prepare_frame(tr, render_frame(ccfg, polygons, truth[k], tex, rng)).coef
+                 for k in frames}
         for m in margins:
-            cfg = dataclasses.replace(settings_for_units(polygons, MPP), margin_px=m)
-            tr = DICTracker(polygons, calib, cfg)
-            pr = prepare_frame(tr, ref)
-            refs = build_refs(pr.img, pr.coef, tr.polys_px, tr.centroid_px, m, cfg.min_points)
+            refs = build_refs(pr.img, pr.coef, tr.polys_px, tr.centroid_px, m, base.min_points)
             idx = np.flatnonzero(refs.count > 0)
             err = []
             for k in frames:
                 q = truth[k][idx]
                 a0 = q[:, 2] * calib.image_rotation_sign
                 t0 = np.stack([q[:, 0], -q[:, 1]], axis=1) / MPP
-                r = icgn(prepare_frame(tr, shots[k]).coef, refs, idx, a0, t0, 50, 1e-4, 8.0)
+                r = icgn(shots[k], refs, idx, a0, t0, 50, 1e-4, 8.0)
                 err.append(np.abs(r.alpha - a0))
             e = np.concatenate(err) * 1e3
             rows.append({"supersample": ss, "margin_px": m, "frames": frames,

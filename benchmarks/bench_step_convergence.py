@@ -45,35 +45,35 @@ TIGHT = (1e-10, 1e-8)
 FALLBACK = (1e-8, 1e-4)
 
 
-def _solve(scene, config):
-    """(J, health, wall s) of the scene's objective, compiled before the timed call."""
+def _timed(scene, config, gradient: bool):
+    """The scene's objective by `config` (`run.make_objective`), compiled before the timed call:
+    (J, health scalars, wall s), or with `gradient` (J, gradient [n_design], wall s)."""
     import jax.numpy as jnp
 
     from design_engine.solve.run import checked, make_objective
 
-    value = make_objective(scene, config)[1]
+    fn = make_objective(scene, config)[0 if gradient else 1]
     x = jnp.asarray(scene.design)
-    checked(value(x), config)
+    fn(x)  # compile
     t0 = time.perf_counter()
-    j, aux = checked(value(x), config)
+    out = fn(x)
+    wall = time.perf_counter() - t0
+    (j, aux), g = out if gradient else (out, None)
+    checked((j, aux), config)
+    if gradient:
+        return float(j), np.asarray(g, np.float64), wall
     return float(j), {k: float(np.asarray(v)) for k, v in aux.items()
-                      if np.asarray(v).ndim == 0}, time.perf_counter() - t0
+                      if np.asarray(v).ndim == 0}, wall
+
+
+def _solve(scene, config):
+    """(J, health scalars, wall s) of the scene's objective (`_timed`)."""
+    return _timed(scene, config, gradient=False)
 
 
 def _value_and_grad(scene, config):
-    """(J, gradient [n_design], wall s) of the scene's objective, compiled before the timed
-    call."""
-    import jax.numpy as jnp
-
-    from design_engine.solve.run import checked, make_objective
-
-    vg = make_objective(scene, config)[0]
-    x = jnp.asarray(scene.design)
-    checked(vg(x)[0], config)
-    t0 = time.perf_counter()
-    (j, aux), g = vg(x)
-    checked((j, aux), config)
-    return float(j), np.asarray(g, np.float64), time.perf_counter() - t0
+    """(J, gradient [n_design], wall s) of the scene's objective (`_timed`)."""
+    return _timed(scene, config, gradient=True)
 
 
 def adaptive_row(scene, rtols: list[float]) -> dict:

@@ -254,6 +254,13 @@ def test_the_driver_judges_a_solve_that_starts_in_contact_at_half_its_step(scene
     out = solve_with_policy(scene, contact, Script(started, started),
                             step_error=estimate(5 * STEP_ERROR_TOLERANCE))
     assert len(asked) == 1 and out.config == contact_config()
+
+    def failing(config, result, health):
+        raise SimulationError("the half-step solve diverged")
+
+    # a half-step solve that fails leaves the result untrusted at its step: inf, then Dopri8
+    out = solve_with_policy(scene, contact, Script(started, started), step_error=failing)
+    assert out.config == contact_config() and "inf" in out.resolves[0]
     asked.clear()  # a solve that did not start in contact, or drifted, is not asked
     solve_with_policy(scene, contact, Script(healthy(scene, void_margin=0.5 * span,
                                                      start_void_margin=2 * span)),

@@ -119,6 +119,15 @@ def decide(config: SolverConfig, scene: Scene, *, health: dict | None = None,
     return Step(FALLBACK, fb, reason, str(error))
 
 
+def _half_step_error(step_error, cfg: SolverConfig, result, health: dict) -> float:
+    """The caller's half-step estimate of a result (`solve_with_policy(step_error=...)`); inf when
+    its half-step solve failed."""
+    try:
+        return float(step_error(cfg, result, health))
+    except SimulationError:
+        return float("inf")
+
+
 def solve_with_policy(scene: Scene, config: SolverConfig,
                       solve: Callable[[SolverConfig], tuple[R, dict | None]], *,
                       check: Callable[[], SolverConfig] | None = None,
@@ -139,7 +148,8 @@ def solve_with_policy(scene: Scene, config: SolverConfig,
     re-checked step the continued configuration must take. `fallback` replaces the policy's
     fallback configuration. `step_error(config, result, health) -> float`: the relative change
     of the caller's objective when the same start is solved forward at half the step,
-    Richardson-scaled (`policy.STEP_ERROR_TOLERANCE`; inf for a failed half-step solve), asked
+    Richardson-scaled (`policy.STEP_ERROR_TOLERANCE`; a half-step solve that raises
+    `SimulationError` counts as inf: the result is then not trusted at its step), asked
     for a solve that `policy.needs_step_check` names once it passed the other checks; it goes
     into the health as "step_error". `on_step` sees each step after the first as it is taken
     (event logs). Raises `PolicyFailed` when every allowed configuration failed.
@@ -160,12 +170,14 @@ def solve_with_policy(scene: Scene, config: SolverConfig,
         if pending is None:
             try:
                 result, health = solve(cfg)
+            except SimulationError as exc:
+                pending = exc
+            else:
                 if (step_error is not None and health is not None and not fallen_back
                         and needs_step_check(cfg, health, scene)
                         and next_config(cfg, health, scene) is None):
-                    health = dict(health, step_error=step_error(cfg, result, health))
-            except SimulationError as exc:
-                pending = exc
+                    health = dict(health, step_error=_half_step_error(step_error, cfg, result,
+                                                                      health))
         if pending is not None:
             try:
                 step = decide(cfg, scene, error=pending, fallen_back=fallen_back,

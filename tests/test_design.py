@@ -347,13 +347,13 @@ def test_a_failed_solve_is_recorded_and_the_run_goes_on(tmp_path, monkeypatch, m
     real = evaluator._solve
     count = {"n": 0}
 
-    def flaky(name, config, x):
+    def flaky(name, config, x, guess=None):
         count["n"] += 1 if config.use_contact is False else 0
         if count["n"] == 3 and not config.use_contact:  # the fast solve fails: fallback works
             raise SimulationError("non-finite state from t = 12 ms on (injected)")
         if count["n"] == 5:  # every configuration fails: the optimiser must step back
             raise SimulationError("the solver hit its step budget (injected)")
-        return real(name, config, x)
+        return real(name, config, x, guess)
 
     monkeypatch.setattr(evaluator, "_solve", flaky)
     res = run_design(task, tmp_path, progress=False, evaluator=evaluator)
@@ -586,17 +586,9 @@ def test_an_invalid_trial_design_is_not_simulated_and_the_run_steps_back(tmp_pat
     assert len(ev) == 6 and res.best != 2
 
 
-def test_a_scene_that_starts_in_contact_is_judged_on_its_objective_at_half_the_step(tmp_path):
-    """The protection scene of focus-vs-protect (8 %) alone, on 6x6 under a 1 mm pulse: its
-    static pre-compression closes voids past the contact cutoff, so its fixed-step solve is
-    also judged at half the step. The estimate (the record's when the solve stands, else the
-    event's) is 4/3 of the relative change of J between the step and half of it, the latter
-    solved independently here (static start included), and decides: half the step or Dopri8
-    above STEP_ERROR_TOLERANCE (the rule itself, and that a scene clear of contact is not judged so:
-    test_policy_driver). Here it stands (4.4e-5 on a Xeon)."""
-    from design_engine.solve.policy import STEP_ERROR_TOLERANCE, refined
-    from design_engine.solve.run import make_objective
-
+def _protect_task(tmp_path, max_evals: int = 1):
+    """The protection scene of focus-vs-protect (8 %, static pre-compression past the contact
+    cutoff) alone, on 6x6 under a 1 mm pulse."""
     text = preset_path("focus-vs-protect").read_text()
     text = text[:text.index("[scenes.strain_1pct]")] + """
 [scenes.strain_8pct]
@@ -613,7 +605,57 @@ target = "target"
 """
     path = tmp_path / "protect-1mm.toml"
     path.write_text(text)
-    task = load_task(path, size=(6, 6), max_evals=1)
+    return load_task(path, size=(6, 6), max_evals=max_evals)
+
+
+def test_a_design_in_static_contact_is_step_checked_at_its_own_equilibrium(tmp_path,
+                                                                         monkeypatch):
+    """The fixed step of a scene that starts in static contact is re-checked at the design's
+    own equilibrium, not the previous design's: with the stages closed the barrier is stiff,
+    and the previous design's state under the new geometry overstated the highest frequency
+    1.3-90-fold on a focus-vs-protect run (a step re-chosen far too small, then Dopri8 for the
+    rest of the run). That equilibrium is solved once: the value-and-gradient starts its
+    static solve there (`make_simulator(guess=)`), which only picks Newton's start: from
+    another design's equilibrium it converges to the same value and gradient. (That the
+    evaluator's J equals a cold solve's: the half-step test below.)"""
+    from design_engine.physics.statics import equilibrium_state
+
+    task = _protect_task(tmp_path, max_evals=2)
+    evaluator = TaskEvaluator(task)
+    scene = task.scenes["strain_8pct"]
+    x0 = np.asarray(task.initial_design, np.float64)
+    x1 = x0 + 0.05 * np.sin(np.arange(x0.size))  # another design, 0.05 mm away
+    seen = []
+    measure = evaluator._frequency
+    monkeypatch.setattr(evaluator, "_frequency",
+                        lambda name, x, v, state=None: (seen.append(np.asarray(state)),
+                                                        measure(name, x, v, state))[1])
+    evaluator.evaluate(x0)
+    evaluator.evaluate(x1)
+    own = [equilibrium_state(scene.with_design(x)) for x in (x0, x1)]
+    assert len(seen) == 2 and np.abs(own[1] - own[0]).max() > 1e-3  # the designs differ
+    for state, expected in zip(seen, own):
+        np.testing.assert_allclose(state, expected, rtol=0, atol=1e-12)
+    config = evaluator._state["strain_8pct"].config
+    own_start = evaluator._solve("strain_8pct", config, x1, own[1])
+    other_start = evaluator._solve("strain_8pct", config, x1, own[0])
+    assert other_start[0] == pytest.approx(own_start[0], rel=1e-9)
+    np.testing.assert_allclose(other_start[1], own_start[1], rtol=0,
+                               atol=1e-8 * np.abs(own_start[1]).max())
+
+
+def test_a_scene_that_starts_in_contact_is_judged_on_its_objective_at_half_the_step(tmp_path):
+    """The protection scene of focus-vs-protect (8 %) alone, on 6x6 under a 1 mm pulse: its
+    static pre-compression closes voids past the contact cutoff, so its fixed-step solve is
+    also judged at half the step. The estimate (the record's when the solve stands, else the
+    event's) is 4/3 of the relative change of J between the step and half of it, the latter
+    solved independently here (static start included), and decides: half the step or Dopri8
+    above STEP_ERROR_TOLERANCE (the rule itself, and that a scene clear of contact is not judged so:
+    test_policy_driver). Here it stands (4.4e-5 on a Xeon)."""
+    from design_engine.solve.policy import STEP_ERROR_TOLERANCE, refined
+    from design_engine.solve.run import make_objective
+
+    task = _protect_task(tmp_path)
     evaluator = TaskEvaluator(task)
     config = evaluator._state["strain_8pct"].config  # its first solve's: contact terms on
     out = evaluator.evaluate(task.initial_design)

@@ -254,3 +254,22 @@ def test_an_equilibrium_followed_from_a_nearby_design_has_the_same_gradient(
     g_warm = jax.grad(lambda x: jnp.dot(followed(x, scene.material, scene.loading, t,
                                                  guess)[0], w))(x1)
     np.testing.assert_allclose(np.asarray(g_warm), np.asarray(g_cold), rtol=1e-6, atol=1e-10)
+
+
+def test_an_equilibrium_given_as_the_start_is_confirmed_not_solved_again(scene, solver,
+                                                                         equilibrium):
+    """`start=` (the design loop's equilibrium, solved before its step check): Newton at the
+    full load confirms it with no load level and returns it; a start Newton cannot confirm
+    (non-finite) runs the load continuation as without one."""
+    started = jax.jit(lambda x, m, ld, t, s: make_static_solver(scene.lattice, scene.supports)(
+        x, m, ld, t, start=s))
+    t = scene.loading.precompression_time
+    x = jnp.asarray(scene.design)
+    q, info = started(x, scene.material, scene.loading, t, equilibrium[0])
+    assert int(info["levels"]) == 0 < int(equilibrium[1]["levels"])
+    assert float(jnp.max(jnp.abs(q - equilibrium[0]))) < 1e-9
+    check_equilibrium(info)
+    qn, infon = started(x, scene.material, scene.loading, t,
+                        jnp.full_like(equilibrium[0], jnp.nan))
+    assert int(infon["levels"]) == int(equilibrium[1]["levels"])
+    assert float(jnp.max(jnp.abs(qn - equilibrium[0]))) < 1e-12

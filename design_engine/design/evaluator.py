@@ -5,9 +5,11 @@ times and weights are traced arguments, so every evaluation, every scene of the 
 every run of a sweep in the same process reuses it). Per evaluation and scene the solver policy (`solve.policy`) applies, with two additions
 that an optimisation needs:
 - the fixed step is kept valid while the design changes: before each fixed-step solve the
-  highest natural frequency of the *current* design is re-measured at the state the last solve
-  started from (rest, or the previous design's static pre-compression) (a warm-started power
-  iteration, `STEP_CHECK_ITERATIONS` Hessian-vector products, a few per cent of a solve) and
+  highest natural frequency of the *current* design is re-measured at the state its solve
+  starts from (rest, or this design's own static pre-compression, solved once before the solve
+  and handed to it as the static solve's start: `make_simulator`'s `guess`) (a warm-started
+  power iteration, `STEP_CHECK_ITERATIONS` Hessian-vector products, a few per cent of a solve)
+  and
   when the step exceeds `STEP_RECHECK` x 2/omega_max a new step of `policy.STABILITY_SAFETY` x
   2/omega_max is taken (one more compilation, recorded as an event), or, when that step would
   be below `MIN_STEP_FRACTION` of the first one (the contact barrier of a design pressed deep
@@ -124,6 +126,7 @@ class TaskEvaluator:
         self.max_solve_steps = task.budget.max_solve_steps
         self.compilations = 0
         self._estimators: dict[str, object] = {}
+        self._equilibria: dict[str, tuple[bytes, object]] = {}  # the last design's, per scene
         self._state: dict[str, SceneState] = {}
         for name, scene in task.scenes.items():
             if config is not None:
@@ -132,7 +135,7 @@ class TaskEvaluator:
             omega, vec, state = None, None, None
             if scene.loading.strain == 0.0 or scene.loading.is_static:
                 if scene.loading.strain > 0.0:  # the static equilibrium the pulse starts from
-                    state = prestressed_state(scene.with_design(task.initial_design))
+                    state = self._equilibrium(name, task.initial_design)
                 omega, vec = self._frequency(name, task.initial_design, None, state)
             choice = choose_config(scene, omega=omega, state=state)  # no second static solve
             first_dt = choice.config.solver.max_dt if is_fixed_step(choice.config.solver) else 0.0
@@ -140,6 +143,28 @@ class TaskEvaluator:
                                            first_dt=first_dt)
 
     # --- compiled pieces -------------------------------------------------------------------
+
+    def _equilibrium(self, name: str, x) -> np.ndarray:
+        """[n_blocks, 3] the static equilibrium of design `x` under scene `name`'s closed stages
+        (the load continuation, `run.prestressed_state`), kept for the last design asked;
+        raises `SimulationError` (again, without solving again) when it does not converge."""
+        key = np.asarray(x, np.float64).tobytes()
+        if name not in self._equilibria or self._equilibria[name][0] != key:
+            scene = self.task.scenes[name]
+            try:
+                found = prestressed_state(scene.with_design(np.asarray(x, np.float64)))
+            except SimulationError as exc:
+                found = exc
+            self._equilibria[name] = (key, found)
+        found = self._equilibria[name][1]
+        if isinstance(found, SimulationError):
+            raise found
+        return found
+
+    def _static(self, name: str) -> bool:
+        """Whether scene `name` starts from a static pre-compression."""
+        loading = self.task.scenes[name].loading
+        return loading.strain > 0.0 and loading.is_static
 
     def _frequency(self, name: str, x, vector, state=None):
         scene = self.task.scenes[name]
@@ -172,8 +197,8 @@ class TaskEvaluator:
         quantities = [t.quantity for t in terms]
         point = None if self.task.spin_point is None else jnp.asarray(self.task.spin_point)
 
-        def objective(x, material, loading, ts, weights, initial=None):
-            sol = sim(x, material, loading, ts, initial)
+        def objective(x, material, loading, ts, weights, initial=None, guess=None):
+            sol = sim(x, material, loading, ts, initial, guess)
             raw = [objective_term(q, sol, ids, point) for q, ids in zip(quantities, targets)]
             value = sum(weights[k] * OPTIMISER_SCALE[q] * raw[k] for k, q in enumerate(quantities))
             aux = dict(solve_health(sol), terms=jnp.stack(raw), start_state=sol.q[0],
@@ -197,15 +222,18 @@ class TaskEvaluator:
         """What an evaluation records of the configuration that counted for a scene."""
         return {"config": config_summary(self._budgeted(config)), "why": why}
 
-    def _solve(self, name: str, config: SolverConfig, x: np.ndarray):
-        """One value-and-gradient solve; raises `SimulationError` on any failure
+    def _solve(self, name: str, config: SolverConfig, x: np.ndarray, guess=None):
+        """One value-and-gradient solve (`guess`: the design's static equilibrium, [n_blocks,
+        3], solved already; see `make_simulator`); raises `SimulationError` on any failure
         (`StepBudgetError` when an adaptive solve used up the task's step budget)."""
         scene = self.task.scenes[name]
         config = self._budgeted(config)
         fn = self._function(name, config)
         terms = [t for t in self.task.terms if t.scene == name]
+        if guess is not None:
+            guess = jnp.asarray(np.asarray(guess).reshape(-1)[np.asarray(scene.supports.free)])
         out = fn(jnp.asarray(x), scene.material, scene.loading, jnp.asarray(scene.sample_times),
-                 self._weights(name))
+                 self._weights(name), None, guess)
         out = jax.block_until_ready(out)
         checked(out, config)
         (value, aux), grad = out
@@ -235,13 +263,16 @@ class TaskEvaluator:
 
     def _check_step(self, name: str, st: SceneState, x: np.ndarray) -> tuple[SceneState, str]:
         """The scene's state after re-checking its fixed step against design `x` (and the
-        event to log, or ""); raises `SimulationError` when no stable fixed step exists."""
+        event to log, or ""); raises `SimulationError` when no stable fixed step exists (or
+        the design's static equilibrium was not found)."""
         solver = st.config.solver
         if not (is_fixed_step(solver) and solver.stability_limited):
             return st, ""
-        # at the state the last solve started from (rest, or the static pre-compression of the
-        # previous design: an optimiser's step moves it little)
-        omega, vector = self._frequency(name, x, st.vector, st.start_state)
+        # at the state this design's solve starts from: its own static pre-compression (the
+        # previous design's, where the barrier is stiff, overstated it up to 90-fold on a
+        # focus-vs-protect run), else where the last solve started (rest)
+        start = self._equilibrium(name, x) if self._static(name) else st.start_state
+        omega, vector = self._frequency(name, x, st.vector, start)
         if not (np.isfinite(omega) and omega > 0.0 and np.all(np.isfinite(vector))):
             # the stiffness at the start state is not positive definite along the iterate (or
             # the design is damaged): no stable fixed step exists; this design gets the fallback
@@ -306,7 +337,8 @@ class TaskEvaluator:
             return checked[0].config
 
         def solve(config):
-            value, grad, terms, aux = self._solve(name, config, x)
+            guess = self._equilibrium(name, x) if self._static(name) else None
+            value, grad, terms, aux = self._solve(name, config, x, guess)
             return (value, grad, terms, aux), aux
 
         def step_error(config, result, aux):

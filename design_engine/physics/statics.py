@@ -157,6 +157,11 @@ def make_static_solver(lattice: Lattice, supports: Supports, *, use_contact: boo
             0.24-2.4 s against 10-13 s and reached the load continuation's equilibrium 3 times
             in 4, the fourth 2.1 mm/rad off (`benchmarks/bench_statics.py --parts warm`), so
             the solver policy does not use it.
+        start: optional [n_free] this design's equilibrium, already found (e.g. by this
+            solver, compiled apart; not differentiated): Newton at the full load confirms it
+            (one step), else the load continuation runs as without it. "levels" is then 0.
+            A caller that needs the equilibrium before a solve that differentiates through it
+            (the design loop's step check) so solves it once.
 
     Returns q_f (the free DOFs at equilibrium, mm / rad, in `supports.free` order;
     differentiable by the implicit function theorem) and info (not differentiated):
@@ -316,12 +321,27 @@ def make_static_solver(lattice: Lattice, supports: Supports, *, use_contact: boo
             ok, lambda: (q_w, mu_w, jnp.asarray(1.0, dtype), -k),
             lambda: continuation(qc_s, bonds_s, ms, dtype))
 
-    def equilibrium(x, material, loading: Loading, t_hold, guess=None):
+    def confirmed(start, qc_s, bonds_s, ms, dtype):
+        """Newton at the full load from `start` (see `equilibrium`), else the load
+        continuation: (q, mu, lam, levels)."""
+        q0 = jnp.asarray(start, dtype)
+        usable = (jnp.all(jnp.isfinite(q0)) & jnp.isfinite(total(q0, qc_s, bonds_s, ms))
+                  & admissible(q0, qc_s, bonds_s, ms))
+        q, mu, ok = newton(jnp.where(usable, q0, 0.0), jnp.asarray(1e-8, dtype), qc_s,
+                           bonds_s, ms)
+        ok = usable & ok & admissible(q, qc_s, bonds_s, ms)
+        return jax.lax.cond(ok, lambda: (q, mu, jnp.asarray(1.0, dtype), jnp.asarray(0)),
+                            lambda: continuation(qc_s, bonds_s, ms, dtype))
+
+    def equilibrium(x, material, loading: Loading, t_hold, guess=None, start=None):
         x = jnp.asarray(x)
         xs, ms, ls = jax.lax.stop_gradient((x, material, loading))
         qc_s, bonds_s = constants(xs, ls, t_hold)
 
-        if guess is None:
+        if start is not None:
+            q_s, mu, lam, levels = confirmed(jax.lax.stop_gradient(start), qc_s, bonds_s, ms,
+                                             x.dtype)
+        elif guess is None:
             q_s, mu, lam, levels = continuation(qc_s, bonds_s, ms, x.dtype)
         else:
             q_s, mu, lam, levels = from_guess(jax.lax.stop_gradient(guess), qc_s, xs, bonds_s,

@@ -116,7 +116,8 @@ class StepBudgetError(SimulationError):
 
 def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = SolverConfig(),
                    time_grid: np.ndarray | None = None, model: Model = DEFAULT_MODEL):
-    """Factory: `simulate(x, material, loading, ts, initial=None) -> Solution` (pure; jit/grad/vmap).
+    """Factory: `simulate(x, material, loading, ts, initial=None, guess=None) -> Solution` (pure;
+    jit/grad/vmap).
 
     Args:
         lattice, supports, config: static set-up.
@@ -132,6 +133,11 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
             state, or for a static pre-compression (`loading.is_static`) in the equilibrium
             under the closed stages, solved in float64 with the model's energy and
             differentiated by the implicit function theorem, `statics.make_static_solver`).
+        guess: optional [n_free] that equilibrium of this very design, already solved (mm /
+            rad, not differentiated): the static solve then starts there (`make_static_solver`'s
+            `start`: one Newton step confirms it, the load continuation only when that fails)
+            instead of running the load continuation again. A caller that needs the
+            equilibrium before the solve (the design loop's step check) solves it once.
     """
     # a fixed step that steps the contact terms apart (`FixedStepVerlet.contact_substeps`): the
     # slow force without them, the fast one of them alone (from the rotations)
@@ -217,21 +223,23 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
 
     static_solvers = []  # built on the first static pre-compression (a Hessian colouring)
 
-    def static_start(x, material, loading):
+    def static_start(x, material, loading, guess=None):
         if not static_solvers:
             static_solvers.append(make_static_solver(lattice, supports,
                                                      use_contact=config.use_contact,
                                                      linearized=config.linearized, model=model))
-        q_f, info = static_solvers[0](*cast((x, material, loading), jnp.float64), 0.0)
+        q_f, info = static_solvers[0](*cast((x, material, loading), jnp.float64), 0.0,
+                                      start=guess)
         return (q_f, jnp.zeros_like(q_f)), info["gradient_norm"]
 
-    def simulate(x: DesignVector, material: Material, loading: Loading, ts, initial=None) -> Solution:
+    def simulate(x: DesignVector, material: Material, loading: Loading, ts, initial=None,
+                 guess=None) -> Solution:
         if config.stretch_scale != 1.0:
             material = eqx.tree_at(lambda m: m.k_stretch, material,
                                    material.k_stretch * config.stretch_scale)
         residual = jnp.zeros(())
         if initial is None and loading.is_static:
-            initial, residual = static_start(x, material, loading)
+            initial, residual = static_start(x, material, loading, guess)
         x, material, loading, ts, initial = cast((x, material, loading, ts, initial))
         geom = block_geometry(lattice, x)
         args = make_dynamics_args(lattice, supports, geom, material, loading)

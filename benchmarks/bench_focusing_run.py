@@ -1,5 +1,5 @@
 """The 60-evaluation focusing run (24x16) before and after a policy change, side by side, with an
-accuracy re-check of the accepted solves.
+accuracy re-check of the accepted solves (`--task` another task, e.g. focus-vs-protect).
 
 Runs `metarig design focusing --max-evals N` twice in one benchmark, one after the other on the
 same machine (or both at once with `--parallel`, so that each sees the same load): "before"
@@ -65,7 +65,8 @@ def source_tree(out: Path, ref: str) -> Path:
     return tree
 
 
-def run_design(src: Path, folder: Path, evals: int, seed: int | None = None) -> dict:
+def run_design(src: Path, folder: Path, evals: int, seed: int | None = None,
+               task: str = TASK) -> dict:
     """`metarig design TASK` from the sources in `src` into `folder` (resumed if it exists),
     from the task's start or, with `seed`, a seeded random one (`metarig design --seed`)."""
     history = folder / "history.json"
@@ -73,7 +74,7 @@ def run_design(src: Path, folder: Path, evals: int, seed: int | None = None) -> 
     if len(done) >= evals:
         return {"resumed": True, "ran_s": 0.0}
     cmd = [sys.executable, "-c", "import sys; from metarig.cli import main; sys.exit(main())",
-           "design", TASK, "--max-evals", str(evals), "--out", str(folder), "--no-plots"]
+           "design", task, "--max-evals", str(evals), "--out", str(folder), "--no-plots"]
     if history.exists():
         cmd.append("--resume")
     elif seed is not None:
@@ -105,13 +106,18 @@ def _kind(config: dict) -> str:
     return name
 
 
+def _kinds(evaluation: dict) -> str:
+    """What counted for an evaluation: each scene's configuration (`_kind`), joined by " + "."""
+    return " + ".join(_kind(s["config"]) for s in evaluation["solver"].values())
+
+
 def summarise(folder: Path, ran: dict) -> dict:
     """Best feasible objective, wall time and which configuration counted, from the history."""
     evals = _evaluations(folder / "history.json")
     feasible = [e["objective"] for e in evals if e["feasible"] and not e["failed"]]
     walls = np.array([e["wall_s"] for e in evals])
-    kinds = [_kind(e["solver"]["pulse"]["config"]) for e in evals if not e["failed"]]
-    events = [ev for e in evals if e["event"] for ev in e["event"].split("; pulse: ")]
+    kinds = [_kinds(e) for e in evals if not e["failed"]]
+    events = " ".join(e["event"] or "" for e in evals)
     return {
         "evaluations": len(evals), "failed": sum(e["failed"] for e in evals),
         "best_feasible_J": max(feasible) if feasible else None,
@@ -119,15 +125,14 @@ def summarise(folder: Path, ran: dict) -> dict:
         "sum_eval_wall_s": float(walls.sum()), "median_eval_s": float(np.median(walls)),
         "max_eval_s": float(walls.max()), "counted": dict(Counter(kinds)),
         "seconds_by_kind": {k: float(sum(e["wall_s"] for e in evals if not e["failed"]
-                                         and _kind(e["solver"]["pulse"]["config"]) == k))
+                                         and _kinds(e) == k))
                             for k in set(kinds)},
-        "refined": sum("re-solved once at" in ev for ev in events),
-        "substepped": sum("contact forces stepped" in ev for ev in events),
-        "to_dopri8": sum("Dopri8" in ev for ev in events),
+        "refined": events.count("re-solved once at"),
+        "substepped": events.count("contact forces stepped"),
+        "to_dopri8": events.count("Dopri8"),
         "curve": [[float(walls[: i + 1].sum()), e["objective"], bool(e["feasible"])]
                   for i, e in enumerate(evals)],
-        "kinds": [_kind(e["solver"]["pulse"]["config"]) if not e["failed"] else "failed"
-                  for e in evals],
+        "kinds": [_kinds(e) if not e["failed"] else "failed" for e in evals],
         "walls": walls.tolist(),
     }
 
@@ -150,9 +155,13 @@ def _config(summary: dict):
                         dtype=summary["dtype"])
 
 
-def recheck(folder: Path, evals: int, count: int, rows: list[dict], save) -> list[dict]:
-    """Re-evaluate `count` evaluations of the run in `folder`, evenly spread, with the
-    configuration that counted and with tight Dopri8; rows already in `rows` are kept."""
+def recheck(folder: Path, evals: int, count: int, rows: list[dict], save,
+            task_name: str = TASK) -> list[dict]:
+    """Re-evaluate `count` evaluations of the run in `folder`, evenly spread, scene by scene
+    with the configuration that counted for the scene and with tight Dopri8; rows already in
+    `rows` are kept."""
+    import dataclasses
+
     import diffrax
 
     from design_engine.design.evaluator import TaskEvaluator
@@ -163,28 +172,31 @@ def recheck(folder: Path, evals: int, count: int, rows: list[dict], save) -> lis
     xs = np.load(folder / "checkpoint.npz")["x"]
     ok = [e for e in history if not e["failed"]]
     picks = [ok[int(round(i))] for i in np.linspace(0, len(ok) - 1, count)] if ok else []
-    task = load_task(TASK, max_evals=evals)
+    task = load_task(task_name, max_evals=evals)
     tight = SolverConfig(solver=diffrax.Dopri8(), rtol=RECHECK_RTOL, atol=RECHECK_ATOL,
                          max_steps=400_000)
-    seen = {r["eval"] for r in rows}
+    seen = {(r["eval"], r.get("scene", "pulse")) for r in rows}
     for e in picks:
-        if e["eval"] in seen:
-            continue
-        x = task.embed(xs[e["eval"] - 1])
-        t0 = time.perf_counter()
-        used = TaskEvaluator(task, _config(e["solver"]["pulse"]["config"])).evaluate(x)
-        t1 = time.perf_counter()
-        ref = TaskEvaluator(task, tight).evaluate(x)
-        t2 = time.perf_counter()
-        cos = float(np.dot(used.grad, ref.grad)
-                    / (np.linalg.norm(used.grad) * np.linalg.norm(ref.grad)))
-        rows.append({"eval": e["eval"], "config": _kind(e["solver"]["pulse"]["config"]),
-                     "J": used.value, "J_reference": ref.value,
-                     "J_rel_err": abs(used.value - ref.value) / abs(ref.value),
-                     "grad_cosine": cos, "config_s": t1 - t0, "reference_s": t2 - t1})
-        print(f"  evaluation {e['eval']} ({rows[-1]['config']}): J error "
-              f"{rows[-1]['J_rel_err']:.2e}, gradient cosine {cos:.6f}", flush=True)
-        save()
+        for scene, counted in e["solver"].items():
+            if (e["eval"], scene) in seen:
+                continue
+            x = task.embed(xs[e["eval"] - 1])
+            alone = dataclasses.replace(task, terms=tuple(t for t in task.terms
+                                                          if t.scene == scene))
+            t0 = time.perf_counter()
+            used = TaskEvaluator(alone, _config(counted["config"])).evaluate(x)
+            t1 = time.perf_counter()
+            ref = TaskEvaluator(alone, tight).evaluate(x)
+            t2 = time.perf_counter()
+            cos = float(np.dot(used.grad, ref.grad)
+                        / (np.linalg.norm(used.grad) * np.linalg.norm(ref.grad)))
+            rows.append({"eval": e["eval"], "scene": scene, "config": _kind(counted["config"]),
+                         "J": used.value, "J_reference": ref.value,
+                         "J_rel_err": abs(used.value - ref.value) / abs(ref.value),
+                         "grad_cosine": cos, "config_s": t1 - t0, "reference_s": t2 - t1})
+            print(f"  evaluation {e['eval']}, {scene} ({rows[-1]['config']}): J error "
+                  f"{rows[-1]['J_rel_err']:.2e}, gradient cosine {cos:.6f}", flush=True)
+            save()
     return rows
 
 
@@ -211,7 +223,7 @@ def plot(report: dict, path: Path) -> None:
     a.set_xlabel("wall time, min (sum of evaluations)")
     a.set_ylabel("best feasible J / N_t, mJ")
     a.legend(fontsize=8)
-    a.set_title(f"{TASK} 24x16, {report['evals']} evaluations", fontsize=9)
+    a.set_title(f"{report.get('task', TASK)}, {report['evals']} evaluations", fontsize=9)
     b.set_xlabel("evaluation")
     b.set_ylabel("wall time, s")
     b.legend(fontsize=6)
@@ -276,6 +288,7 @@ def replay(out: Path, before: str, first: int, last: int, parallel: bool,
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", type=Path, default=Path("runs/bench-focusing-run"))
+    p.add_argument("--task", default=TASK, help="the task (preset or file) both runs design")
     p.add_argument("--evals", type=int, default=60)
     p.add_argument("--before", default=BEFORE_REF, help="git ref of the 'before' policy")
     p.add_argument("--after", help="git ref of the 'after' policy (default: this checkout)")
@@ -300,7 +313,8 @@ def main(argv=None) -> int:
         return 0
     path = out / "bench_focusing_run.json"
     report = json.loads(path.read_text()) if path.exists() else {}
-    report.update(evals=args.evals, before_ref=args.before, machine=describe(), seed=args.seed)
+    report.update(task=args.task, evals=args.evals, before_ref=args.before, machine=describe(),
+                  seed=args.seed)
     report.setdefault("runs", {})
 
     lock = threading.Lock()  # the two sides of --parallel save from their own threads
@@ -316,9 +330,9 @@ def main(argv=None) -> int:
     sides = {k: v for k, v in sides.items() if not args.only or k == args.only}
 
     def run_side(label):
-        print(f"{label}: metarig design {TASK} --max-evals {args.evals}", flush=True)
+        print(f"{label}: metarig design {args.task} --max-evals {args.evals}", flush=True)
         load0 = os.getloadavg()[0]
-        ran = run_design(sides[label](), out / label, args.evals, args.seed)
+        ran = run_design(sides[label](), out / label, args.evals, args.seed, args.task)
         res = summarise(out / label, ran)
         if ran["resumed"] and label in report["runs"]:
             res["wall_s"] = report["runs"][label].get("wall_s")
@@ -336,7 +350,7 @@ def main(argv=None) -> int:
         print(f"re-check: {args.recheck} evaluations of 'after' against Dopri8 rtol "
               f"{RECHECK_RTOL:g}", flush=True)
         report["recheck"] = recheck(out / "after", args.evals, args.recheck,
-                                    report.get("recheck", []), save)
+                                    report.get("recheck", []), save, args.task)
         save()
     plot(report, out / "bench_focusing_run.png")
     for label, res in report["runs"].items():

@@ -76,6 +76,9 @@ def apply_lab_ros(argv: list[str]) -> None:
         pass
 
 
+STOP_POLL_S = 0.5  # longest wait of a node's spin before it looks at its stop event
+
+
 def run_node(make: Callable[..., object], args=None, threads: int = 2, **node_kwargs) -> int:
     """Init rclpy, build one node, spin it until Ctrl-C/shutdown (multi-threaded executor with
     `threads` threads; 1: the cheaper single-threaded executor)."""
@@ -101,7 +104,12 @@ def run_node(make: Callable[..., object], args=None, threads: int = 2, **node_kw
                         else MultiThreadedExecutor(num_threads=threads))
             executor.add_node(node)
             try:
-                executor.spin()
+                # rclpy's handler wakes the spin on Ctrl-C; under load it was seen to miss that
+                # (a node still waiting in its wait set 15 s after SIGINT, its fault handler's
+                # dump), so the wait is bounded and `stop` (chained, set in this thread between
+                # waits) ends the spin within one poll
+                while rclpy.ok() and not stop.is_set():
+                    executor.spin_once(timeout_sec=STOP_POLL_S)
             except RCLError:
                 # Ctrl-C/SIGTERM shut the context down while the executor was building its
                 # wait set: that is the requested stop, not a failure

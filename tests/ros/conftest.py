@@ -12,10 +12,11 @@ DOMAIN_ID = os.environ["ROS_DOMAIN_ID"]
 
 @pytest.fixture
 def ros_env() -> dict[str, str]:
-    """Environment for node subprocesses: the test's isolated domain, unbuffered output."""
+    """Environment for node subprocesses: the test's isolated domain, unbuffered output, and
+    the fault handler on (`stop_process` makes a hung node say where it hung)."""
     env = dict(os.environ)
     env.update(ROS_DOMAIN_ID=DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-               PYTHONUNBUFFERED="1")
+               PYTHONUNBUFFERED="1", PYTHONFAULTHANDLER="1")
     return env
 
 

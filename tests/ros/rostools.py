@@ -72,8 +72,14 @@ def stop_process(proc: subprocess.Popen, timeout_s: float = 15.0) -> str:
     try:
         out, _ = proc.communicate(timeout=timeout_s)
     except subprocess.TimeoutExpired as exc:
-        proc.kill()
-        out, _ = proc.communicate()
+        # SIGABRT first: a node started with PYTHONFAULTHANDLER (`ros_env`) writes where each
+        # of its threads stood into its output, so a hang says where it hung
+        proc.send_signal(subprocess.signal.SIGABRT)
+        try:
+            out, _ = proc.communicate(timeout=5.0)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            out, _ = proc.communicate()
         raise AssertionError(
             f"process did not stop on SIGINT within {timeout_s} s:\n{out}") from exc
     return out

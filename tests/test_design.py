@@ -347,13 +347,13 @@ def test_a_failed_solve_is_recorded_and_the_run_goes_on(tmp_path, monkeypatch, m
     real = evaluator._solve
     count = {"n": 0}
 
-    def flaky(name, config, x, guess=None):
+    def flaky(name, config, x, equilibrium=None):
         count["n"] += 1 if config.use_contact is False else 0
         if count["n"] == 3 and not config.use_contact:  # the fast solve fails: fallback works
             raise SimulationError("non-finite state from t = 12 ms on (injected)")
         if count["n"] == 5:  # every configuration fails: the optimiser must step back
             raise SimulationError("the solver hit its step budget (injected)")
-        return real(name, config, x, guess)
+        return real(name, config, x, equilibrium)
 
     monkeypatch.setattr(evaluator, "_solve", flaky)
     res = run_design(task, tmp_path, progress=False, evaluator=evaluator)
@@ -613,9 +613,9 @@ def test_a_design_in_static_contact_is_step_checked_at_its_own_equilibrium(tmp_p
     """The fixed step of a scene that starts in static contact is re-checked at the design's
     own equilibrium, not the previous design's: with the stages closed the barrier is stiff,
     and the previous design's state under the new geometry overstated the highest frequency
-    1.3-90-fold on a focus-vs-protect run (a step re-chosen far too small, then Dopri8 for the
+    up to 87-fold on a focus-vs-protect run (a step re-chosen far too small, then Dopri8 for the
     rest of the run). That equilibrium is solved once: the value-and-gradient starts its
-    static solve there (`make_simulator(guess=)`), which only picks Newton's start: from
+    static solve there (`simulate(..., equilibrium=)`), which only picks Newton's start: from
     another design's equilibrium it converges to the same value and gradient. (That the
     evaluator's J equals a cold solve's: the half-step test below.)"""
     from design_engine.physics.statics import equilibrium_state

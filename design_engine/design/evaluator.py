@@ -7,7 +7,7 @@ that an optimisation needs:
 - the fixed step is kept valid while the design changes: before each fixed-step solve the
   highest natural frequency of the *current* design is re-measured at the state its solve
   starts from (rest, or this design's own static pre-compression, solved once before the solve
-  and handed to it as the static solve's start: `make_simulator`'s `guess`) (a warm-started
+  and handed to it as the static solve's start: `simulate(..., equilibrium=)`) (a warm-started
   power iteration, `STEP_CHECK_ITERATIONS` Hessian-vector products, a few per cent of a solve)
   and
   when the step exceeds `STEP_RECHECK` x 2/omega_max a new step of `policy.STABILITY_SAFETY` x
@@ -197,8 +197,8 @@ class TaskEvaluator:
         quantities = [t.quantity for t in terms]
         point = None if self.task.spin_point is None else jnp.asarray(self.task.spin_point)
 
-        def objective(x, material, loading, ts, weights, initial=None, guess=None):
-            sol = sim(x, material, loading, ts, initial, guess)
+        def objective(x, material, loading, ts, weights, initial=None, equilibrium=None):
+            sol = sim(x, material, loading, ts, initial, equilibrium)
             raw = [objective_term(q, sol, ids, point) for q, ids in zip(quantities, targets)]
             value = sum(weights[k] * OPTIMISER_SCALE[q] * raw[k] for k, q in enumerate(quantities))
             aux = dict(solve_health(sol), terms=jnp.stack(raw), start_state=sol.q[0],
@@ -222,18 +222,19 @@ class TaskEvaluator:
         """What an evaluation records of the configuration that counted for a scene."""
         return {"config": config_summary(self._budgeted(config)), "why": why}
 
-    def _solve(self, name: str, config: SolverConfig, x: np.ndarray, guess=None):
-        """One value-and-gradient solve (`guess`: the design's static equilibrium, [n_blocks,
-        3], solved already; see `make_simulator`); raises `SimulationError` on any failure
+    def _solve(self, name: str, config: SolverConfig, x: np.ndarray, equilibrium=None):
+        """One value-and-gradient solve (`equilibrium`: the design's static equilibrium,
+        [n_blocks, 3], solved already; see `make_simulator`); raises `SimulationError` on any failure
         (`StepBudgetError` when an adaptive solve used up the task's step budget)."""
         scene = self.task.scenes[name]
         config = self._budgeted(config)
         fn = self._function(name, config)
         terms = [t for t in self.task.terms if t.scene == name]
-        if guess is not None:
-            guess = jnp.asarray(np.asarray(guess).reshape(-1)[np.asarray(scene.supports.free)])
+        if equilibrium is not None:  # its free DOFs
+            equilibrium = jnp.asarray(
+                np.asarray(equilibrium).reshape(-1)[np.asarray(scene.supports.free)])
         out = fn(jnp.asarray(x), scene.material, scene.loading, jnp.asarray(scene.sample_times),
-                 self._weights(name), None, guess)
+                 self._weights(name), None, equilibrium)
         out = jax.block_until_ready(out)
         checked(out, config)
         (value, aux), grad = out
@@ -269,7 +270,7 @@ class TaskEvaluator:
         if not (is_fixed_step(solver) and solver.stability_limited):
             return st, ""
         # at the state this design's solve starts from: its own static pre-compression (the
-        # previous design's, where the barrier is stiff, overstated it up to 90-fold on a
+        # previous design's, where the barrier is stiff, overstated it up to 87-fold on a
         # focus-vs-protect run), else where the last solve started (rest)
         start = self._equilibrium(name, x) if self._static(name) else st.start_state
         omega, vector = self._frequency(name, x, st.vector, start)
@@ -337,8 +338,8 @@ class TaskEvaluator:
             return checked[0].config
 
         def solve(config):
-            guess = self._equilibrium(name, x) if self._static(name) else None
-            value, grad, terms, aux = self._solve(name, config, x, guess)
+            start = self._equilibrium(name, x) if self._static(name) else None
+            value, grad, terms, aux = self._solve(name, config, x, start)
             return (value, grad, terms, aux), aux
 
         def step_error(config, result, aux):

@@ -116,7 +116,7 @@ class StepBudgetError(SimulationError):
 
 def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = SolverConfig(),
                    time_grid: np.ndarray | None = None, model: Model = DEFAULT_MODEL):
-    """Factory: `simulate(x, material, loading, ts, initial=None, guess=None) -> Solution` (pure;
+    """Factory: `simulate(x, material, loading, ts, initial=None, equilibrium=None) -> Solution` (pure;
     jit/grad/vmap).
 
     Args:
@@ -133,7 +133,7 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
             state, or for a static pre-compression (`loading.is_static`) in the equilibrium
             under the closed stages, solved in float64 with the model's energy and
             differentiated by the implicit function theorem, `statics.make_static_solver`).
-        guess: optional [n_free] that equilibrium of this very design, already solved (mm /
+        equilibrium: optional [n_free] that equilibrium of this very design, already solved (mm /
             rad, not differentiated): the static solve then starts there (`make_static_solver`'s
             `start`: one Newton step confirms it, the load continuation only when that fails)
             instead of running the load continuation again. A caller that needs the
@@ -223,23 +223,23 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
 
     static_solvers = []  # built on the first static pre-compression (a Hessian colouring)
 
-    def static_start(x, material, loading, guess=None):
+    def static_start(x, material, loading, equilibrium=None):
         if not static_solvers:
             static_solvers.append(make_static_solver(lattice, supports,
                                                      use_contact=config.use_contact,
                                                      linearized=config.linearized, model=model))
         q_f, info = static_solvers[0](*cast((x, material, loading), jnp.float64), 0.0,
-                                      start=guess)
+                                      start=equilibrium)
         return (q_f, jnp.zeros_like(q_f)), info["gradient_norm"]
 
     def simulate(x: DesignVector, material: Material, loading: Loading, ts, initial=None,
-                 guess=None) -> Solution:
+                 equilibrium=None) -> Solution:
         if config.stretch_scale != 1.0:
             material = eqx.tree_at(lambda m: m.k_stretch, material,
                                    material.k_stretch * config.stretch_scale)
         residual = jnp.zeros(())
         if initial is None and loading.is_static:
-            initial, residual = static_start(x, material, loading, guess)
+            initial, residual = static_start(x, material, loading, equilibrium)
         x, material, loading, ts, initial = cast((x, material, loading, ts, initial))
         geom = block_geometry(lattice, x)
         args = make_dynamics_args(lattice, supports, geom, material, loading)

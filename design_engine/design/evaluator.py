@@ -108,7 +108,6 @@ class SceneState:
     reasons: tuple[str, ...]
     omega: float | None = None
     vector: np.ndarray | None = None
-    start_state: np.ndarray | None = None  # [n_blocks, 3] where the last solve started, mm/rad
     last_config: SolverConfig | None = None  # the configuration the last evaluation ended with
     first_dt: float = 0.0  # the first fixed step chosen, ms
     last_health: dict | None = None
@@ -134,12 +133,12 @@ class TaskEvaluator:
                 continue
             omega, vec, state = None, None, None
             if scene.loading.strain == 0.0 or scene.loading.is_static:
-                if scene.loading.strain > 0.0:  # the static equilibrium the pulse starts from
+                if self._static(name):  # the static equilibrium the pulse starts from
                     state = self._equilibrium(name, task.initial_design)
                 omega, vec = self._frequency(name, task.initial_design, None, state)
             choice = choose_config(scene, omega=omega, state=state)  # no second static solve
             first_dt = choice.config.solver.max_dt if is_fixed_step(choice.config.solver) else 0.0
-            self._state[name] = SceneState(choice.config, choice.reasons, omega, vec, state,
+            self._state[name] = SceneState(choice.config, choice.reasons, omega, vec,
                                            first_dt=first_dt)
 
     # --- compiled pieces -------------------------------------------------------------------
@@ -201,8 +200,7 @@ class TaskEvaluator:
             sol = sim(x, material, loading, ts, initial, equilibrium)
             raw = [objective_term(q, sol, ids, point) for q, ids in zip(quantities, targets)]
             value = sum(weights[k] * OPTIMISER_SCALE[q] * raw[k] for k, q in enumerate(quantities))
-            aux = dict(solve_health(sol), terms=jnp.stack(raw), start_state=sol.q[0],
-                       start_free=sol.start_free)
+            aux = dict(solve_health(sol), terms=jnp.stack(raw), start_free=sol.start_free)
             return value, aux
 
         fn = (jax.jit(lambda *args: objective(*args)[0]) if forward
@@ -271,8 +269,8 @@ class TaskEvaluator:
             return st, ""
         # at the state this design's solve starts from: its own static pre-compression (the
         # previous design's, where the barrier is stiff, overstated it up to 87-fold on a
-        # focus-vs-protect run), else where the last solve started (rest)
-        start = self._equilibrium(name, x) if self._static(name) else st.start_state
+        # focus-vs-protect run), else rest
+        start = self._equilibrium(name, x) if self._static(name) else None
         omega, vector = self._frequency(name, x, st.vector, start)
         if not (np.isfinite(omega) and omega > 0.0 and np.all(np.isfinite(vector))):
             # the stiffness at the start state is not positive definite along the iterate (or
@@ -360,14 +358,9 @@ class TaskEvaluator:
         st = checked[0]
         value, grad, terms, aux = out.result
         why = list(st.reasons) + [s.reason for s in out.steps[1:]]
-        # the next step check measures at this design's start state (after a fallback too: a
-        # resumed run's evaluator starts from the initial design's, where a far design's
-        # stiffness can be indefinite)
-        st = dataclasses.replace(st, start_state=np.asarray(aux["start_state"]))
         if not out.fell_back:
             st = dataclasses.replace(st, last_config=out.config, last_health={
-                k: np.asarray(v) for k, v in aux.items()
-                if k not in ("start_state", "start_free")})
+                k: np.asarray(v) for k, v in aux.items() if k != "start_free"})
         record = self._record(out.config, why)
         if "step_error" in out.health:  # the half-step check judged the solve that counted
             record["step_error"] = float(out.health["step_error"])

@@ -75,6 +75,32 @@ def test_a_drifting_fixed_step_is_refined_then_handed_to_dopri8(scene):
     assert out.config == contact_config()  # a refined step rejected again: Dopri8
 
 
+def test_only_the_result_that_stands_is_finished_and_a_failed_finish_is_a_failed_solve(scene):
+    """`finish` (an optimiser's reverse pass) runs once, on the result that stands, never on
+    one the policy rejected; when it fails, that solve counts as failed (here a fixed step
+    with contact: re-solved with its contact forces substepped)."""
+    finished = []
+
+    def finish(result):
+        finished.append(result)
+        if result == "result 2" and len(finished) == 1 and fail[0]:
+            raise SimulationError("non-finite gradient")
+        return result + " finished"
+
+    fail = [False]
+    solve = Script(healthy(scene, void_margin=0.0), healthy(scene))
+    out = solve_with_policy(scene, VERLET, solve, finish=finish)
+    assert finished == ["result 2"] and out.result == "result 2 finished"
+    finished.clear()
+    fail[0] = True
+    solve = Script(healthy(scene, void_margin=0.0), healthy(scene), healthy(scene))
+    out = solve_with_policy(scene, VERLET, solve, finish=finish)
+    assert finished == ["result 2", "result 3"] and out.result == "result 3 finished"
+    assert out.steps[-1].error == "non-finite gradient" and "substep" not in out.steps[1].reason
+    assert [s.kind for s in out.steps] == [START, RESOLVE, RESOLVE]
+    assert out.config.solver.contact_substeps > out.steps[1].config.solver.contact_substeps
+
+
 def test_a_failed_solve_falls_back_once_and_the_fallback_result_stands(scene):
     in_contact = healthy(scene, void_margin=0.0)  # would be re-solved, were it not the fallback
     solve = Script(SimulationError("went non-finite"), in_contact)

@@ -179,9 +179,11 @@ class TaskEvaluator:
         return float(omega), np.asarray(v)
 
     def _function(self, name: str, config: SolverConfig, forward: bool = False):
-        """The scene's compiled objective: value and gradient `(x, material, loading, ts,
-        weights)`, or with `forward` the value alone `(..., weights, initial)` from a given
-        start (free DOFs and their rates), without the static solve."""
+        """The scene's compiled objective `(x, material, loading, ts, weights, initial,
+        equilibrium)` as two programs, the forward pass `-> (value, aux, pullback)` and the
+        reverse pass `(pullback, 1.0) -> gradient`, so that a solve the policy rejects is not
+        also differentiated (`driver.solve_with_policy(finish=)`); or with `forward` the value
+        alone from a given start (free DOFs and their rates), without the static solve."""
         scene = self.task.scenes[name]
         terms = [t for t in self.task.terms if t.scene == name]
         key = compile_key(scene, config, "task", scene.sample_times) + tuple(
@@ -203,8 +205,12 @@ class TaskEvaluator:
             aux = dict(solve_health(sol), terms=jnp.stack(raw), start_free=sol.start_free)
             return value, aux
 
+        def forward_pass(x, *rest):
+            value, pullback, aux = jax.vjp(lambda z: objective(z, *rest), x, has_aux=True)
+            return value, aux, pullback
+
         fn = (jax.jit(lambda *args: objective(*args)[0]) if forward
-              else jax.jit(jax.value_and_grad(objective, has_aux=True)))
+              else (jax.jit(forward_pass), jax.jit(lambda pullback, seed: pullback(seed)[0])))
         _PROGRAMS[key] = fn
         self.compilations += 1
         return fn
@@ -221,26 +227,34 @@ class TaskEvaluator:
         return {"config": config_summary(self._budgeted(config)), "why": why}
 
     def _solve(self, name: str, config: SolverConfig, x: np.ndarray, equilibrium=None):
-        """One value-and-gradient solve (`equilibrium`: the design's static equilibrium,
-        [n_blocks, 3], solved already; see `make_simulator`); raises `SimulationError` on any failure
-        (`StepBudgetError` when an adaptive solve used up the task's step budget)."""
+        """The forward pass of one value-and-gradient solve (`equilibrium`: the design's static
+        equilibrium, [n_blocks, 3], solved already; see `make_simulator`): `(value, pending
+        gradient, term values, aux)`, the gradient by `_gradient`. Raises `SimulationError` on
+        any failure (`StepBudgetError` when an adaptive solve used up the task's step
+        budget)."""
         scene = self.task.scenes[name]
         config = self._budgeted(config)
-        fn = self._function(name, config)
+        forward, _ = self._function(name, config)
         terms = [t for t in self.task.terms if t.scene == name]
         if equilibrium is not None:  # its free DOFs
             equilibrium = jnp.asarray(
                 np.asarray(equilibrium).reshape(-1)[np.asarray(scene.supports.free)])
-        out = fn(jnp.asarray(x), scene.material, scene.loading, jnp.asarray(scene.sample_times),
-                 self._weights(name), None, equilibrium)
-        out = jax.block_until_ready(out)
-        checked(out, config)
-        (value, aux), grad = out
-        grad = np.asarray(grad, np.float64)
+        value, aux, pullback = jax.block_until_ready(forward(
+            jnp.asarray(x), scene.material, scene.loading, jnp.asarray(scene.sample_times),
+            self._weights(name), None, equilibrium))
+        checked((value, aux), config)
+        values = {t.name: float(v) for t, v in zip(terms, np.asarray(aux["terms"]))}
+        return float(value), (name, config, pullback, jnp.ones_like(value)), values, aux
+
+    def _gradient(self, pending) -> np.ndarray:
+        """[n_design] the gradient of a forward pass `_solve` returned (its reverse pass);
+        raises `SimulationError` when it is not finite."""
+        name, config, pullback, seed = pending
+        _, reverse = self._function(name, config)
+        grad = np.asarray(reverse(pullback, seed), np.float64)
         if not np.all(np.isfinite(grad)):
             raise SimulationError("non-finite gradient")
-        values = {t.name: float(v) for t, v in zip(terms, np.asarray(aux["terms"]))}
-        return float(value), grad, values, aux
+        return grad
 
     def _weights(self, name: str):
         """The weights of the scene's terms, in the order its compiled objective takes them."""
@@ -322,7 +336,8 @@ class TaskEvaluator:
         scene = self.task.scenes[name]
         if self.forced is not None:
             try:
-                value, grad, terms, _ = self._solve(name, st.config, x)
+                value, pending, terms, _ = self._solve(name, st.config, x)
+                grad = self._gradient(pending)
             except SimulationError as exc:
                 raise EvaluationFailed(f"{name}: {exc}") from None
             return value, grad, terms, self._record(st.config, list(st.reasons)), [], st
@@ -337,8 +352,12 @@ class TaskEvaluator:
 
         def solve(config):
             start = self._equilibrium(name, x) if self._static(name) else None
-            value, grad, terms, aux = self._solve(name, config, x, start)
-            return (value, grad, terms, aux), aux
+            value, pending, terms, aux = self._solve(name, config, x, start)
+            return (value, pending, terms, aux), aux
+
+        def finish(result):  # the reverse pass, for the solve that counts only
+            value, pending, terms, aux = result
+            return value, self._gradient(pending), terms, aux
 
         def step_error(config, result, aux):
             return self._step_error(name, config, x, result[0], aux)
@@ -352,7 +371,7 @@ class TaskEvaluator:
                                     previous=lambda: (checked[0].last_config,
                                                       checked[0].last_health),
                                     budget_fails_at_once=True, step_error=step_error,
-                                    on_step=log)
+                                    on_step=log, finish=finish)
         except PolicyFailed as exc:
             raise EvaluationFailed(f"{name}: {exc}", checked[0]) from None
         st = checked[0]

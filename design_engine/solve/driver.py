@@ -136,7 +136,8 @@ def solve_with_policy(scene: Scene, config: SolverConfig,
                       budget_fails_at_once: bool = False,
                       fallback: SolverConfig | None = None,
                       step_error: Callable[[SolverConfig, R, dict], float] | None = None,
-                      on_step: Callable[[Step], None] | None = None) -> Outcome[R]:
+                      on_step: Callable[[Step], None] | None = None,
+                      finish: Callable[[R], R] | None = None) -> Outcome[R]:
     """Solve under the policy, starting from `config` (the choice for this scene).
 
     `solve(config) -> (result, health)` runs one solve and raises `SimulationError` on failure;
@@ -152,7 +153,11 @@ def solve_with_policy(scene: Scene, config: SolverConfig,
     `SimulationError` counts as inf: the result is then not trusted at its step), asked
     for a solve that `policy.needs_step_check` names once it passed the other checks; it goes
     into the health as "step_error". `on_step` sees each step after the first as it is taken
-    (event logs). Raises `PolicyFailed` when every allowed configuration failed.
+    (event logs). `finish(result) -> result`: the part of a solve that only the result that
+    stands needs (an optimiser's reverse pass: `solve` returns the forward pass and what the
+    reverse one needs, so that a rejected solve does not pay for its gradient); its
+    `SimulationError` counts as that solve's failure. Raises `PolicyFailed` when every allowed
+    configuration failed.
     """
     pending = None
     if check is not None:
@@ -190,7 +195,13 @@ def solve_with_policy(scene: Scene, config: SolverConfig,
             # a fallback's result stands: it is the reference the others are judged against
             step = None if fallen_back else decide(cfg, scene, health=health)
             if step is None:
-                return Outcome(result, health, tuple(steps))
+                if finish is None:
+                    return Outcome(result, health, tuple(steps))
+                try:
+                    return Outcome(finish(result), health, tuple(steps))
+                except SimulationError as exc:
+                    pending = exc  # judged as the failure of this solve
+                    continue
         steps.append(step)
         if on_step is not None:
             on_step(step)

@@ -6,6 +6,7 @@ own key there and keeps the others.
                                                  [--strains 0.01,0.05,0.08]
     .venv/bin/python benchmarks/bench_statics.py --parts leveltol [--seeds 2]
     .venv/bin/python benchmarks/bench_statics.py --parts warm --run RUN_DIR
+    .venv/bin/python benchmarks/bench_statics.py --parts bound --run RUN_DIR [--bounds 0.25,0.5]
 
 Parts:
 - `timing` (key `strains`): wall time of the equilibrium and of a value and gradient through it
@@ -37,6 +38,11 @@ Parts:
   (`make_static_solver(..., guess=...)`, a continuation in the design) against the load
   continuation from rest, at each of the task's strains: wall times (compiled), levels, and
   whether both reached the same equilibrium (largest difference of the free DOFs).
+- `bound` (not in the default parts; `--run` as for `warm`): the load continuation from rest with
+  its step bound (`statics.MAX_LOAD_STEP_MM`, 0.1 mm) against each of `--bounds` (1e9: none, so
+  `statics.N_LOAD` levels at least), on each evaluation's design at each of the task's strains:
+  wall times (compiled), levels, and whether each reached the default's equilibrium (largest
+  difference of the free DOFs, same below 1e-6).
 """
 
 import argparse
@@ -176,18 +182,13 @@ def part_branches() -> dict:
     out = {"equal_levels_8pct": {}, "ramp_end_relaxed": {}}
     s = build_scene(SCENE, strain=0.08)
     ld, x = s.loading, jnp.asarray(s.design)
-    bound = statics.MAX_LOAD_STEP_MM
-    try:
-        statics.MAX_LOAD_STEP_MM = 1e9  # no displacement bound: N equal levels
-        for n in (8, 32, 48, 64, 100):
-            eq = jax.jit(make_static_solver(s.lattice, s.supports, n_load=n))
-            _, info = eq(x, s.material, ld, ld.precompression_time)
-            out["equal_levels_8pct"][str(n)] = {"energy_mJ": float(info["energy"]),
-                                                "levels": int(info["levels"]),
-                                                "gradient_norm": float(info["gradient_norm"])}
-            print("levels", n, out["equal_levels_8pct"][str(n)], flush=True)
-    finally:
-        statics.MAX_LOAD_STEP_MM = bound
+    for n in (8, 32, 48, 64, 100):  # no displacement bound: N equal levels
+        eq = jax.jit(make_static_solver(s.lattice, s.supports, n_load=n, max_load_step_mm=1e9))
+        _, info = eq(x, s.material, ld, ld.precompression_time)
+        out["equal_levels_8pct"][str(n)] = {"energy_mJ": float(info["energy"]),
+                                            "levels": int(info["levels"]),
+                                            "gradient_norm": float(info["gradient_norm"])}
+        print("levels", n, out["equal_levels_8pct"][str(n)], flush=True)
     for strain in (0.05, 0.08):
         r = build_scene(SCENE, strain=strain, precompression="ramp")
         lr = dataclasses.replace(r.loading, amplitude=0.0)
@@ -288,6 +289,42 @@ def part_warm(run: Path) -> dict:
     return out
 
 
+def part_bound(run: Path, bounds: list[float]) -> dict:
+    """See the module docstring (`bound`)."""
+    from design_engine.design.task import load_task
+
+    task = load_task("focus-vs-protect")
+    xs = np.load(run / "checkpoint.npz")["x"]
+    out = {"run": str(run), "evaluations": len(xs), "bounds_mm": bounds, "scenes": {}}
+    for name, sc in task.scenes.items():
+        solvers = {b: jax.jit(make_static_solver(sc.lattice, sc.supports, model=sc.model,
+                                                 max_load_step_mm=b))
+                   for b in [statics.MAX_LOAD_STEP_MM, *bounds]}
+        rows = []
+        for k in range(len(xs)):
+            x = jnp.asarray(task.embed(xs[k]))
+            row, ref = {"eval": k + 1}, None
+            for b, solver in solvers.items():
+                if k == 0:
+                    solver(x, sc.material, sc.loading, 0.0)  # compiled before timing
+                (q, info), wall = timed(solver, x, sc.material, sc.loading, 0.0)
+                entry = {"wall_s": wall, "levels": int(info["levels"]),
+                         "gradient_norm": float(info["gradient_norm"])}
+                if ref is None:
+                    ref = q
+                else:
+                    entry["max_difference"] = float(jnp.max(jnp.abs(q - ref)))
+                    entry["same_equilibrium"] = entry["max_difference"] < 1e-6
+                row[f"{b:g} mm"] = entry
+            rows.append(row)
+            print(f"{name} evaluation {k + 1}: " + ", ".join(
+                f"{key} {e['levels']} levels {e['wall_s']:.2f} s"
+                + (f" diff {e['max_difference']:.1e}" if "max_difference" in e else "")
+                for key, e in row.items() if key != "eval"), flush=True)
+        out["scenes"][name] = rows
+    return out
+
+
 def part_cholesky(strains: list[float]) -> dict:
     """Banded block Cholesky (the default) against the dense one, side by side per strain."""
     from design_engine.physics import linalg
@@ -380,14 +417,18 @@ def main(argv=None) -> int:
     p.add_argument("--strains", default="0.01,0.05,0.08", help="strains of the timing part")
     p.add_argument("--seeds", type=int, default=2, help="seeded random starts of the "
                    "leveltol part, beside the periodic one")
-    p.add_argument("--run", type=Path, help="the warm part's `metarig design focus-vs-protect` "
-                   "run folder")
+    p.add_argument("--run", type=Path, help="the warm and bound parts' `metarig design "
+                   "focus-vs-protect` run folder")
+    p.add_argument("--bounds", default="0.25,0.5,1e9", help="the bound part's load step bounds "
+                   "(mm), each against the default")
     args = p.parse_args(argv)
     parts = args.parts.split(",")
-    if "warm" in parts and (args.run is None or not (args.run / "checkpoint.npz").exists()):
-        p.error("--parts warm needs --run DIR, a focus-vs-protect run folder with checkpoint.npz")
+    for part in {"warm", "bound"} & set(parts):
+        if args.run is None or not (args.run / "checkpoint.npz").exists():
+            p.error(f"--parts {part} needs --run DIR, a focus-vs-protect run folder with "
+                    "checkpoint.npz")
     unknown = set(parts) - {"timing", "hessian", "branches", "ramp", "cholesky", "leveltol",
-                       "warm"}
+                            "warm", "bound"}
     if unknown:
         p.error(f"unknown parts: {', '.join(sorted(unknown))}")
     doc = json.loads(OUT.read_text()) if OUT.exists() else {}
@@ -412,6 +453,8 @@ def main(argv=None) -> int:
                                               args.seeds)
         elif part == "warm":
             doc["warm"] = part_warm(args.run)
+        elif part == "bound":
+            doc["bound"] = part_bound(args.run, [float(v) for v in args.bounds.split(",")])
         machine["load_after"] = os.getloadavg()
         doc.setdefault("machine_per_part", {})[part] = dict(machine)
         OUT.write_text(json.dumps(doc, indent=2) + "\n")

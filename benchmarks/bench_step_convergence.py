@@ -25,8 +25,9 @@ compares both with Dopri8's at rtol 1e-10 (key `gradients`: `J_rel_err`, `grad_c
 `grad_rel_err`, `value_and_grad_s`): what the half-step check on J says of the gradient.
 
 `--adaptive-rtols R ...` instead times value and gradient by Dopri8 with contact at those rtols
-(atol 1e-4, the fallback's) against rtol 1e-10 on the same designs (key `adaptive`: relative
-error of J, gradient cosine, wall time): what the fallback's tolerance buys.
+(atol 1e-4, the fallback's, or each of `--adaptive-atols A ...`) against rtol 1e-10 on the same
+designs (key `adaptive`: relative error of J, gradient cosine, wall time, steps): what the
+fallback's tolerance buys; `--adaptive-solver Dopri5` or `Tsit5` times that solver instead.
 
 Writes OUT/bench_step_convergence.json after every row (rows it holds are skipped on a rerun).
 """
@@ -48,15 +49,16 @@ FALLBACK = (1e-8, 1e-4)
 def _timed(scene, config, gradient: bool):
     """The scene's objective by `config` (`run.make_objective`), compiled before the timed call:
     (J, health scalars, wall s), or with `gradient` (J, gradient [n_design], wall s)."""
+    import jax
     import jax.numpy as jnp
 
     from design_engine.solve.run import checked, make_objective
 
     fn = make_objective(scene, config)[0 if gradient else 1]
     x = jnp.asarray(scene.design)
-    fn(x)  # compile
+    jax.block_until_ready(fn(x))  # compile
     t0 = time.perf_counter()
-    out = fn(x)
+    out = jax.block_until_ready(fn(x))  # the call returns before its work is done
     wall = time.perf_counter() - t0
     (j, aux), g = out if gradient else (out, None)
     checked((j, aux), config)
@@ -76,9 +78,11 @@ def _value_and_grad(scene, config):
     return _timed(scene, config, gradient=True)
 
 
-def adaptive_row(scene, rtols: list[float]) -> dict:
-    """Value and gradient by Dopri8 with contact at each of `rtols` (atol as the fallback's)
-    against rtol 1e-10 / atol 1e-8: relative error of J, gradient cosine, wall time."""
+def adaptive_row(scene, rtols: list[float], atols: list[float] = (FALLBACK[1],),
+                 solver: str = "Dopri8") -> dict:
+    """Value and gradient by the adaptive `solver` (a diffrax class name) with contact at each
+    of `rtols` and `atols` (default the fallback's atol) against Dopri8 at rtol 1e-10 / atol
+    1e-8: relative error of J, gradient cosine, wall time, steps."""
     import diffrax
 
     from design_engine.solve.simulate import SolverConfig
@@ -86,10 +90,12 @@ def adaptive_row(scene, rtols: list[float]) -> dict:
     ref_j, ref_g, ref_s = _value_and_grad(scene, SolverConfig(
         solver=diffrax.Dopri8(), rtol=TIGHT[0], atol=TIGHT[1]))
     rows = []
-    for rtol in rtols:
-        j, g, wall = _value_and_grad(scene, SolverConfig(solver=diffrax.Dopri8(), rtol=rtol,
-                                                         atol=FALLBACK[1]))
-        rows.append({"rtol": rtol, "atol": FALLBACK[1], "J_rel_err": abs(j - ref_j) / abs(ref_j),
+    for rtol, atol in ((r, a) for r in rtols for a in atols):
+        config = SolverConfig(solver=getattr(diffrax, solver)(), rtol=rtol, atol=atol)
+        j, g, wall = _value_and_grad(scene, config)
+        steps = _solve(scene, config)[1].get("num_steps")
+        rows.append({"solver": solver, "rtol": rtol, "atol": atol, "steps": steps,
+                     "J_rel_err": abs(j - ref_j) / abs(ref_j),
                      "grad_cosine": float(g @ ref_g / (np.linalg.norm(g)
                                                        * np.linalg.norm(ref_g))),
                      "value_and_grad_s": wall})
@@ -183,6 +189,12 @@ def main(argv=None) -> int:
     p.add_argument("--adaptive-rtols", nargs="*", type=float, default=[],
                    help="instead of the step sweep: value and gradient by Dopri8 at these "
                    "rtols against rtol 1e-10 (key `adaptive`)")
+    p.add_argument("--adaptive-atols", nargs="*", type=float, default=[FALLBACK[1]],
+                   help="with --adaptive-rtols: each of these atols too (default the "
+                   "fallback's, 1e-4; rows keyed `/ atols ...` otherwise)")
+    p.add_argument("--adaptive-solver", default="Dopri8", choices=("Dopri8", "Dopri5", "Tsit5"),
+                   help="with --adaptive-rtols: the adaptive solver timed (rows keyed with it "
+                   "unless Dopri8)")
     p.add_argument("--out", type=Path, default=Path("runs/bench-step-convergence"))
     args = p.parse_args(argv)
     from design_engine.design.task import load_task
@@ -209,11 +221,16 @@ def main(argv=None) -> int:
                              f"cosine {r.get('grad_cosine', float('nan')):.7f}"
                              for r in row["steps"])
     elif args.adaptive_rtols:
-        part, make = "adaptive", lambda sc: adaptive_row(sc, args.adaptive_rtols)
+        part = "adaptive"
+
+        def make(sc):
+            return adaptive_row(sc, args.adaptive_rtols, args.adaptive_atols,
+                                args.adaptive_solver)
 
         def line(row):
             return f"reference {row['reference_value_and_grad_s']:.1f} s; " + ", ".join(
-                f"rtol {r['rtol']:g}: {r['J_rel_err']:.1e}, cosine {r['grad_cosine']:.7f}, "
+                f"{r.get('solver', 'Dopri8')} rtol {r['rtol']:g} atol {r['atol']:g}, "
+                f"{r.get('steps', float('nan')):.0f} steps: {r['J_rel_err']:.1e}, cosine {r['grad_cosine']:.7f}, "
                 f"{r['value_and_grad_s']:.1f} s" for r in row["rows"])
     else:
         part = "rows"
@@ -227,9 +244,13 @@ def main(argv=None) -> int:
                 f" (est {s.get('step_error', float('nan')):.1e})" for s in row["steps"])
     suffix = "".join(f" / {v}" for v in (args.dtype, args.newmark_iterations and
                                           f"newmark {args.newmark_iterations}") if v)
+    if part == "adaptive" and args.adaptive_atols != [FALLBACK[1]]:
+        suffix = " / atols " + " ".join(f"{a:g}" for a in args.adaptive_atols)
+    if part == "adaptive" and args.adaptive_solver != "Dopri8":
+        suffix += f" / {args.adaptive_solver}"
     for label, x in designs:
         for name in args.scenes or list(task.scenes):
-            key = f"{label} / {name}" + (suffix if part == "rows" else "")
+            key = f"{label} / {name}" + (suffix if part != "gradients" else "")
             if key in doc.setdefault(part, {}):
                 continue
             row = make(task.scenes[name].with_design(x)) | {"machine": describe()}

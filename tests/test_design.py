@@ -16,6 +16,7 @@ from design_engine.design.evaluator import TaskEvaluator
 from design_engine.design.optimize import ResumeError, run_design
 from design_engine.design.task import TaskError, load_task, preset_names, preset_path
 from design_engine.physics.lattice import periodic_design, quads
+from design_engine.solve.policy import GRADIENT_ATOL
 from design_engine.solve.simulate import SimulationError
 
 SMALL = {"size": (8, 6)}
@@ -361,6 +362,7 @@ def test_a_failed_solve_is_recorded_and_the_run_goes_on(tmp_path, monkeypatch, m
     assert len(ev) == 6
     assert "injected" in ev[2]["event"] and ev[2]["objective"] is not None
     assert ev[2]["solver"]["pulse"]["config"]["solver"] == "Dopri8"
+    assert ev[2]["solver"]["pulse"]["config"]["atol"] == GRADIENT_ATOL  # policy.for_gradient
     assert ev[4]["failed"] and ev[4]["objective"] is None and "evaluation failed" in ev[4]["event"]
     assert all(math.isfinite(e["max_constraint"]) for e in ev)
     assert ev[5]["objective"] is not None  # the run went on

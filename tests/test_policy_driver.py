@@ -13,9 +13,9 @@ from design_engine.physics.scenes import build_scene
 from design_engine.solve.driver import (CONTINUED, FALLBACK, REFERENCE_RETRY, RESOLVE, START,
                                         PolicyFailed, decide, solve_with_policy)
 from design_engine.solve.fixed_step import FixedStepVerlet
-from design_engine.solve.policy import (CONTACT_ENTRY_SUBSTEPS, ENERGY_TOLERANCE, REFINE,
-                                        contact_config, fallback_config, refined, start_config,
-                                        with_contact)
+from design_engine.solve.policy import (CONTACT_ENTRY_SUBSTEPS, ENERGY_TOLERANCE,
+                                        GRADIENT_ATOL, REFINE, contact_config, fallback_config,
+                                        for_gradient, refined, start_config, with_contact)
 from design_engine.solve.simulate import SimulationError, SolverConfig, StepBudgetError
 
 VERLET = SolverConfig(solver=FixedStepVerlet(max_dt=0.01), use_contact=False)
@@ -116,6 +116,16 @@ def test_a_failed_fallback_raises_with_both_reasons_and_every_step(scene):
         solve_with_policy(scene, VERLET, solve)
     assert str(info.value) == "first; the fallback failed too: second"
     assert [s.kind for s in info.value.steps] == [START, FALLBACK] and not info.value.budget
+
+
+def test_an_adaptive_solve_for_a_gradient_takes_the_gradient_tolerance(scene):
+    """An optimiser's adaptive solves control their error to GRADIENT_ATOL (the reference's
+    1e-4 left gradient cosines of 0.99986 on a focus-vs-protect design); a tighter atol and
+    fixed steps are kept as they are."""
+    tight = for_gradient(contact_config())
+    assert tight.atol == GRADIENT_ATOL < contact_config().atol
+    assert tight.solver == contact_config().solver and tight.rtol == contact_config().rtol
+    assert for_gradient(SolverConfig(atol=1e-9)).atol == 1e-9 and for_gradient(VERLET) == VERLET
 
 
 def test_the_fallback_of_the_fallback_configuration_is_the_reference(scene):

@@ -40,8 +40,8 @@ from design_engine.solve.driver import PolicyFailed, solve_with_policy
 from design_engine.solve.fixed_step import is_fixed_step
 from design_engine.solve.objectives import objective_term
 from design_engine.solve.policy import (STABILITY_SAFETY, choose_config, contact_config,
-                                        initial_vector, make_frequency_estimator, refined,
-                                        relative_step_error)
+                                        for_gradient, initial_vector, make_frequency_estimator,
+                                        refined, relative_step_error)
 from design_engine.solve.run import (at_rest_in, checked, compile_key, config_summary,
                                      prestressed_state)
 from design_engine.solve.simulate import (SimulationError, Solution, SolverConfig, make_simulator,
@@ -216,11 +216,13 @@ class TaskEvaluator:
         return fn
 
     def _budgeted(self, config: SolverConfig) -> SolverConfig:
-        """`config` with the task's step budget if it is adaptive (a fixed step's count is set by
-        its step and the window)."""
+        """`config` as this evaluator solves it: if adaptive, with the task's step budget and
+        the gradient's tolerance (`policy.for_gradient`; a fixed step's count is set by its step
+        and the window)."""
         if self.forced is not None or is_fixed_step(config.solver):
             return config
-        return dataclasses.replace(config, max_steps=min(config.max_steps, self.max_solve_steps))
+        return dataclasses.replace(for_gradient(config),
+                                   max_steps=min(config.max_steps, self.max_solve_steps))
 
     def _record(self, config: SolverConfig, why: list[str]) -> dict:
         """What an evaluation records of the configuration that counted for a scene."""

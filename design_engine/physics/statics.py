@@ -135,11 +135,13 @@ def make_sparse_hessian(lattice: Lattice, free: np.ndarray, grad_fn):
 def make_static_solver(lattice: Lattice, supports: Supports, *, use_contact: bool = True,
                        linearized: bool = False, n_load: int = N_LOAD,
                        newton_iters: int = NEWTON_ITERS, level_tol: float = LEVEL_TOL,
+                       max_load_step_mm: float = MAX_LOAD_STEP_MM,
                        model: Model = DEFAULT_MODEL):
     """Factory: `equilibrium(x, material, loading, t_hold) -> (q_f [n_free], info)` (jit/grad).
 
     `level_tol`: the residual max |dE/dq_f| at which the load levels before the full load stop
-    (the full load is always solved to GRADIENT_TOL).
+    (the full load is always solved to GRADIENT_TOL). `max_load_step_mm`: the largest change of
+    any prescribed DOF per load level (module docstring).
 
     Args of the returned function:
         x: [n_design] design vector, mm.
@@ -252,7 +254,7 @@ def make_static_solver(lattice: Lattice, supports: Supports, *, use_contact: boo
 
         zero = jnp.zeros(n_free, dtype)
         dlam_max = jnp.minimum(1.0 / n_load,
-                               MAX_LOAD_STEP_MM / jnp.maximum(jnp.max(jnp.abs(qc_s)), 1e-30))
+                               max_load_step_mm / jnp.maximum(jnp.max(jnp.abs(qc_s)), 1e-30))
         start = (zero, zero, jnp.asarray(0.0, dtype), jnp.asarray(0.0, dtype),
                  dlam_max.astype(dtype), jnp.asarray(1e-8, dtype), jnp.asarray(0))
         q, _, lam, _, _, mu, k = jax.lax.while_loop(more, level, start)

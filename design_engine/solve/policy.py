@@ -87,6 +87,14 @@ CONTACT_ENTRY_SUBSTEPS = 4
 # (`benchmarks/bench_outer_step.py`); where this estimate accepts, it was within 0.6-1.7x of
 # the true error (`benchmarks/bench_step_convergence.py`)
 STEP_ERROR_TOLERANCE = 1e-4
+# an adaptive solve whose gradient an optimiser takes (`for_gradient`) controls its error to
+# this absolute tolerance on mm and mm/s instead of the reference's 1e-4 (with states of
+# millimetres, rtol 1e-8 is far below either, so atol sets the steps). At 1e-4 Dopri8's J on a
+# focus-vs-protect design at 8 % was within 3.4e-6 but its gradient pointed 0.99986 along the
+# tight solve's (cosine); at 1e-5 0.9999999 on the three designs charted, for about the same
+# time: there the steps are held by the solver's stability, not its tolerance
+# (`benchmarks/bench_step_convergence.py --adaptive-rtols 1e-8 --adaptive-atols 1e-3 1e-4 1e-5`)
+GRADIENT_ATOL = 1e-5
 
 
 @dataclass(frozen=True)
@@ -245,6 +253,14 @@ def contact_frequency(min_void_margin: float, material, min_inertia: float,
 def contact_config() -> SolverConfig:
     """Configuration for scenes in contact: Dopri8 at the reference tolerances, with contact."""
     return SolverConfig(solver=diffrax.Dopri8())
+
+
+def for_gradient(config: SolverConfig) -> SolverConfig:
+    """`config` as an optimiser's value and gradient solves it: an adaptive one with atol at
+    most GRADIENT_ATOL; a fixed step as it is."""
+    if is_fixed_step(config.solver) or config.atol <= GRADIENT_ATOL:
+        return config
+    return dataclasses.replace(config, atol=GRADIENT_ATOL)
 
 
 def past_cutoff(void_margin: float, scene: Scene) -> bool:

@@ -17,6 +17,7 @@ from design_engine.design.optimize import ResumeError, run_design
 from design_engine.design.task import TaskError, load_task, preset_names, preset_path
 from design_engine.physics.lattice import periodic_design, quads
 from design_engine.solve.policy import GRADIENT_ATOL
+from design_engine.solve.run import config_summary
 from design_engine.solve.simulate import SimulationError
 
 SMALL = {"size": (8, 6)}
@@ -357,9 +358,14 @@ def test_a_failed_solve_is_recorded_and_the_run_goes_on(tmp_path, monkeypatch, m
         return real(name, config, x, equilibrium)
 
     monkeypatch.setattr(evaluator, "_solve", flaky)
+    reversed_configs = []  # one reverse pass per evaluation, for the solve that counted only
+    gradient = evaluator._gradient
+    monkeypatch.setattr(evaluator, "_gradient", lambda pending: (
+        reversed_configs.append(config_summary(pending[1])), gradient(pending))[1])
     res = run_design(task, tmp_path, progress=False, evaluator=evaluator)
     ev = res.evaluations
     assert len(ev) == 6
+    assert reversed_configs == [e["solver"]["pulse"]["config"] for e in ev if not e["failed"]]
     assert "injected" in ev[2]["event"] and ev[2]["objective"] is not None
     assert ev[2]["solver"]["pulse"]["config"]["solver"] == "Dopri8"
     assert ev[2]["solver"]["pulse"]["config"]["atol"] == GRADIENT_ATOL  # policy.for_gradient

@@ -182,8 +182,10 @@ class TaskEvaluator:
         """The scene's compiled objective `(x, material, loading, ts, weights, initial,
         equilibrium)` as two programs, the forward pass `-> (value, aux, pullback)` and the
         reverse pass `(pullback, 1.0) -> gradient`, so that a solve the policy rejects is not
-        also differentiated (`driver.solve_with_policy(finish=)`); or with `forward` the value
-        alone from a given start (free DOFs and their rates), without the static solve."""
+        also differentiated (`driver.solve_with_policy(finish=)`), and the objective itself
+        `-> (value, aux)`, not compiled (`benchmarks/bench_reverse_split.py` sets its fused value
+        and gradient beside the two); or with `forward` the value alone from a given start (free
+        DOFs and their rates), without the static solve."""
         scene = self.task.scenes[name]
         terms = [t for t in self.task.terms if t.scene == name]
         key = compile_key(scene, config, "task", scene.sample_times) + tuple(
@@ -210,7 +212,8 @@ class TaskEvaluator:
             return value, aux, pullback
 
         fn = (jax.jit(lambda *args: objective(*args)[0]) if forward
-              else (jax.jit(forward_pass), jax.jit(lambda pullback, seed: pullback(seed)[0])))
+              else (jax.jit(forward_pass), jax.jit(lambda pullback, seed: pullback(seed)[0]),
+                    objective))
         _PROGRAMS[key] = fn
         self.compilations += 1
         return fn
@@ -236,7 +239,7 @@ class TaskEvaluator:
         budget)."""
         scene = self.task.scenes[name]
         config = self._budgeted(config)
-        forward, _ = self._function(name, config)
+        forward = self._function(name, config)[0]
         terms = [t for t in self.task.terms if t.scene == name]
         if equilibrium is not None:  # its free DOFs
             equilibrium = jnp.asarray(
@@ -252,7 +255,7 @@ class TaskEvaluator:
         """[n_design] the gradient of a forward pass `_solve` returned (its reverse pass);
         raises `SimulationError` when it is not finite."""
         name, config, pullback, seed = pending
-        _, reverse = self._function(name, config)
+        reverse = self._function(name, config)[1]
         grad = np.asarray(reverse(pullback, seed), np.float64)
         if not np.all(np.isfinite(grad)):
             raise SimulationError("non-finite gradient")

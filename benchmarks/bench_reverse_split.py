@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from machine import describe
+from run_folder import run_designs
 
 
 def main(argv=None) -> int:
@@ -33,22 +34,15 @@ def main(argv=None) -> int:
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--out", type=Path, default=Path("runs/bench-reverse-split"))
     args = p.parse_args(argv)
-    if not (args.run / "checkpoint.npz").exists():
-        p.error(f"{args.run} holds no checkpoint.npz (a `metarig design` run folder)")
-
+    task, xs = run_designs(p, args.task, args.run, args.scene)
+    if not 1 <= args.eval <= len(xs):
+        p.error(f"--eval must be 1..{len(xs)}")
     import jax
     import jax.numpy as jnp
 
     from design_engine.design.evaluator import TaskEvaluator
-    from design_engine.design.task import load_task
     from design_engine.solve.policy import choose_config
 
-    task = load_task(args.task)
-    if args.scene not in task.scenes:
-        p.error(f"task {args.task} has no scene {args.scene!r}: {', '.join(task.scenes)}")
-    xs = np.load(args.run / "checkpoint.npz")["x"]
-    if not 1 <= args.eval <= len(xs):
-        p.error(f"--eval must be 1..{len(xs)}")
     x = task.embed(xs[args.eval - 1])
     scene = task.scenes[args.scene]
     evaluator = TaskEvaluator(task)

@@ -22,9 +22,8 @@ import math
 import time
 from pathlib import Path
 
-import numpy as np
-
 from machine import describe
+from run_folder import run_designs
 
 
 def main(argv=None) -> int:
@@ -35,16 +34,10 @@ def main(argv=None) -> int:
     p.add_argument("--evals", nargs="+", type=int, required=True)
     p.add_argument("--out", type=Path, default=Path("runs/bench-step-check"))
     args = p.parse_args(argv)
-    if not (args.run / "checkpoint.npz").exists():
-        p.error(f"{args.run} holds no checkpoint.npz (a `metarig design` run folder)")
-    from design_engine.design.task import load_task
+    task, xs = run_designs(p, args.task, args.run, args.scene)
     from design_engine.solve.policy import max_angular_frequency, static_void_margin
     from design_engine.solve.run import prestressed_state
 
-    task = load_task(args.task)
-    if args.scene not in task.scenes:
-        p.error(f"task {args.task} has no scene {args.scene!r} (it has {sorted(task.scenes)})")
-    xs = np.load(args.run / "checkpoint.npz")["x"]
     scene = task.scenes[args.scene]
     rows, previous = [], None
     for e in args.evals:

@@ -48,7 +48,7 @@ FALLBACK = (1e-8, 1e-4)
 
 def _timed(scene, config, gradient: bool):
     """The scene's objective by `config` (`run.make_objective`), compiled before the timed call:
-    (J, health scalars, wall s), or with `gradient` (J, gradient [n_design], wall s)."""
+    (J, health scalars, gradient [n_design] with `gradient` else None, wall s)."""
     import jax
     import jax.numpy as jnp
 
@@ -62,20 +62,20 @@ def _timed(scene, config, gradient: bool):
     wall = time.perf_counter() - t0
     (j, aux), g = out if gradient else (out, None)
     checked((j, aux), config)
-    if gradient:
-        return float(j), np.asarray(g, np.float64), wall
-    return float(j), {k: float(np.asarray(v)) for k, v in aux.items()
-                      if np.asarray(v).ndim == 0}, wall
+    health = {k: float(np.asarray(v)) for k, v in aux.items() if np.asarray(v).ndim == 0}
+    return float(j), health, None if g is None else np.asarray(g, np.float64), wall
 
 
 def _solve(scene, config):
     """(J, health scalars, wall s) of the scene's objective (`_timed`)."""
-    return _timed(scene, config, gradient=False)
+    j, health, _, wall = _timed(scene, config, gradient=False)
+    return j, health, wall
 
 
 def _value_and_grad(scene, config):
-    """(J, gradient [n_design], wall s) of the scene's objective (`_timed`)."""
-    return _timed(scene, config, gradient=True)
+    """(J, gradient [n_design], wall s, health scalars) of the scene's objective (`_timed`)."""
+    j, health, g, wall = _timed(scene, config, gradient=True)
+    return j, g, wall, health
 
 
 def adaptive_row(scene, rtols: list[float], atols: list[float] = (FALLBACK[1],),
@@ -87,13 +87,13 @@ def adaptive_row(scene, rtols: list[float], atols: list[float] = (FALLBACK[1],),
 
     from design_engine.solve.simulate import SolverConfig
 
-    ref_j, ref_g, ref_s = _value_and_grad(scene, SolverConfig(
+    ref_j, ref_g, ref_s, _ = _value_and_grad(scene, SolverConfig(
         solver=diffrax.Dopri8(), rtol=TIGHT[0], atol=TIGHT[1]))
     rows = []
     for rtol, atol in ((r, a) for r in rtols for a in atols):
         config = SolverConfig(solver=getattr(diffrax, solver)(), rtol=rtol, atol=atol)
-        j, g, wall = _value_and_grad(scene, config)
-        steps = _solve(scene, config)[1].get("num_steps")
+        j, g, wall, health = _value_and_grad(scene, config)
+        steps = health.get("num_steps")
         rows.append({"solver": solver, "rtol": rtol, "atol": atol, "steps": steps,
                      "J_rel_err": abs(j - ref_j) / abs(ref_j),
                      "grad_cosine": float(g @ ref_g / (np.linalg.norm(g)
@@ -111,13 +111,13 @@ def gradient_row(scene, halvings: int) -> dict:
     from design_engine.solve.policy import choose_config, refined
     from design_engine.solve.simulate import SimulationError, SolverConfig
 
-    ref_j, ref_g, ref_s = _value_and_grad(scene, SolverConfig(
+    ref_j, ref_g, ref_s, _ = _value_and_grad(scene, SolverConfig(
         solver=diffrax.Dopri8(), rtol=TIGHT[0], atol=TIGHT[1]))
     config = choose_config(scene).config
     steps = []
     for _ in range(halvings + 1):
         try:
-            j, g, wall = _value_and_grad(scene, config)
+            j, g, wall, _ = _value_and_grad(scene, config)
             steps.append({"dt_us": config.solver.max_dt * 1e3,
                           "J_rel_err": abs(j - ref_j) / abs(ref_j),
                           "grad_cosine": float(g @ ref_g / (np.linalg.norm(g)

@@ -361,7 +361,7 @@ def test_a_failed_solve_is_recorded_and_the_run_goes_on(tmp_path, monkeypatch, m
     reversed_configs = []  # one reverse pass per evaluation, for the solve that counted only
     gradient = evaluator._gradient
     monkeypatch.setattr(evaluator, "_gradient", lambda pending: (
-        reversed_configs.append(config_summary(pending[1])), gradient(pending))[1])
+        reversed_configs.append(config_summary(pending[0])), gradient(pending))[1])
     res = run_design(task, tmp_path, progress=False, evaluator=evaluator)
     ev = res.evaluations
     assert len(ev) == 6

@@ -234,12 +234,12 @@ class TaskEvaluator:
     def _solve(self, name: str, config: SolverConfig, x: np.ndarray, equilibrium=None):
         """The forward pass of one value-and-gradient solve (`equilibrium`: the design's static
         equilibrium, [n_blocks, 3], solved already; see `make_simulator`): `(value, pending
-        gradient, term values, aux)`, the gradient by `_gradient`. Raises `SimulationError` on
-        any failure (`StepBudgetError` when an adaptive solve used up the task's step
-        budget)."""
+        gradient, term values, aux)`, the gradient by `_gradient` (pending: the configuration,
+        the reverse pass, its pullback and seed). Raises `SimulationError` on any failure
+        (`StepBudgetError` when an adaptive solve used up the task's step budget)."""
         scene = self.task.scenes[name]
         config = self._budgeted(config)
-        forward = self._function(name, config)[0]
+        forward, reverse, _ = self._function(name, config)
         terms = [t for t in self.task.terms if t.scene == name]
         if equilibrium is not None:  # its free DOFs
             equilibrium = jnp.asarray(
@@ -249,13 +249,12 @@ class TaskEvaluator:
             self._weights(name), None, equilibrium))
         checked((value, aux), config)
         values = {t.name: float(v) for t, v in zip(terms, np.asarray(aux["terms"]))}
-        return float(value), (name, config, pullback, jnp.ones_like(value)), values, aux
+        return float(value), (config, reverse, pullback, jnp.ones_like(value)), values, aux
 
     def _gradient(self, pending) -> np.ndarray:
         """[n_design] the gradient of a forward pass `_solve` returned (its reverse pass);
         raises `SimulationError` when it is not finite."""
-        name, config, pullback, seed = pending
-        reverse = self._function(name, config)[1]
+        _, reverse, pullback, seed = pending
         grad = np.asarray(reverse(pullback, seed), np.float64)
         if not np.all(np.isfinite(grad)):
             raise SimulationError("non-finite gradient")

@@ -46,7 +46,7 @@ def main(argv=None) -> int:
     x = task.embed(xs[args.eval - 1])
     scene = task.scenes[args.scene]
     evaluator = TaskEvaluator(task)
-    config = evaluator._budgeted(choose_config(scene.with_design(x)).config)
+    config = evaluator._budgeted(choose_config(scene.with_design(x)).config, args.scene)
     forward, reverse, objective = evaluator._function(args.scene, config)
     fused = jax.jit(jax.value_and_grad(objective, has_aux=True))  # the one program of before
     equilibrium = np.asarray(evaluator._equilibrium(args.scene, x)).reshape(-1)[

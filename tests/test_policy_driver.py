@@ -7,15 +7,22 @@ five users run real solves through it in test_stability, test_design, test_robus
 test_calibrate.
 """
 
+import dataclasses
+
+import diffrax
+import numpy as np
 import pytest
 
 from design_engine.physics.scenes import build_scene
 from design_engine.solve.driver import (CONTINUED, FALLBACK, REFERENCE_RETRY, RESOLVE, START,
                                         PolicyFailed, decide, solve_with_policy)
 from design_engine.solve.fixed_step import FixedStepVerlet
-from design_engine.solve.policy import (CONTACT_ENTRY_SUBSTEPS, ENERGY_TOLERANCE,
-                                        GRADIENT_ATOL, REFINE, contact_config, fallback_config,
-                                        for_gradient, refined, start_config, with_contact)
+from design_engine.solve.policy import (CHECKPOINT_BYTES_PER_DOF, CONTACT_ENTRY_SUBSTEPS,
+                                        ENERGY_TOLERANCE, GRADIENT_ATOL,
+                                        GRADIENT_CHECKPOINT_BYTES, REFINE, contact_config,
+                                        fallback_config, for_gradient, refined, start_config,
+                                        with_contact)
+from design_engine.solve.run import config_summary
 from design_engine.solve.simulate import SimulationError, SolverConfig, StepBudgetError
 
 VERLET = SolverConfig(solver=FixedStepVerlet(max_dt=0.01), use_contact=False)
@@ -118,14 +125,26 @@ def test_a_failed_fallback_raises_with_both_reasons_and_every_step(scene):
     assert [s.kind for s in info.value.steps] == [START, FALLBACK] and not info.value.budget
 
 
-def test_an_adaptive_solve_for_a_gradient_takes_the_gradient_tolerance(scene):
+def test_an_adaptive_solve_for_a_gradient_takes_the_gradient_tolerance_and_checkpoints(scene):
     """An optimiser's adaptive solves control their error to GRADIENT_ATOL (the reference's
-    1e-4 left gradient cosines of 0.99986 on a focus-vs-protect design); a tighter atol and
-    fixed steps are kept as they are."""
-    tight = for_gradient(contact_config())
+    1e-4 left gradient cosines of 0.99986 on a focus-vs-protect design) and store as many
+    states for the reverse pass as GRADIENT_CHECKPOINT_BYTES hold, at most one per step of
+    their budget; a tighter atol, an adjoint of the caller's and fixed steps are kept."""
+    n_free = int(np.asarray(scene.supports.free).size)
+    tight = for_gradient(contact_config(), n_free)
     assert tight.atol == GRADIENT_ATOL < contact_config().atol
     assert tight.solver == contact_config().solver and tight.rtol == contact_config().rtol
-    assert for_gradient(SolverConfig(atol=1e-9)).atol == 1e-9 and for_gradient(VERLET) == VERLET
+    assert tight.adjoint.checkpoints == tight.max_steps  # a small lattice: one per step
+    big = for_gradient(contact_config(), 1146)  # the free DOFs of 24x18
+    states = GRADIENT_CHECKPOINT_BYTES // (CHECKPOINT_BYTES_PER_DOF * 1146)
+    assert 2000 < states < big.max_steps and big.adjoint.checkpoints == states
+    assert config_summary(big)["checkpoints"] == states
+    few = for_gradient(dataclasses.replace(contact_config(), max_steps=50), 1146)
+    assert few.adjoint.checkpoints == 50
+    assert for_gradient(SolverConfig(atol=1e-9), n_free).atol == 1e-9
+    assert for_gradient(VERLET, n_free) == VERLET
+    own = SolverConfig(adjoint=diffrax.BacksolveAdjoint())
+    assert for_gradient(own, n_free).adjoint == own.adjoint
 
 
 def test_the_fallback_of_the_fallback_configuration_is_the_reference(scene):

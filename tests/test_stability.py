@@ -323,6 +323,43 @@ def test_a_forward_run_that_starts_in_contact_is_judged_at_half_its_step(jammed,
                                                    - jammed.material.contact_min)
 
 
+def test_the_policy_objective_differentiates_only_the_solve_that_stands(jammed, jammed_choice,
+                                                                         monkeypatch):
+    """`make_objective(scene)` under the policy, value and gradient: the small scene's fixed
+    step stands, with its half-step estimate; with the tolerance then set just below that
+    estimate, the step is rejected after its forward pass alone and the step refined once
+    stands; the one reverse pass is the refined step's, and value and gradient are those of
+    that step's own objective."""
+    from design_engine.solve import policy
+    from design_engine.solve.policy import refined
+
+    x, config = jammed.design, jammed_choice.config
+    passes, estimates = {"forward": [], "reverse": []}, []
+    split, estimate = run_mod._split_objective, run_mod.relative_step_error
+
+    def spy(scene, cfg, weights):
+        forward, reverse = split(scene, cfg, weights)
+        return ((lambda *a: (passes["forward"].append(cfg), forward(*a))[1]),
+                (lambda *a: (passes["reverse"].append(cfg), reverse(*a))[1]))
+
+    monkeypatch.setattr(run_mod, "_split_objective", spy)
+    monkeypatch.setattr(run_mod, "relative_step_error",
+                        lambda *a: (estimates.append(estimate(*a)), estimates[-1])[1])
+    value_and_grad = run_mod.make_objective(jammed)[0]
+    value_and_grad(x)
+    assert passes == {"forward": [config], "reverse": [config]} and len(estimates) == 1
+    passes["forward"].clear()
+    passes["reverse"].clear()
+    monkeypatch.setattr(policy, "STEP_ERROR_TOLERANCE", 0.9 * estimates[0])
+    (value, _), grad = value_and_grad(x)
+    assert passes == {"forward": [config, refined(config)], "reverse": [refined(config)]}
+    assert estimates[1] == pytest.approx(estimates[0], rel=1e-9) and estimates[2] < estimates[1]
+    (value_ref, _), grad_ref = run_mod.make_objective(jammed, refined(config))[0](x)
+    assert float(value) == pytest.approx(float(value_ref), rel=1e-12)
+    np.testing.assert_allclose(np.asarray(grad), np.asarray(grad_ref), rtol=1e-9,
+                               atol=1e-12 * float(np.max(np.abs(grad_ref))))
+
+
 @pytest.fixture(scope="module")
 def jammed_sweep(jammed, jammed_reference):
     """The small scene's contact step sweep (see the test below), run once for the module."""

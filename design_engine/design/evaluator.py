@@ -43,7 +43,7 @@ from design_engine.solve.policy import (STABILITY_SAFETY, choose_config, contact
                                         for_gradient, initial_vector, make_frequency_estimator,
                                         refined, relative_step_error)
 from design_engine.solve.run import (at_rest_in, checked, compile_key, config_summary,
-                                     prestressed_state)
+                                     prestressed_state, split_gradient)
 from design_engine.solve.simulate import (SimulationError, Solution, SolverConfig, make_simulator,
                                           solve_health)
 
@@ -207,29 +207,25 @@ class TaskEvaluator:
             aux = dict(solve_health(sol), terms=jnp.stack(raw), start_free=sol.start_free)
             return value, aux
 
-        def forward_pass(x, *rest):
-            value, pullback, aux = jax.vjp(lambda z: objective(z, *rest), x, has_aux=True)
-            return value, aux, pullback
-
         fn = (jax.jit(lambda *args: objective(*args)[0]) if forward
-              else (jax.jit(forward_pass), jax.jit(lambda pullback, seed: pullback(seed)[0]),
-                    objective))
+              else (*split_gradient(objective), objective))
         _PROGRAMS[key] = fn
         self.compilations += 1
         return fn
 
-    def _budgeted(self, config: SolverConfig) -> SolverConfig:
-        """`config` as this evaluator solves it: if adaptive, with the task's step budget and
-        the gradient's tolerance (`policy.for_gradient`; a fixed step's count is set by its step
-        and the window)."""
+    def _budgeted(self, config: SolverConfig, name: str) -> SolverConfig:
+        """`config` as this evaluator solves scene `name`: if adaptive, with the task's step
+        budget, as an optimiser's gradient needs it (`policy.for_gradient`; a fixed step's count
+        is set by its step and the window)."""
         if self.forced is not None or is_fixed_step(config.solver):
             return config
-        return dataclasses.replace(for_gradient(config),
-                                   max_steps=min(config.max_steps, self.max_solve_steps))
+        config = dataclasses.replace(config, max_steps=min(config.max_steps,
+                                                           self.max_solve_steps))
+        return for_gradient(config, np.asarray(self.task.scenes[name].supports.free).size)
 
-    def _record(self, config: SolverConfig, why: list[str]) -> dict:
-        """What an evaluation records of the configuration that counted for a scene."""
-        return {"config": config_summary(self._budgeted(config)), "why": why}
+    def _record(self, config: SolverConfig, why: list[str], name: str) -> dict:
+        """What an evaluation records of the configuration that counted for scene `name`."""
+        return {"config": config_summary(self._budgeted(config, name)), "why": why}
 
     def _solve(self, name: str, config: SolverConfig, x: np.ndarray, equilibrium=None):
         """The forward pass of one value-and-gradient solve (`equilibrium`: the design's static
@@ -238,7 +234,7 @@ class TaskEvaluator:
         the reverse pass, its pullback and seed). Raises `SimulationError` on any failure
         (`StepBudgetError` when an adaptive solve used up the task's step budget)."""
         scene = self.task.scenes[name]
-        config = self._budgeted(config)
+        config = self._budgeted(config, name)
         forward, reverse, _ = self._function(name, config)
         terms = [t for t in self.task.terms if t.scene == name]
         if equilibrium is not None:  # its free DOFs
@@ -344,7 +340,7 @@ class TaskEvaluator:
                 grad = self._gradient(pending)
             except SimulationError as exc:
                 raise EvaluationFailed(f"{name}: {exc}") from None
-            return value, grad, terms, self._record(st.config, list(st.reasons)), [], st
+            return value, grad, terms, self._record(st.config, list(st.reasons), name), [], st
 
         events: list[str] = []
         checked = [st]  # the state after the step check (kept even when the design fails)
@@ -384,7 +380,7 @@ class TaskEvaluator:
         if not out.fell_back:
             st = dataclasses.replace(st, last_config=out.config, last_health={
                 k: np.asarray(v) for k, v in aux.items() if k != "start_free"})
-        record = self._record(out.config, why)
+        record = self._record(out.config, why, name)
         if "step_error" in out.health:  # the half-step check judged the solve that counted
             record["step_error"] = float(out.health["step_error"])
         return value, grad, terms, record, events, st

@@ -20,7 +20,8 @@ from design_engine.solve.fixed_step import is_fixed_step
 from design_engine.solve.objectives import (angular_momentum, block_kinetic_energy, objective_term,
                                             peak_energy_along_units, region_energy,
                                             region_energy_ratio)
-from design_engine.solve.policy import Choice, choose_config, refined, relative_step_error
+from design_engine.solve.policy import (Choice, choose_config, for_gradient, refined,
+                                        relative_step_error)
 from design_engine.solve.simulate import (SimulationError, Solution, SolverConfig, check_solution,
                                           make_simulator, simulation_error, solve_health)
 from metarig.trajectory import Trajectory
@@ -236,6 +237,8 @@ def config_summary(config: SolverConfig) -> dict:
     else:
         out.update(rtol=config.rtol, atol=config.atol, adjoint=type(config.adjoint).__name__,
                    max_steps=config.max_steps)
+        if getattr(config.adjoint, "checkpoints", None) is not None:
+            out.update(checkpoints=int(config.adjoint.checkpoints))
     return out
 
 
@@ -322,39 +325,47 @@ def make_objective(scene: Scene, config: SolverConfig | None = None, weights=Non
     the fixed step or the work-energy balance drifted; each compiled on first need), so the
     result always equals the full model's; a failed solve is retried with the fallback, and a
     failed fallback raises `SimulationError`. Each call starts where the previous one ended
-    while that was in contact (`policy.start_config`).
+    while that was in contact (`policy.start_config`). There `value_and_grad` solves as an
+    optimiser does (`policy.for_gradient`) and takes the reverse pass of the solve that stands
+    only (`split_gradient`, `solve_with_policy(finish=)`).
     """
     if config is not None:
         return _jitted_objective(scene, config, weights)
     programs: dict = {}
     last: dict = {"config": None, "health": None}
+    n_free = int(np.asarray(scene.supports.free).size)
 
-    def program(cfg):
-        key = repr(cfg)
+    def program(cfg, gradient: bool):
+        """(forward, reverse) of the gradient's solve of `cfg`, or the jitted value."""
+        key = (repr(cfg), gradient)
         if key not in programs:
-            programs[key] = _jitted_objective(scene, cfg, weights)
+            programs[key] = (_split_objective(scene, for_gradient(cfg, n_free), weights)
+                             if gradient else _objective(scene, cfg, weights, jit=True))
         return programs[key]
 
-    def pick(i, x):
+    def pick(gradient: bool, x):
         def solve(cfg):
-            out = program(cfg)[i](x)
-            value_aux = out[0] if i == 0 else out
-            checked(value_aux, cfg)
-            return out, value_aux[1]
+            out = program(cfg, gradient)[0](x) if gradient else program(cfg, False)(x)
+            checked(out[:2], cfg)
+            return (cfg, out), out[1]
 
-        def step_error(cfg, out, health):
+        def step_error(cfg, result, health):
             # from the same start: the static equilibrium is not solved again
-            half = checked(program(refined(cfg))[1](x, at_rest_in(health["start_free"])),
+            half = checked(program(refined(cfg), False)(x, at_rest_in(health["start_free"])),
                            refined(cfg))[0]
-            return relative_step_error(float((out[0] if i == 0 else out)[0]), float(half))
+            return relative_step_error(float(result[1][0]), float(half))
+
+        def finish(result):  # the reverse pass, for the solve that stands only
+            cfg, (value, aux, pullback) = result
+            return (value, aux), program(cfg, True)[1](pullback, jnp.ones_like(value))
 
         outcome = solve_with_policy(scene, default_choice(scene).config, solve,
                                     previous=lambda: (last["config"], last["health"]),
-                                    step_error=step_error)
+                                    step_error=step_error, finish=finish if gradient else None)
         last.update(config=outcome.config, health=outcome.health)
-        return outcome.result
+        return outcome.result if gradient else outcome.result[1]
 
-    return (lambda x: pick(0, x)), (lambda x: pick(1, x))
+    return (lambda x: pick(True, x)), (lambda x: pick(False, x))
 
 
 def scene_objective(scene: Scene, sol: Solution, weights=None):
@@ -370,7 +381,8 @@ def scene_objective(scene: Scene, sol: Solution, weights=None):
                for w, n in zip(weights, names))
 
 
-def _jitted_objective(scene: Scene, config: SolverConfig, weights):
+def _objective(scene: Scene, config: SolverConfig, weights, jit: bool = False):
+    """The scene's objective `(x, initial=None) -> (J, aux)` (see `make_objective`)."""
     sim = make_simulator(scene.lattice, scene.supports, config, scene.sample_times,
                          model=scene.model)
     names = list(scene.targets)
@@ -383,7 +395,29 @@ def _jitted_objective(scene: Scene, config: SolverConfig, weights):
         return scene_objective(scene, sol, weights), dict(solve_health(sol),
                                                           start_free=sol.start_free)
 
+    return jax.jit(objective) if jit else objective
+
+
+def _jitted_objective(scene: Scene, config: SolverConfig, weights):
+    objective = _objective(scene, config, weights)
     return jax.jit(jax.value_and_grad(objective, has_aux=True)), jax.jit(objective)
+
+
+def _split_objective(scene: Scene, config: SolverConfig, weights):
+    return split_gradient(_objective(scene, config, weights))
+
+
+def split_gradient(objective):
+    """`objective(x, *rest) -> (value, aux)` as two jitted programs: the forward pass
+    `(x, *rest) -> (value, aux, pullback)` and the reverse pass `(pullback, seed) -> seed x
+    d value/dx`, so that a solve a policy rejects pays its forward pass only
+    (`driver.solve_with_policy(finish=)`). `benchmarks/bench_reverse_split.py` measures the two
+    against the fused value and gradient."""
+    def forward_pass(x, *rest):
+        value, pullback, aux = jax.vjp(lambda z: objective(z, *rest), x, has_aux=True)
+        return value, aux, pullback
+
+    return jax.jit(forward_pass), jax.jit(lambda pullback, seed: pullback(seed)[0])
 
 
 def checked(value_aux, config: SolverConfig | None = None):

@@ -97,10 +97,11 @@ STEP_ERROR_TOLERANCE = 1e-4
 GRADIENT_ATOL = 1e-5
 # ... and its reverse pass recomputes the steps between stored states (diffrax's recursive
 # checkpointing). With the default of log(max_steps) states it recomputes each step several
-# times; with a state stored per step, once. Dopri8 on focus-vs-protect designs at 8 % (24x18,
-# 1209 and 2626 steps): reverse 11.3 and 18.7 s with the default, 7.9 and 14.2 s with 4096 and
-# 2048 states, whose memory measured 72-85 bytes per free DOF each. So the gradient's solves
-# store as many states as GRADIENT_CHECKPOINT_BYTES hold (2900 on 24x18), at most max_steps
+# times; with a state stored per step, once. Dopri8 on two focus-vs-protect designs at 8 %
+# (24x18, 1591 and 2626 steps): reverse 9.7 and 16.6 s with the default, 8.1 and 13.4 s with
+# one state per step, gradients equal (`benchmarks/bench_reverse_split.py --solver dopri8`);
+# each state measured 72-85 bytes per free DOF. So the gradient's solves store as many states
+# as GRADIENT_CHECKPOINT_BYTES hold (2928 on 24x18), at most max_steps
 CHECKPOINT_BYTES_PER_DOF = 80
 GRADIENT_CHECKPOINT_BYTES = 256 * 2**20
 

@@ -42,7 +42,9 @@ Parts:
   its step bound (`statics.MAX_LOAD_STEP_MM`, 0.1 mm) against each of `--bounds` (1e9: none, so
   `statics.N_LOAD` levels at least), on each evaluation's design at each of the task's strains:
   wall times (compiled), levels, and whether each reached the default's equilibrium (largest
-  difference of the free DOFs, same below 1e-6).
+  difference of the free DOFs, same below 1e-6). `--level-tols` adds, the same way, the default
+  bound with the intermediate levels stopped at each of those residuals (then under key
+  `bound_level_tol`, per run folder, so that the bounds' record stays).
 """
 
 import argparse
@@ -289,17 +291,20 @@ def part_warm(run: Path) -> dict:
     return out
 
 
-def part_bound(run: Path, bounds: list[float]) -> dict:
+def part_bound(run: Path, bounds: list[float], level_tols: list[float] = ()) -> dict:
     """See the module docstring (`bound`)."""
     from design_engine.design.task import load_task
 
     task = load_task("focus-vs-protect")
     xs = np.load(run / "checkpoint.npz")["x"]
-    out = {"run": str(run), "evaluations": len(xs), "bounds_mm": bounds, "scenes": {}}
+    out = {"run": str(run), "evaluations": len(xs), "bounds_mm": bounds,
+           "level_tols": list(level_tols), "default_level_tol": statics.LEVEL_TOL, "scenes": {}}
     for name, sc in task.scenes.items():
-        solvers = {b: jax.jit(make_static_solver(sc.lattice, sc.supports, model=sc.model,
-                                                 max_load_step_mm=b))
-                   for b in [statics.MAX_LOAD_STEP_MM, *bounds]}
+        settings = ({f"{b:g} mm": {"max_load_step_mm": b}
+                     for b in [statics.MAX_LOAD_STEP_MM, *bounds]}
+                    | {f"level_tol {t:g}": {"level_tol": t} for t in level_tols})
+        solvers = {key: jax.jit(make_static_solver(sc.lattice, sc.supports, model=sc.model, **kw))
+                   for key, kw in settings.items()}
         rows = []
         for k in range(len(xs)):
             x = jnp.asarray(task.embed(xs[k]))
@@ -315,7 +320,7 @@ def part_bound(run: Path, bounds: list[float]) -> dict:
                 else:
                     entry["max_difference"] = float(jnp.max(jnp.abs(q - ref)))
                     entry["same_equilibrium"] = entry["max_difference"] < 1e-6
-                row[f"{b:g} mm"] = entry
+                row[b] = entry
             rows.append(row)
             print(f"{name} evaluation {k + 1}: " + ", ".join(
                 f"{key} {e['levels']} levels {e['wall_s']:.2f} s"
@@ -419,6 +424,8 @@ def main(argv=None) -> int:
                    "leveltol part, beside the periodic one")
     p.add_argument("--run", type=Path, help="the warm and bound parts' `metarig design "
                    "focus-vs-protect` run folder")
+    p.add_argument("--level-tols", default="", help="the bound part's intermediate level "
+                   "residuals (N, N mm), each against the default, at the default bound")
     p.add_argument("--bounds", default="0.25,0.5,1e9", help="the bound part's load step bounds "
                    "(mm), each against the default")
     args = p.parse_args(argv)
@@ -454,7 +461,12 @@ def main(argv=None) -> int:
         elif part == "warm":
             doc["warm"] = part_warm(args.run)
         elif part == "bound":
-            doc["bound"] = part_bound(args.run, [float(v) for v in args.bounds.split(",")])
+            tols = [float(v) for v in args.level_tols.split(",") if v]
+            found = part_bound(args.run, [float(v) for v in args.bounds.split(",") if v], tols)
+            if tols:
+                doc.setdefault("bound_level_tol", {})[str(args.run)] = found
+            else:
+                doc["bound"] = found
         machine["load_after"] = os.getloadavg()
         doc.setdefault("machine_per_part", {})[part] = dict(machine)
         OUT.write_text(json.dumps(doc, indent=2) + "\n")

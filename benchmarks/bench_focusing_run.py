@@ -233,7 +233,7 @@ def plot(report: dict, path: Path) -> None:
     plt.close(fig)
 
 
-# a task evaluator over stored designs: argv = checkpoint.npz, first, last, output JSON
+# a task evaluator over stored designs: argv = checkpoint.npz, first, last, output JSON, task
 REPLAY = """
 import json, sys, time
 import numpy as np
@@ -241,7 +241,7 @@ from design_engine.design.evaluator import TaskEvaluator
 from design_engine.design.task import load_task
 xs = np.load(sys.argv[1])["x"]
 first, last = int(sys.argv[2]), int(sys.argv[3])
-task = load_task("%s")
+task = load_task(sys.argv[5])
 t0 = time.perf_counter()
 ev = TaskEvaluator(task)
 rows = [{"eval": 0, "wall_s": time.perf_counter() - t0, "compilations": ev.compilations}]
@@ -249,15 +249,16 @@ for i in range(first, last + 1):
     t0 = time.perf_counter()
     out = ev.evaluate(task.embed(xs[i - 1]))
     rows.append({"eval": i, "wall_s": time.perf_counter() - t0, "value": out.value,
-                 "compilations": ev.compilations, "config": out.solver["pulse"]["config"],
+                 "compilations": ev.compilations,
+                 "config": {k: v["config"] for k, v in out.solver.items()},
                  "events": list(out.events)})
     print(json.dumps(rows[-1]), flush=True)
 json.dump(rows, open(sys.argv[4], "w"))
-""" % TASK
+"""
 
 
 def replay(out: Path, before: str, first: int, last: int, parallel: bool,
-           after: str | None = None) -> dict:
+           after: str | None = None, task: str = TASK) -> dict:
     """Evaluations `first`..`last` of the stored "after" run through a fresh evaluator, from
     the sources of `before` and of `after` (default: this checkout; see module docstring)."""
     checkpoint = out / "after" / "checkpoint.npz"
@@ -266,7 +267,7 @@ def replay(out: Path, before: str, first: int, last: int, parallel: bool,
     for label, src in (("before", source_tree(out, before)), ("after", after_src)):
         files[label] = out / f"replay_{label}.json"
         cmd = [sys.executable, "-c", REPLAY, str(checkpoint), str(first), str(last),
-               str(files[label])]
+               str(files[label]), task]
         env = dict(os.environ, PYTHONPATH=str(src))
         t0, load0 = time.perf_counter(), os.getloadavg()[0]
         procs[label] = (subprocess.Popen(cmd, cwd=src, env=env), t0, load0)
@@ -305,7 +306,7 @@ def main(argv=None) -> int:
     out = args.out.resolve()
     out.mkdir(parents=True, exist_ok=True)
     if args.replay:
-        res = replay(out, args.before, *args.replay, args.parallel, args.after) | {
+        res = replay(out, args.before, *args.replay, args.parallel, args.after, args.task) | {
             "machine": describe()}
         (out / "bench_focusing_replay.json").write_text(json.dumps(res, indent=1))
         for label, side in res["sides"].items():

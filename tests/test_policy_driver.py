@@ -10,7 +10,6 @@ test_calibrate.
 import dataclasses
 
 import diffrax
-import numpy as np
 import pytest
 
 from design_engine.physics.scenes import build_scene
@@ -130,21 +129,22 @@ def test_an_adaptive_solve_for_a_gradient_takes_the_gradient_tolerance_and_check
     1e-4 left gradient cosines of 0.99986 on a focus-vs-protect design) and store as many
     states for the reverse pass as GRADIENT_CHECKPOINT_BYTES hold, at most one per step of
     their budget; a tighter atol, an adjoint of the caller's and fixed steps are kept."""
-    n_free = int(np.asarray(scene.supports.free).size)
-    tight = for_gradient(contact_config(), n_free)
+    tight = for_gradient(contact_config(), scene)
     assert tight.atol == GRADIENT_ATOL < contact_config().atol
     assert tight.solver == contact_config().solver and tight.rtol == contact_config().rtol
     assert tight.adjoint.checkpoints == tight.max_steps  # a small lattice: one per step
-    big = for_gradient(contact_config(), 1146)  # the free DOFs of 24x18
+    protection = build_scene("protection-24x18")
+    assert protection.supports.free.size == 1146
+    big = for_gradient(contact_config(), protection)
     states = GRADIENT_CHECKPOINT_BYTES // (CHECKPOINT_BYTES_PER_DOF * 1146)
     assert 2000 < states < big.max_steps and big.adjoint.checkpoints == states
     assert config_summary(big)["checkpoints"] == states
-    few = for_gradient(dataclasses.replace(contact_config(), max_steps=50), 1146)
+    few = for_gradient(dataclasses.replace(contact_config(), max_steps=50), protection)
     assert few.adjoint.checkpoints == 50
-    assert for_gradient(SolverConfig(atol=1e-9), n_free).atol == 1e-9
-    assert for_gradient(VERLET, n_free) == VERLET
+    assert for_gradient(SolverConfig(atol=1e-9), scene).atol == 1e-9
+    assert for_gradient(VERLET, scene) == VERLET
     own = SolverConfig(adjoint=diffrax.BacksolveAdjoint())
-    assert for_gradient(own, n_free).adjoint == own.adjoint
+    assert for_gradient(own, scene).adjoint == own.adjoint
 
 
 def test_the_fallback_of_the_fallback_configuration_is_the_reference(scene):

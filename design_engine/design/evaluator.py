@@ -221,7 +221,7 @@ class TaskEvaluator:
             return config
         config = dataclasses.replace(config, max_steps=min(config.max_steps,
                                                            self.max_solve_steps))
-        return for_gradient(config, np.asarray(self.task.scenes[name].supports.free).size)
+        return for_gradient(config, self.task.scenes[name])
 
     def _record(self, config: SolverConfig, why: list[str], name: str) -> dict:
         """What an evaluation records of the configuration that counted for scene `name`."""

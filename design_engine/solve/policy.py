@@ -264,15 +264,16 @@ def contact_config() -> SolverConfig:
     return SolverConfig(solver=diffrax.Dopri8())
 
 
-def for_gradient(config: SolverConfig, n_free: int) -> SolverConfig:
-    """`config` as an optimiser's value and gradient solves it, `n_free` DOFs integrated: an
-    adaptive one with atol at most GRADIENT_ATOL and, unless its adjoint was chosen, as many
-    checkpoints as GRADIENT_CHECKPOINT_BYTES hold (at most its max_steps); a fixed step as it
-    is."""
+def for_gradient(config: SolverConfig, scene: Scene) -> SolverConfig:
+    """`config` as an optimiser's value and gradient solves `scene` with it: an adaptive one
+    with atol at most GRADIENT_ATOL and, unless its adjoint was chosen, as many checkpoints as
+    GRADIENT_CHECKPOINT_BYTES hold for the scene's free DOFs (at most its max_steps); a fixed
+    step as it is."""
     if is_fixed_step(config.solver):
         return config
     if config.adjoint == SolverConfig().adjoint:
-        states = GRADIENT_CHECKPOINT_BYTES // (CHECKPOINT_BYTES_PER_DOF * max(int(n_free), 1))
+        n_free = max(int(scene.supports.free.size), 1)
+        states = GRADIENT_CHECKPOINT_BYTES // (CHECKPOINT_BYTES_PER_DOF * n_free)
         config = dataclasses.replace(config, adjoint=diffrax.RecursiveCheckpointAdjoint(
             checkpoints=int(max(1, min(config.max_steps, states)))))
     return dataclasses.replace(config, atol=min(config.atol, GRADIENT_ATOL))

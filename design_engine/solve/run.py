@@ -333,13 +333,12 @@ def make_objective(scene: Scene, config: SolverConfig | None = None, weights=Non
         return _jitted_objective(scene, config, weights)
     programs: dict = {}
     last: dict = {"config": None, "health": None}
-    n_free = int(np.asarray(scene.supports.free).size)
 
     def program(cfg, gradient: bool):
         """(forward, reverse) of the gradient's solve of `cfg`, or the jitted value."""
         key = (repr(cfg), gradient)
         if key not in programs:
-            programs[key] = (_split_objective(scene, for_gradient(cfg, n_free), weights)
+            programs[key] = (_split_objective(scene, for_gradient(cfg, scene), weights)
                              if gradient else _objective(scene, cfg, weights, jit=True))
         return programs[key]
 

@@ -1,0 +1,65 @@
+"""The fixed-step Verlet schemes on a system whose motion is known independently."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+from design_engine.solve.fixed_step import SUZUKI_4, FixedStepVerlet, step_grid
+
+STIFFNESS = np.array([1.0, 4.0])
+DAMPING = np.array([0.05, 0.1])
+MASS = np.array([1.0, 2.0])
+Q0, V0 = np.array([1.0, 0.5]), np.array([0.0, -0.3])
+TS = np.linspace(0.0, 10.0, 11)
+
+
+def _forcing(t):
+    return np.array([1.0, 0.0]) * np.sin(t)  # time-dependent, as a prescribed motion's
+
+
+def _fixed_step(max_dt, order):  # float64: importing design_engine enables it
+    def force(q, t):
+        return (-jnp.asarray(STIFFNESS) * q + jnp.array([1.0, 0.0]) * jnp.sin(t),
+                (0.5 * jnp.sum(jnp.asarray(STIFFNESS) * q * q), jnp.zeros(())))
+
+    method = FixedStepVerlet(max_dt=max_dt, order=order)
+    integrate = method.make_integrator(step_grid(TS, max_dt), None, None, 2)
+    qs, vs, converged, _ = integrate(force, jnp.asarray(1.0 / MASS), jnp.asarray(DAMPING),
+                                     (jnp.asarray(Q0), jnp.asarray(V0)), jnp.asarray(TS))
+    assert bool(converged)
+    return np.asarray(qs), np.asarray(vs)
+
+
+def _reference():
+    def rhs(t, y):
+        q, v = y[:2], y[2:]
+        return np.concatenate([v, (-STIFFNESS * q - DAMPING * v + _forcing(t)) / MASS])
+
+    sol = solve_ivp(rhs, (TS[0], TS[-1]), np.concatenate([Q0, V0]), method="DOP853", t_eval=TS,
+                    rtol=1e-13, atol=1e-13)
+    return sol.y[:2].T, sol.y[2:].T
+
+
+@pytest.mark.parametrize("order", [2, 4])
+def test_each_halving_of_the_step_divides_the_error_by_two_to_the_order(order):
+    # damped, forced and with two frequencies: the damping's implicit half kick and the
+    # time-dependent force must keep the composition symmetric, else it falls to second order
+    q_ref, v_ref = _reference()
+    errors = []
+    for dt in (0.2, 0.1, 0.05):
+        qs, vs = _fixed_step(dt, order)
+        errors.append(max(np.max(np.abs(qs - q_ref)), np.max(np.abs(vs - v_ref))))
+    ratios = np.array(errors[:-1]) / np.array(errors[1:])
+    assert ratios == pytest.approx(2.0 ** order, rel=0.1), errors
+    assert errors[-1] < (1e-6 if order == 4 else 2e-3)
+
+
+def test_the_fourth_order_step_is_five_verlet_steps_that_span_it():
+    assert sum(SUZUKI_4) == pytest.approx(1.0, abs=1e-15)
+    assert SUZUKI_4 == SUZUKI_4[::-1]  # symmetric
+    assert FixedStepVerlet(max_dt=0.01, order=4).force_evaluations(10) == 51
+    assert FixedStepVerlet(max_dt=0.01, order=4).summary()["order"] == 4
+    assert "order" not in FixedStepVerlet(max_dt=0.01).summary()
+    with pytest.raises(ValueError, match="order must be 2 or 4"):
+        FixedStepVerlet(order=3)

@@ -22,7 +22,7 @@ steps.
 
 `--order 4` solves the same steps by the fourth-order composition of Verlet steps
 (`FixedStepVerlet(order=4)`: five force evaluations a step, contact substeps kept; rows keyed
-`/ order 4`; its `step_error` keeps Verlet's 4/3, where a fourth-order step's Richardson factor
+`/ order 4`, also with `--gradients`; its `step_error` keeps Verlet's 4/3, where a fourth-order step's Richardson factor
 is 16/15): whether a higher order buys accuracy per second where Verlet needs small steps.
 
 `--gradients` instead solves value and gradient by the policy's fixed step at h, h/2, ... and
@@ -107,7 +107,7 @@ def adaptive_row(scene, rtols: list[float], atols: list[float] = (FALLBACK[1],),
     return {"reference_value_and_grad_s": ref_s, "rows": rows}
 
 
-def gradient_row(scene, halvings: int) -> dict:
+def gradient_row(scene, halvings: int, order: int = 2) -> dict:
     """Value and gradient by the policy's own fixed-step configuration at the design (as
     `row_for`) at h, h/2, ... against Dopri8 at rtol 1e-10 / atol 1e-8: relative error of J,
     gradient cosine and relative error, wall time (compiled first)."""
@@ -119,6 +119,9 @@ def gradient_row(scene, halvings: int) -> dict:
     ref_j, ref_g, ref_s, _ = _value_and_grad(scene, SolverConfig(
         solver=diffrax.Dopri8(), rtol=TIGHT[0], atol=TIGHT[1]))
     config = choose_config(scene).config
+    if order != 2:
+        config = dataclasses.replace(config, solver=dataclasses.replace(config.solver,
+                                                                        order=order))
     steps = []
     for _ in range(halvings + 1):
         try:
@@ -224,7 +227,7 @@ def main(argv=None) -> int:
     doc.update(task=args.task, run=str(args.run) if args.run else None, machine=describe())
     # the mode: (key of the results part, row of one scene, its printed line)
     if args.gradients:
-        part, make = "gradients", lambda sc: gradient_row(sc, args.halvings)
+        part, make = "gradients", lambda sc: gradient_row(sc, args.halvings, args.order)
 
         def line(row):
             return ", ".join(f"{r['dt_us']:.1f} us J {r.get('J_rel_err', float('nan')):.1e} "
@@ -261,7 +264,8 @@ def main(argv=None) -> int:
         suffix += f" / {args.adaptive_solver}"
     for label, x in designs:
         for name in args.scenes or list(task.scenes):
-            key = f"{label} / {name}" + (suffix if part != "gradients" else "")
+            key = f"{label} / {name}" + (suffix if part != "gradients" else
+                                         f" / order {args.order}" if args.order != 2 else "")
             if key in doc.setdefault(part, {}):
                 continue
             row = make(task.scenes[name].with_design(x)) | {"machine": describe()}

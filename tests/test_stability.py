@@ -328,8 +328,8 @@ def test_the_policy_objective_differentiates_only_the_solve_that_stands(jammed, 
     """`make_objective(scene)` under the policy, value and gradient: the small scene's fixed
     step stands, with its half-step estimate; with the tolerance then set just below that
     estimate, the step is rejected after its forward pass alone and the step refined once
-    stands; the one reverse pass is the refined step's, and value and gradient are those of
-    that step's own objective."""
+    stands; the one reverse pass is the refined step's: the value is that step's own objective,
+    and the gradient its central difference along a random direction."""
     from design_engine.solve import policy
     from design_engine.solve.policy import refined
 
@@ -354,10 +354,17 @@ def test_the_policy_objective_differentiates_only_the_solve_that_stands(jammed, 
     (value, _), grad = value_and_grad(x)
     assert passes == {"forward": [config, refined(config)], "reverse": [refined(config)]}
     assert estimates[1] == pytest.approx(estimates[0], rel=1e-9) and estimates[2] < estimates[1]
-    (value_ref, _), grad_ref = run_mod.make_objective(jammed, refined(config))[0](x)
-    assert float(value) == pytest.approx(float(value_ref), rel=1e-12)
-    np.testing.assert_allclose(np.asarray(grad), np.asarray(grad_ref), rtol=1e-9,
-                               atol=1e-12 * float(np.max(np.abs(grad_ref))))
+    # the refined step's own value program (it compiles in 5.6 s cold, a value and gradient
+    # program in 14 s): its value, and its central difference along a random direction,
+    # which agrees within 2.6e-8 here: the difference's truncation error (h^2, h = 1e-4 mm) and
+    # the static solve's residual leave it well within 1e-5 on any machine
+    value_of = run_mod.make_objective(jammed, refined(config))[1]
+    assert float(value) == pytest.approx(float(value_of(x)[0]), rel=1e-12)
+    d = np.random.default_rng(3).normal(size=x.size)
+    d /= np.linalg.norm(d)
+    h = 1e-4
+    fd = (float(value_of(x + h * d)[0]) - float(value_of(x - h * d)[0])) / (2 * h)
+    assert float(np.dot(np.asarray(grad), d)) == pytest.approx(fd, rel=1e-5)
 
 
 @pytest.fixture(scope="module")

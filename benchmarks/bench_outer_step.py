@@ -33,21 +33,18 @@ from pathlib import Path
 import numpy as np
 
 from machine import describe
+from run_folder import run_designs
 
 HERE = Path(__file__).resolve().parent
 RATIOS = (1.0, 1.5, 2.0, 2.5, 3.0, 4.0, 6.0)
 REF_RTOL, REF_ATOL = 1e-10, 1e-8
 
 
-def designs(args, task) -> list[tuple[str, np.ndarray]]:
-    """(label, full design x) to sweep: the task's start, and evaluations of a run folder."""
-    out = [("start", np.asarray(task.initial_design))]
-    if args.run is not None:
-        xs = np.load(args.run / "checkpoint.npz")["x"]
-        for e in args.evals:
-            if 1 <= e <= len(xs):
-                out.append((f"eval {e}", task.embed(xs[e - 1])))
-    return out
+def designs(task, xs, evals) -> list[tuple[str, np.ndarray]]:
+    """(label, full design x) to sweep: the task's start, and evaluations `evals` of a run
+    folder's designs `xs` (`run_folder.run_designs`)."""
+    return [("start", np.asarray(task.initial_design))] + [
+        (f"eval {e}", task.embed(xs[e - 1])) for e in evals if 1 <= e <= len(xs)]
 
 
 def frequencies(scene, x) -> dict:
@@ -67,7 +64,7 @@ def frequencies(scene, x) -> dict:
 
 
 def solve(scene, config, x, repeats: int = 1):
-    """((J, health), grad, seconds of the fastest compiled call)."""
+    """(J, health scalars, grad, seconds of the fastest compiled call)."""
     import jax
 
     from design_engine.solve.run import make_objective
@@ -81,7 +78,9 @@ def solve(scene, config, x, repeats: int = 1):
         (value, health), grad = vg(x)
         jax.block_until_ready(grad)
         best = min(best, time.perf_counter() - t0)
-    return float(value), {k: float(v) for k, v in health.items()}, np.asarray(grad), best
+    # the health scalars (the objective's aux also holds the start state and the terms)
+    return (float(value), {k: float(v) for k, v in health.items() if np.ndim(v) == 0},
+            np.asarray(grad), best)
 
 
 def substeps_for(dt: float, wc: float, limit: float) -> int:
@@ -194,9 +193,10 @@ def main(argv=None) -> int:
     def save():
         path.write_text(json.dumps(report, indent=1))
 
-    task = load_task(args.task)
+    task, xs = (run_designs(p, args.task, args.run) if args.run is not None
+                else (load_task(args.task), []))
     done = {(r["design"], r["scene"]) for r in rows}
-    for label, x in designs(args, task):
+    for label, x in designs(task, xs, args.evals):
         if args.no_start and label == "start":
             continue
         for name, scene in task.scenes.items():

@@ -69,6 +69,7 @@ from design_engine.physics.statics import make_sparse_hessian, make_static_solve
 from design_engine.solve.policy import contact_config
 from design_engine.solve.run import simulate_scene
 from design_engine.solve.simulate import SolverConfig, make_simulator
+from run_folder import run_designs
 
 OUT = Path(__file__).resolve().parent / "results" / "bench_statics.json"
 SCENE = "protection-24x18"
@@ -258,12 +259,8 @@ def part_ramp(strains=(0.0, 0.01, 0.02, 0.05, 0.08)) -> dict:
             "rows": rows, "baseline_dopri5_ramp_8pct": base}
 
 
-def part_warm(run: Path) -> dict:
-    """See the module docstring (`warm`)."""
-    from design_engine.design.task import load_task
-
-    task = load_task("focus-vs-protect")
-    xs = np.load(run / "checkpoint.npz")["x"]
+def part_warm(run: Path, task, xs: np.ndarray) -> dict:
+    """See the module docstring (`warm`): run folder `run`'s designs `xs` of `task`."""
     out = {"run": str(run), "evaluations": len(xs), "scenes": {}}
     for name, sc in task.scenes.items():
         solver = make_static_solver(sc.lattice, sc.supports, model=sc.model)
@@ -291,12 +288,9 @@ def part_warm(run: Path) -> dict:
     return out
 
 
-def part_bound(run: Path, bounds: list[float], level_tols: list[float] = ()) -> dict:
-    """See the module docstring (`bound`)."""
-    from design_engine.design.task import load_task
-
-    task = load_task("focus-vs-protect")
-    xs = np.load(run / "checkpoint.npz")["x"]
+def part_bound(run: Path, task, xs: np.ndarray, bounds: list[float],
+               level_tols: list[float] = ()) -> dict:
+    """See the module docstring (`bound`): run folder `run`'s designs `xs` of `task`."""
     out = {"run": str(run), "evaluations": len(xs), "bounds_mm": bounds,
            "level_tols": list(level_tols), "default_level_tol": statics.LEVEL_TOL, "scenes": {}}
     for name, sc in task.scenes.items():
@@ -430,10 +424,11 @@ def main(argv=None) -> int:
                    "(mm), each against the default")
     args = p.parse_args(argv)
     parts = args.parts.split(",")
-    for part in {"warm", "bound"} & set(parts):
-        if args.run is None or not (args.run / "checkpoint.npz").exists():
-            p.error(f"--parts {part} needs --run DIR, a focus-vs-protect run folder with "
-                    "checkpoint.npz")
+    for part in sorted({"warm", "bound"} & set(parts)):
+        if args.run is None:
+            p.error(f"--parts {part} needs --run DIR, a focus-vs-protect run folder")
+    if {"warm", "bound"} & set(parts):
+        task, xs = run_designs(p, "focus-vs-protect", args.run)
     unknown = set(parts) - {"timing", "hessian", "branches", "ramp", "cholesky", "leveltol",
                             "warm", "bound"}
     if unknown:
@@ -459,10 +454,11 @@ def main(argv=None) -> int:
             doc["level_tol"] = part_level_tol([float(v) for v in args.strains.split(",")],
                                               args.seeds)
         elif part == "warm":
-            doc["warm"] = part_warm(args.run)
+            doc["warm"] = part_warm(args.run, task, xs)
         elif part == "bound":
             tols = [float(v) for v in args.level_tols.split(",") if v]
-            found = part_bound(args.run, [float(v) for v in args.bounds.split(",") if v], tols)
+            bounds = [float(v) for v in args.bounds.split(",") if v]
+            found = part_bound(args.run, task, xs, bounds, tols)
             if tols:
                 doc.setdefault("bound_level_tol", {})[str(args.run)] = found
             else:

@@ -46,6 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from machine import describe
+from run_folder import run_designs
 
 TIGHT = (1e-10, 1e-8)
 FALLBACK = (1e-8, 1e-4)
@@ -212,14 +213,10 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     from design_engine.design.task import load_task
 
-    task = load_task(args.task)
+    task, xs = (run_designs(p, args.task, args.run) if args.run is not None
+                else (load_task(args.task), []))
     designs = [] if args.no_start else [("start", np.asarray(task.initial_design))]
-    if args.run is not None:
-        if not (args.run / "checkpoint.npz").exists():
-            p.error(f"{args.run} holds no checkpoint.npz (a `metarig design` run folder)")
-        xs = np.load(args.run / "checkpoint.npz")["x"]
-        designs += [(f"eval {e}", task.embed(xs[e - 1])) for e in args.evals
-                    if 1 <= e <= len(xs)]
+    designs += [(f"eval {e}", task.embed(xs[e - 1])) for e in args.evals if 1 <= e <= len(xs)]
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / "bench_step_convergence.json"
     doc = json.loads(path.read_text()) if path.exists() else {"rows": {}}

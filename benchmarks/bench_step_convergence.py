@@ -22,8 +22,9 @@ steps.
 
 `--order 4` solves the same steps by the fourth-order composition of Verlet steps
 (`FixedStepVerlet(order=4)`: five force evaluations a step, contact substeps kept; rows keyed
-`/ order 4`, also with `--gradients`; its `step_error` keeps Verlet's 4/3, where a fourth-order step's Richardson factor
-is 16/15): whether a higher order buys accuracy per second where Verlet needs small steps.
+`/ order 4`, also with `--gradients`; its `step_error` keeps Verlet's factor 4/3, where a
+fourth-order step's Richardson factor is 16/15): whether a higher order buys accuracy per
+second where Verlet needs small steps.
 
 `--gradients` instead solves value and gradient by the policy's fixed step at h, h/2, ... and
 compares both with Dopri8's at rtol 1e-10 (key `gradients`: `J_rel_err`, `grad_cosine`,

@@ -26,6 +26,10 @@ steps.
 fourth-order step's Richardson factor is 16/15): whether a higher order buys accuracy per
 second where Verlet needs small steps.
 
+`--contact-substeps N` steps the contact forces N times per step
+(`FixedStepVerlet.contact_substeps`; 1: with the rest) instead of the policy's number (rows
+keyed `/ substeps N`): whether the error at the step is the barrier's.
+
 `--gradients` instead solves value and gradient by the policy's fixed step at h, h/2, ... and
 compares both with Dopri8's at rtol 1e-10 (key `gradients`: `J_rel_err`, `grad_cosine`,
 `grad_rel_err`, `value_and_grad_s`): what the half-step check on J says of the gradient.
@@ -142,7 +146,8 @@ def gradient_row(scene, halvings: int, order: int = 2) -> dict:
 
 
 def row_for(scene, halvings: int, dtype: str | None = None,
-            newmark_iterations: int | None = None, order: int = 2) -> dict:
+            newmark_iterations: int | None = None, order: int = 2,
+            contact_substeps: int | None = None) -> dict:
     import diffrax
 
     from design_engine.solve.implicit_step import ImplicitNewmark
@@ -159,6 +164,9 @@ def row_for(scene, halvings: int, dtype: str | None = None,
     if order != 2:
         config = dataclasses.replace(config, solver=dataclasses.replace(config.solver,
                                                                         order=order))
+    if contact_substeps is not None:
+        config = dataclasses.replace(config, use_contact=True, solver=dataclasses.replace(
+            config.solver, contact_substeps=contact_substeps))
     if newmark_iterations is not None:  # implicit Newmark at the policy's step, with contact
         config = dataclasses.replace(config, solver=ImplicitNewmark(
             max_dt=config.solver.max_dt, iterations=newmark_iterations), use_contact=True)
@@ -198,6 +206,8 @@ def main(argv=None) -> int:
                    "policy's Verlet, at the same steps (rows keyed `/ newmark K`)")
     p.add_argument("--order", type=int, choices=(2, 4), default=2, help="4: the fixed step by "
                    "the fourth-order composition of Verlet steps (rows keyed `/ order 4`)")
+    p.add_argument("--contact-substeps", type=int, help="the contact forces stepped this many "
+                   "times per step instead of the policy's number (rows keyed `/ substeps N`)")
     p.add_argument("--gradients", action="store_true", help="instead of the forward step "
                    "sweep: value and gradient by the policy's fixed step at h, h/2, ... against "
                    "Dopri8 rtol 1e-10 (key `gradients`)")
@@ -247,7 +257,8 @@ def main(argv=None) -> int:
         part = "rows"
 
         def make(sc):
-            return row_for(sc, args.halvings, args.dtype, args.newmark_iterations, args.order)
+            return row_for(sc, args.halvings, args.dtype, args.newmark_iterations, args.order,
+                           args.contact_substeps)
 
         def line(row):
             return f"fallback {row['fallback_rel_err']:.1e}; " + ", ".join(
@@ -255,7 +266,9 @@ def main(argv=None) -> int:
                 f" (est {s.get('step_error', float('nan')):.1e})" for s in row["steps"])
     suffix = "".join(f" / {v}" for v in (args.dtype, args.newmark_iterations and
                                           f"newmark {args.newmark_iterations}",
-                                          args.order != 2 and f"order {args.order}") if v)
+                                          args.order != 2 and f"order {args.order}",
+                                          args.contact_substeps is not None
+                                          and f"substeps {args.contact_substeps}") if v)
     if part == "adaptive" and args.adaptive_atols != [FALLBACK[1]]:
         suffix = " / atols " + " ".join(f"{a:g}" for a in args.adaptive_atols)
     if part == "adaptive" and args.adaptive_solver != "Dopri8":

@@ -113,21 +113,34 @@ def adaptive_row(scene, rtols: list[float], atols: list[float] = (FALLBACK[1],),
     return {"reference_value_and_grad_s": ref_s, "rows": rows}
 
 
+def policy_config(scene, dtype: str | None = None, order: int = 2,
+                  contact_substeps: int | None = None):
+    """The policy's own configuration at the design (`policy.choose_config`), in `dtype`, with
+    the fixed step of `order` and `contact_substeps` (contact on) where given."""
+    from design_engine.solve.policy import choose_config
+
+    config = choose_config(scene).config
+    if dtype is not None:
+        config = dataclasses.replace(config, dtype=dtype)
+    solver = {"order": order} if order != 2 else {}
+    if contact_substeps is not None:
+        solver["contact_substeps"] = contact_substeps
+        config = dataclasses.replace(config, use_contact=True)
+    return dataclasses.replace(config, solver=dataclasses.replace(config.solver, **solver))
+
+
 def gradient_row(scene, halvings: int, order: int = 2) -> dict:
     """Value and gradient by the policy's own fixed-step configuration at the design (as
     `row_for`) at h, h/2, ... against Dopri8 at rtol 1e-10 / atol 1e-8: relative error of J,
     gradient cosine and relative error, wall time (compiled first)."""
     import diffrax
 
-    from design_engine.solve.policy import choose_config, refined
+    from design_engine.solve.policy import refined
     from design_engine.solve.simulate import SimulationError, SolverConfig
 
     ref_j, ref_g, ref_s, _ = _value_and_grad(scene, SolverConfig(
         solver=diffrax.Dopri8(), rtol=TIGHT[0], atol=TIGHT[1]))
-    config = choose_config(scene).config
-    if order != 2:
-        config = dataclasses.replace(config, solver=dataclasses.replace(config.solver,
-                                                                        order=order))
+    config = policy_config(scene, order=order)
     steps = []
     for _ in range(halvings + 1):
         try:
@@ -151,22 +164,14 @@ def row_for(scene, halvings: int, dtype: str | None = None,
     import diffrax
 
     from design_engine.solve.implicit_step import ImplicitNewmark
-    from design_engine.solve.policy import choose_config, refined, relative_step_error
+    from design_engine.solve.policy import refined, relative_step_error
     from design_engine.solve.simulate import SimulationError, SolverConfig
 
     ref_j, _, ref_s = _solve(scene, SolverConfig(solver=diffrax.Dopri8(), rtol=TIGHT[0],
                                                  atol=TIGHT[1]))
     fb_j, _, fb_s = _solve(scene, SolverConfig(solver=diffrax.Dopri8(), rtol=FALLBACK[0],
                                                atol=FALLBACK[1]))
-    config = choose_config(scene).config
-    if dtype is not None:
-        config = dataclasses.replace(config, dtype=dtype)
-    if order != 2:
-        config = dataclasses.replace(config, solver=dataclasses.replace(config.solver,
-                                                                        order=order))
-    if contact_substeps is not None:
-        config = dataclasses.replace(config, use_contact=True, solver=dataclasses.replace(
-            config.solver, contact_substeps=contact_substeps))
+    config = policy_config(scene, dtype, order, contact_substeps)
     if newmark_iterations is not None:  # implicit Newmark at the policy's step, with contact
         config = dataclasses.replace(config, solver=ImplicitNewmark(
             max_dt=config.solver.max_dt, iterations=newmark_iterations), use_contact=True)

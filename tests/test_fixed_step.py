@@ -18,16 +18,19 @@ def _forcing(t):
     return np.array([1.0, 0.0]) * np.sin(t)  # time-dependent, as a prescribed motion's
 
 
-def _fixed_step(max_dt, order):  # float64: importing design_engine enables it
+def _fixed_step(max_dt, order, dtype=jnp.float64):  # importing design_engine enables float64
+    stiffness, forcing = jnp.asarray(STIFFNESS, dtype), jnp.asarray([1.0, 0.0], dtype)
+
     def force(q, t):
-        return (-jnp.asarray(STIFFNESS) * q + jnp.array([1.0, 0.0]) * jnp.sin(t),
-                (0.5 * jnp.sum(jnp.asarray(STIFFNESS) * q * q), jnp.zeros(())))
+        return (-stiffness * q + forcing * jnp.sin(t),
+                (0.5 * jnp.sum(stiffness * q * q), jnp.zeros((), dtype)))
 
     method = FixedStepVerlet(max_dt=max_dt, order=order)
     integrate = method.make_integrator(step_grid(TS, max_dt), None, None, 2)
-    qs, vs, converged, _ = integrate(force, jnp.asarray(1.0 / MASS), jnp.asarray(DAMPING),
-                                     (jnp.asarray(Q0), jnp.asarray(V0)), jnp.asarray(TS))
-    assert bool(converged)
+    qs, vs, converged, _ = integrate(
+        force, jnp.asarray(1.0 / MASS, dtype), jnp.asarray(DAMPING, dtype),
+        (jnp.asarray(Q0, dtype), jnp.asarray(V0, dtype)), jnp.asarray(TS, dtype))
+    assert bool(converged) and qs.dtype == dtype
     return np.asarray(qs), np.asarray(vs)
 
 
@@ -63,3 +66,12 @@ def test_the_fourth_order_step_is_five_verlet_steps_that_span_it():
     assert "order" not in FixedStepVerlet(max_dt=0.01).summary()
     with pytest.raises(ValueError, match="order must be 2 or 4"):
         FixedStepVerlet(order=3)
+
+
+def test_the_fourth_order_step_runs_in_float32():
+    # the composition's fractions enter as Python floats: a float32 solve stays float32 (a
+    # numpy float64 start time once promoted its carry, and the scan refused it)
+    q32, _ = _fixed_step(0.05, 4, jnp.float32)
+    q64, _ = _fixed_step(0.05, 4)
+    # 1000 sub-steps of float32 rounding (measured 1.1e-5 on amplitudes up to 3.1)
+    assert np.max(np.abs(q32 - q64)) < 1e-4

@@ -15,7 +15,7 @@ from design_engine.solve.policy import (ENERGY_TOLERANCE, STABILITY_SAFETY, Choi
                                         contact_config, max_angular_frequency)
 from design_engine.solve.run import simulate_scene
 from design_engine.solve.simulate import SimulationError, SolverConfig
-from gradcheck import directional_check
+from gradcheck import central_difference, directional_check
 
 # the tight Dopri8 reference (`studies.methods.reference_method`): one compiled program for the
 # 8x6 focusing lattice, shared by the two tests that solve its designs with it
@@ -360,10 +360,7 @@ def test_the_policy_objective_differentiates_only_the_solve_that_stands(jammed, 
     # the static solve's residual leave it well within 1e-5 on any machine
     value_of = run_mod.make_objective(jammed, refined(config))[1]
     assert float(value) == pytest.approx(float(value_of(x)[0]), rel=1e-12)
-    d = np.random.default_rng(3).normal(size=x.size)
-    d /= np.linalg.norm(d)
-    h = 1e-4
-    fd = (float(value_of(x + h * d)[0]) - float(value_of(x - h * d)[0])) / (2 * h)
+    d, fd = central_difference(value_of, x, h=1e-4, seed=3)
     assert float(np.dot(np.asarray(grad), d)) == pytest.approx(fd, rel=1e-5)
 
 
@@ -436,7 +433,7 @@ def test_contact_substeps_match_the_reference_and_close_the_ledger(jammed, jamme
                                                                    jammed_reference):
     """Multiple time stepping (`FixedStepVerlet.contact_substeps`) on the small scene in contact:
     the policy's own configuration (its step, the contact forces stepped 4 times per step, remat;
-    the programs of the tests above) gives J within 1e-4 of the tight reference (measured 6.3e-6)
+    the configuration the tests above solve) gives J within 1e-4 of the tight reference (measured 6.3e-6)
     and a work-energy drift below a tenth of the tolerance (measured 3.2e-6, as with 2 substeps
     and as plain Verlet's; a ledger that left out the contact energy drifted 2.4e-5); its
     gradient matches finite differences (measured within 1e-8)."""

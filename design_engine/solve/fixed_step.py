@@ -228,6 +228,8 @@ class FixedStepVerlet(AbstractFixedStep):
 # 4^(1/3)); symmetric, so fourth order from the second-order symmetric Verlet step
 _P = 1.0 / (4.0 - 4.0 ** (1.0 / 3.0))
 SUZUKI_4 = (_P, _P, 1.0 - 4.0 * _P, _P, _P)
+# where each of them starts within the step (Python floats, so a float32 solve stays float32)
+SUZUKI_4_STARTS = tuple(float(v) for v in np.cumsum((0.0,) + SUZUKI_4[:-1]))
 
 
 def substeps(interval: float, max_dt: float) -> int:
@@ -345,7 +347,7 @@ def integrate(method: FixedStepVerlet, force, inv_mass, damping, y0, ts, t0: flo
     def step(carry, t, dt):
         if method.order == 2:
             return verlet_step(carry, t, dt)
-        for c, start in zip(SUZUKI_4, np.cumsum((0.0,) + SUZUKI_4[:-1])):
+        for c, start in zip(SUZUKI_4, SUZUKI_4_STARTS):
             carry = verlet_step(carry, t + start * dt, c * dt)
         return carry
 

@@ -256,20 +256,22 @@ def test_an_equilibrium_followed_from_a_nearby_design_has_the_same_gradient(
     np.testing.assert_allclose(np.asarray(g_warm), np.asarray(g_cold), rtol=1e-6, atol=1e-10)
 
 
-def test_an_equilibrium_given_as_the_start_is_confirmed_not_solved_again(scene, solver,
-                                                                         equilibrium):
-    """`start=` (the design loop's equilibrium, solved before its step check): Newton at the
-    full load confirms it with no load level and returns it; a start Newton cannot confirm
-    (non-finite) runs the load continuation as without one."""
+def test_an_equilibrium_given_as_the_start_is_taken_not_solved_again(scene, solver,
+                                                                     equilibrium):
+    """`start=` (the design loop's equilibrium, solved before its step check): returned as it
+    is, with no load level, and its residual reported; a start that is not this design's
+    equilibrium (moved by 1e-3 mm / rad, or non-finite) is refused by `check_equilibrium` in
+    one line, never returned as an answer."""
     started = jax.jit(lambda x, m, ld, t, s: make_static_solver(scene.lattice, scene.supports)(
         x, m, ld, t, start=s))
     t = scene.loading.precompression_time
     x = jnp.asarray(scene.design)
     q, info = started(x, scene.material, scene.loading, t, equilibrium[0])
     assert int(info["levels"]) == 0 < int(equilibrium[1]["levels"])
-    assert float(jnp.max(jnp.abs(q - equilibrium[0]))) < 1e-9
+    np.testing.assert_array_equal(np.asarray(q), np.asarray(equilibrium[0]))
     check_equilibrium(info)
-    qn, infon = started(x, scene.material, scene.loading, t,
-                        jnp.full_like(equilibrium[0], jnp.nan))
-    assert int(infon["levels"]) == int(equilibrium[1]["levels"])
-    assert float(jnp.max(jnp.abs(qn - equilibrium[0]))) < 1e-12
+    for wrong in (equilibrium[0] + 1e-3, jnp.full_like(equilibrium[0], jnp.nan)):
+        _, info_wrong = started(x, scene.material, scene.loading, t, wrong)
+        with pytest.raises(EquilibriumError, match="did not converge") as err:
+            check_equilibrium(info_wrong)
+        assert "\n" not in str(err.value)

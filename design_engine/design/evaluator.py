@@ -43,7 +43,7 @@ from design_engine.solve.policy import (STABILITY_SAFETY, choose_config, contact
                                         for_gradient, initial_vector, make_frequency_estimator,
                                         refined, relative_step_error)
 from design_engine.solve.run import (at_rest_in, checked, compile_key, config_summary,
-                                     prestressed_state, split_gradient)
+                                     prestressed_state, split_gradient, static_equilibrium)
 from design_engine.solve.simulate import (SimulationError, Solution, SolverConfig, make_simulator,
                                           solve_health)
 
@@ -229,7 +229,8 @@ class TaskEvaluator:
 
     def _solve(self, name: str, config: SolverConfig, x: np.ndarray, equilibrium=None):
         """The forward pass of one value-and-gradient solve (`equilibrium`: the design's static
-        equilibrium, [n_blocks, 3], solved already; see `make_simulator`): `(value, pending
+        equilibrium in the free DOFs, solved already, `run.static_equilibrium`; see
+        `make_simulator`): `(value, pending
         gradient, term values, aux)`, the gradient by `_gradient` (pending: the configuration,
         the reverse pass, its pullback and seed). Raises `SimulationError` on any failure
         (`StepBudgetError` when an adaptive solve used up the task's step budget)."""
@@ -237,9 +238,6 @@ class TaskEvaluator:
         config = self._budgeted(config, name)
         forward, reverse, _ = self._function(name, config)
         terms = [t for t in self.task.terms if t.scene == name]
-        if equilibrium is not None:  # its free DOFs
-            equilibrium = jnp.asarray(
-                np.asarray(equilibrium).reshape(-1)[np.asarray(scene.supports.free)])
         value, aux, pullback = jax.block_until_ready(forward(
             jnp.asarray(x), scene.material, scene.loading, jnp.asarray(scene.sample_times),
             self._weights(name), None, equilibrium))
@@ -351,7 +349,8 @@ class TaskEvaluator:
             return checked[0].config
 
         def solve(config):
-            start = self._equilibrium(name, x) if self._static(name) else None
+            start = (static_equilibrium(scene, config, x, self._equilibrium(name, x))
+                     if self._static(name) else None)
             value, pending, terms, aux = self._solve(name, config, x, start)
             return (value, pending, terms, aux), aux
 

@@ -162,11 +162,17 @@ def make_static_solver(lattice: Lattice, supports: Supports, *, use_contact: boo
             0.24-2.4 s against 10-13 s and reached the load continuation's equilibrium 3 times
             in 4, the fourth 2.1 mm/rad off (`benchmarks/bench_statics.py --parts warm`), so
             the solver policy does not use it.
-        start: optional [n_free] this design's equilibrium, already found (e.g. by this
-            solver, compiled apart; not differentiated): Newton at the full load confirms it
-            (one step), else the load continuation runs as without it. "levels" is then 0.
-            A caller that needs the equilibrium before a solve that differentiates through it
-            (the design loop's step check) so solves it once.
+        start: optional [n_free] this design's equilibrium, already found (by this solver,
+            compiled apart, e.g. `equilibrium_state`; not differentiated): taken as it is, with
+            no Newton step and no load level ("levels" 0, "damping" 0), and differentiated
+            like a solved one; "gradient_norm" is its residual, so a start that is not this
+            design's equilibrium fails `check_equilibrium` (never a silent answer). A caller
+            that needs the equilibrium before a solve that differentiates through it (the
+            design loop's step check, `run.simulate_scene`) so solves it once, in one program
+            per topology, and the solve's own program holds no Newton solver or continuation:
+            the 6x6 jammed scene's forward pass (value and pullback, policy's step) compiles in
+            6.0 s with a start, 10.0 s solving the equilibrium itself (12.1 s when a start was
+            confirmed by Newton, with the continuation as its fallback, as before).
 
     Returns q_f (the free DOFs at equilibrium, mm / rad, in `supports.free` order;
     differentiable by the implicit function theorem) and info (not differentiated):
@@ -326,26 +332,14 @@ def make_static_solver(lattice: Lattice, supports: Supports, *, use_contact: boo
             ok, lambda: (q_w, mu_w, jnp.asarray(1.0, dtype), -k),
             lambda: continuation(qc_s, bonds_s, ms, dtype))
 
-    def confirmed(start, qc_s, bonds_s, ms, dtype):
-        """Newton at the full load from `start` (see `equilibrium`), else the load
-        continuation: (q, mu, lam, levels)."""
-        q0 = jnp.asarray(start, dtype)
-        usable = (jnp.all(jnp.isfinite(q0)) & jnp.isfinite(total(q0, qc_s, bonds_s, ms))
-                  & admissible(q0, qc_s, bonds_s, ms))
-        q, mu, ok = newton(jnp.where(usable, q0, 0.0), jnp.asarray(1e-8, dtype), qc_s,
-                           bonds_s, ms)
-        ok = usable & ok & admissible(q, qc_s, bonds_s, ms)
-        return jax.lax.cond(ok, lambda: (q, mu, jnp.asarray(1.0, dtype), jnp.asarray(0)),
-                            lambda: continuation(qc_s, bonds_s, ms, dtype))
-
     def equilibrium(x, material, loading: Loading, t_hold, guess=None, start=None):
         x = jnp.asarray(x)
         xs, ms, ls = jax.lax.stop_gradient((x, material, loading))
         qc_s, bonds_s = constants(xs, ls, t_hold)
 
-        if start is not None:
-            q_s, mu, lam, levels = confirmed(jax.lax.stop_gradient(start), qc_s, bonds_s, ms,
-                                             x.dtype)
+        if start is not None:  # taken as it is (see above): the residual below judges it
+            q_s, mu, lam, levels = (jnp.asarray(start, x.dtype), jnp.asarray(0.0, x.dtype),
+                                    jnp.asarray(1.0, x.dtype), jnp.asarray(0))
         elif guess is None:
             q_s, mu, lam, levels = continuation(qc_s, bonds_s, ms, x.dtype)
         else:
@@ -366,16 +360,23 @@ def make_static_solver(lattice: Lattice, supports: Supports, *, use_contact: boo
 
 
 _SOLVERS: dict[tuple, object] = {}  # jitted solvers of this process, per topology
+_STATES: dict[tuple, np.ndarray] = {}  # the last equilibria found (`equilibrium_state`)
+KEEP_STATES = 16  # how many
 
 
 def equilibrium_state(scene) -> np.ndarray:
     """[n_blocks, 3] state (mm, rad) of a static pre-compression scene (`scenes.Scene`): the
     equilibrium under its closed stages with the prescribed DOFs filled in, as the pulse starts
-    from it (one compiled solver per lattice and supports). Raises `EquilibriumError` when the
-    solve does not converge."""
+    from it (one compiled solver per lattice and supports; the last `KEEP_STATES` equilibria
+    are kept, so the policy's frequency check and the solve after it, or a design's re-solves,
+    do not solve it again). Raises `EquilibriumError` when the solve does not converge."""
     lat, sup = scene.lattice, scene.supports
     key = (lat.shape, lat.n_blocks, np.asarray(lat.bond_blocks).tobytes(),
            sup.constrained.tobytes(), sup.channel.tobytes(), sup.gain.tobytes(), scene.model)
+    leaves, tree = jax.tree_util.tree_flatten((scene.design, scene.material, scene.loading))
+    inputs = key + (str(tree), tuple(np.asarray(a).tobytes() for a in leaves))
+    if inputs in _STATES:
+        return _STATES[inputs].copy()
     if key not in _SOLVERS:
         _SOLVERS[key] = jax.jit(make_static_solver(lat, sup, model=scene.model))
     q_f, info = _SOLVERS[key](jnp.asarray(scene.design), scene.material, scene.loading, 0.0)
@@ -384,4 +385,7 @@ def equilibrium_state(scene) -> np.ndarray:
     q = np.zeros(3 * scene.n_units)
     q[scene.supports.free] = np.asarray(q_f)
     q[scene.supports.constrained] = np.asarray(values(jnp.asarray(0.0), scene.loading))
-    return q.reshape(-1, 3)
+    while len(_STATES) >= KEEP_STATES:
+        del _STATES[next(iter(_STATES))]  # the oldest
+    _STATES[inputs] = q.reshape(-1, 3)
+    return _STATES[inputs].copy()

@@ -129,12 +129,38 @@ def at_rest_in(start_free):
     return q0, jnp.zeros_like(q0)
 
 
+def static_equilibrium(scene: Scene, config: SolverConfig, x=None, state=None):
+    """[n_free] the simulator's `equilibrium=` for a solve of design `x` (default the scene's)
+    with `config`: the free DOFs of the design's static equilibrium (`state` [n_blocks, 3] when
+    found already, else `prestressed_state`: one compiled solver per topology, the last
+    equilibria kept), so that the solve's own program holds no static solver
+    (`statics.make_static_solver(start=)`). None where the solve finds its start itself: a
+    scene without a static pre-compression, a traced `x`, or a configuration whose static
+    energy is not the model's (linearised strains, a scaled stretch stiffness, or contact left
+    out where the equilibrium is within the contact cutoff). Raises `SimulationError` when the
+    equilibrium is not found."""
+    from design_engine.solve.policy import past_cutoff, static_void_margin
+
+    ld = scene.loading
+    if (not (ld.strain > 0.0 and ld.is_static) or isinstance(x, jax.core.Tracer)
+            or config.linearized or config.stretch_scale != 1.0):
+        return None
+    if x is not None:
+        scene = scene.with_design(np.asarray(x, np.float64))
+    state = prestressed_state(scene) if state is None else np.asarray(state)
+    if not config.use_contact and past_cutoff(static_void_margin(scene, state), scene):
+        return None
+    return jnp.asarray(state.reshape(-1)[np.asarray(scene.supports.free)])
+
+
 def _simulate(scene: Scene, config: SolverConfig, ts_ms=None, loading=None, initial=None):
     ts_ms = scene.sample_times if ts_ms is None else ts_ms
     sim = compiled_simulator(scene, config, ts_ms)
     start = time.perf_counter()
+    equilibrium = (static_equilibrium(scene, config)
+                   if initial is None and loading is None else None)
     sol = sim(jnp.asarray(scene.design), scene.material, loading or scene.loading,
-              jnp.asarray(ts_ms), initial)
+              jnp.asarray(ts_ms), initial, equilibrium)
     sol = jax.block_until_ready(sol)
     return check_solution(sol, config), time.perf_counter() - start
 
@@ -344,7 +370,9 @@ def make_objective(scene: Scene, config: SolverConfig | None = None, weights=Non
 
     def pick(gradient: bool, x):
         def solve(cfg):
-            out = program(cfg, gradient)[0](x) if gradient else program(cfg, False)(x)
+            start = static_equilibrium(scene, cfg, x)
+            out = (program(cfg, gradient)[0](x, None, start) if gradient
+                   else program(cfg, False)(x, None, start))
             checked(out[:2], cfg)
             return (cfg, out), out[1]
 
@@ -389,8 +417,8 @@ def _objective(scene: Scene, config: SolverConfig, weights, jit: bool = False):
         raise ValueError(f"{len(names)} targets ({names}) need as many weights, got {weights}")
     ts = jnp.asarray(scene.sample_times)
 
-    def objective(x, initial=None):
-        sol = sim(x, scene.material, scene.loading, ts, initial)
+    def objective(x, initial=None, equilibrium=None):
+        sol = sim(x, scene.material, scene.loading, ts, initial, equilibrium)
         return scene_objective(scene, sol, weights), dict(solve_health(sol),
                                                           start_free=sol.start_free)
 
@@ -399,7 +427,18 @@ def _objective(scene: Scene, config: SolverConfig, weights, jit: bool = False):
 
 def _jitted_objective(scene: Scene, config: SolverConfig, weights):
     objective = _objective(scene, config, weights)
-    return jax.jit(jax.value_and_grad(objective, has_aux=True)), jax.jit(objective)
+    return tuple(_from_equilibrium(scene, config, fn) for fn in (
+        jax.jit(jax.value_and_grad(objective, has_aux=True)), jax.jit(objective)))
+
+
+def _from_equilibrium(scene: Scene, config: SolverConfig, fn):
+    """`fn(x, initial=None, equilibrium=None)` as `x, initial=None -> ...`, handed the design's
+    static equilibrium when it starts from one (`static_equilibrium`)."""
+    def call(x, initial=None):
+        return fn(x, initial, None if initial is not None else
+                  static_equilibrium(scene, config, x))
+
+    return call
 
 
 def _split_objective(scene: Scene, config: SolverConfig, weights):

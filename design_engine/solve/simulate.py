@@ -134,10 +134,11 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
             under the closed stages, solved in float64 with the model's energy and
             differentiated by the implicit function theorem, `statics.make_static_solver`).
         equilibrium: optional [n_free] that equilibrium of this very design, already solved (mm /
-            rad, not differentiated): the static solve then starts there (`make_static_solver`'s
-            `start`: one Newton step confirms it, the load continuation only when that fails)
-            instead of running the load continuation again. A caller that needs the
-            equilibrium before the solve (the design loop's step check) solves it once.
+            rad, not differentiated): taken as the static start (`make_static_solver`'s
+            `start`: no Newton step or load continuation in this program; its residual is
+            checked like a solved one's) and differentiated by the implicit function theorem.
+            A caller that needs the equilibrium before the solve (the design loop's step check,
+            the policy's frequency check) solves it once (`run.static_equilibrium`).
     """
     # a fixed step that steps the contact terms apart (`FixedStepVerlet.contact_substeps`): the
     # slow force without them, the fast one of them alone (from the rotations)
@@ -293,7 +294,11 @@ def solve_health(sol: Solution, xp=jnp) -> dict:
 
 def health_failure(health: dict, config: SolverConfig) -> str | None:
     """Why a solve failed, from its `solve_health` scalars (one line), or None if it did not."""
-    msg = failure_message(int(health["result"]), config)
+    try:  # a start that is not an equilibrium first: what follows from it is its consequence
+        check_equilibrium({"gradient_norm": health["static_residual"]})
+        msg = failure_message(int(health["result"]), config)
+    except EquilibriumError as exc:
+        msg = str(exc)
     if msg is None and not bool(health["finite"]):
         hint = config.solver.unstable_hint() if is_fixed_step(config.solver) else ""
         msg = f"non-finite state during the solve{hint}"
@@ -304,11 +309,6 @@ def health_failure(health: dict, config: SolverConfig) -> str | None:
         msg = ("a unit passed through the contact barrier (void angle below the asymptote by "
                f"{np.degrees(-float(health['void_margin'])):.2g} deg): the step was too large for "
                "the contact stiffness; use the adaptive solver or a smaller step")
-    if msg is None:
-        try:
-            check_equilibrium({"gradient_norm": health["static_residual"]})
-        except EquilibriumError as exc:
-            msg = str(exc)
     return msg
 
 

@@ -195,8 +195,9 @@ def _run_with_policy(scene: Scene, config: SolverConfig | None, ts_ms=None, load
         return sol, solve_health(sol, np)
 
     def step_error(cfg, sol, _health):
-        # from the same start: the static equilibrium is not solved again
-        half, w = _simulate(scene, refined(cfg), ts_ms, loading, at_rest_in(sol.start_free))
+        # from the same start (a static equilibrium is kept, not solved again), by the program
+        # a solve at the refined step would use
+        half, w = _simulate(scene, refined(cfg), ts_ms, loading)
         walls.append(w)
         return relative_step_error(float(scene_objective(scene, sol)),
                                    float(scene_objective(scene, half)))
@@ -377,9 +378,10 @@ def make_objective(scene: Scene, config: SolverConfig | None = None, weights=Non
             return (cfg, out), out[1]
 
         def step_error(cfg, result, health):
-            # from the same start: the static equilibrium is not solved again
-            half = checked(program(refined(cfg), False)(x, at_rest_in(health["start_free"])),
-                           refined(cfg))[0]
+            # from the same start (a static equilibrium is kept, not solved again), by the
+            # value program a solve at the refined step would use
+            half = checked(program(refined(cfg), False)(
+                x, None, static_equilibrium(scene, refined(cfg), x)), refined(cfg))[0]
             return relative_step_error(float(result[1][0]), float(half))
 
         def finish(result):  # the reverse pass, for the solve that stands only

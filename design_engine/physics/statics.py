@@ -170,9 +170,10 @@ def make_static_solver(lattice: Lattice, supports: Supports, *, use_contact: boo
             that needs the equilibrium before a solve that differentiates through it (the
             design loop's step check, `run.simulate_scene`) so solves it once, in one program
             per topology, and the solve's own program holds no Newton solver or continuation:
-            the 6x6 jammed scene's forward pass (value and pullback, policy's step) compiles in
-            6.0 s with a start, 10.0 s solving the equilibrium itself (12.1 s when a start was
-            confirmed by Newton, with the continuation as its fallback, as before).
+            the forward pass (value and pullback, the policy's configuration) of the 24x18
+            protection scene at 8 % compiles in 6.7 s with a start against 10.4 s solving the
+            equilibrium itself, and runs in 0.77 against 1.40 s (the static solver, compiled
+            once: 3.7 s; `benchmarks/bench_compile.py`, 2 cores).
 
     Returns q_f (the free DOFs at equilibrium, mm / rad, in `supports.free` order;
     differentiable by the implicit function theorem) and info (not differentiated):

@@ -21,8 +21,9 @@ feasible J against wall time, and where each evaluation's time went) at the end.
 
 `--replay FIRST LAST` instead replays evaluations FIRST..LAST of the stored "after" run (its
 designs, `checkpoint.npz`) through a fresh task evaluator, once from a checkout of `--before`
-and once from this one (or from `--after`), side by side (both at once when `--parallel`): per evaluation its wall
-time, the objective and how many programs the evaluator had compiled
+and once from this one (or from `--after`), side by side (both at once when `--parallel`), each
+from an empty compile cache of its own (OUT/jax-cache-replay-before, -after): per evaluation
+its wall time, the objective and how many programs the evaluator had compiled
 (OUT/bench_focusing_replay.json).
 
     .venv/bin/python benchmarks/bench_focusing_run.py --out runs/bench-focusing-run
@@ -268,7 +269,9 @@ def replay(out: Path, before: str, first: int, last: int, parallel: bool,
         files[label] = out / f"replay_{label}.json"
         cmd = [sys.executable, "-c", REPLAY, str(checkpoint), str(first), str(last),
                str(files[label]), task]
-        env = dict(os.environ, PYTHONPATH=str(src))
+        cache = out / f"jax-cache-replay-{label}"  # empty: each side compiles its own
+        shutil.rmtree(cache, ignore_errors=True)
+        env = dict(os.environ, PYTHONPATH=str(src), METARIG_JAX_CACHE=str(cache))
         t0, load0 = time.perf_counter(), os.getloadavg()[0]
         procs[label] = (subprocess.Popen(cmd, cwd=src, env=env), t0, load0)
         if not parallel:

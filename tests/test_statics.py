@@ -275,3 +275,29 @@ def test_an_equilibrium_given_as_the_start_is_taken_not_solved_again(scene, solv
         with pytest.raises(EquilibriumError, match="did not converge") as err:
             check_equilibrium(info_wrong)
         assert "\n" not in str(err.value)
+
+
+def test_the_last_equilibria_are_kept_and_forgotten_on_request(monkeypatch):
+    """`equilibrium_state` solves a design's equilibrium once (the policy's frequency check,
+    the solve and its half-step check share it), hands out copies, solves another design's
+    anew, and after `forget_equilibria` solves again (the timings of `studies` so pay the
+    static solve on every call, as a new design does)."""
+    from design_engine.physics import statics
+
+    static = build_scene("protection-24x18", nx=6, ny=6, strain=0.07, amplitude_m=2e-3)
+    statics.forget_equilibria()
+    first = statics.equilibrium_state(static)
+    calls = []
+    for key, program in list(statics._SOLVERS.items()):
+        monkeypatch.setitem(statics._SOLVERS, key,
+                            lambda *a, _p=program: (calls.append(1), _p(*a))[1])
+    again = statics.equilibrium_state(static)
+    np.testing.assert_array_equal(again, first)
+    again[:] = np.nan  # a copy: the kept state is not touched
+    np.testing.assert_array_equal(statics.equilibrium_state(static), first)
+    assert calls == []
+    other = static.with_design(static.design * 1.001)
+    assert np.abs(statics.equilibrium_state(other) - first).max() > 1e-6 and len(calls) == 1
+    statics.forget_equilibria()
+    np.testing.assert_allclose(statics.equilibrium_state(static), first, rtol=0, atol=1e-12)
+    assert len(calls) == 2

@@ -365,6 +365,12 @@ _STATES: dict[tuple, np.ndarray] = {}  # the last equilibria found (`equilibrium
 KEEP_STATES = 16  # how many
 
 
+def forget_equilibria() -> None:
+    """Drop the equilibria `equilibrium_state` keeps: a timing that repeats a solve of one
+    design then pays its static solve every time, as a new design does."""
+    _STATES.clear()
+
+
 def equilibrium_state(scene) -> np.ndarray:
     """[n_blocks, 3] state (mm, rad) of a static pre-compression scene (`scenes.Scene`): the
     equilibrium under its closed stages with the prescribed DOFs filled in, as the pulse starts

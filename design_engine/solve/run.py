@@ -346,7 +346,8 @@ def make_objective(scene: Scene, config: SolverConfig | None = None, weights=Non
     for a single target, (0.5, 0.5) for two), or the angular momentum J_L for spin scenes. `aux`
     holds the solver result code, step count and void margin, so that failures can be reported
     after the jitted call (see `checked`). With a given `config` both functions are jitted as
-    they are. `config=None` runs each call under the policy driver (`driver.solve_with_policy`):
+    they are. A design's static pre-compression is solved apart, once, and handed to the solve
+    (`static_equilibrium`), unless `x` is traced. `config=None` runs each call under the policy driver (`driver.solve_with_policy`):
     the automatic per-scene choice, repeated with the configuration `policy.next_config` names
     (contact once a void reached the cutoff; half the step or Dopri8 once the barrier outgrew
     the fixed step or the work-energy balance drifted; each compiled on first need), so the

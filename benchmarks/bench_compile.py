@@ -4,7 +4,13 @@ against handed to it (`simulate(..., equilibrium=)`, as `run.static_equilibrium`
 the static solver itself (compiled once per topology). Writes
 benchmarks/results/bench_compile.json.
 
-    .venv/bin/python benchmarks/bench_compile.py [--scenes small full] [--out FILE]
+    .venv/bin/python benchmarks/bench_compile.py [--scenes small full] [--before DIR]
+                                                 [--out FILE]
+
+`--before DIR` (a checkout of an earlier commit, e.g. `git worktree add DIR REF`) also times the
+default experiment (24x16 at 2 %, static start) as a new user first runs it: `simulate_scene`
+in a fresh process with the cache off, the first call (compilation included) and a second one,
+from DIR and from this checkout.
 
 Each scene runs in a fresh process with the compilation cache off. Per program: XLA's lowering
 and compilation (`jit(...).lower(...)` and `.compile()`, s) and one run of the compiled program;
@@ -63,10 +69,39 @@ print(json.dumps(out))
 """
 
 
+# the default experiment as a new user first runs it (`simulate_scene` under the policy, static
+# start included), public API only, so that it also runs from an older checkout (`--before`)
+DEFAULT = """
+import json, time
+t = time.perf_counter()
+from design_engine.physics.scenes import build_scene
+from design_engine.solve.run import simulate_scene
+scene = build_scene("precompression-24x18", nx=24, ny=16, strain=0.02)
+t1 = time.perf_counter(); run = simulate_scene(scene); t2 = time.perf_counter()
+again = simulate_scene(scene); t3 = time.perf_counter()
+print(json.dumps({"import_s": round(t1 - t, 2), "first_s": round(t2 - t1, 2),
+                  "second_s": round(t3 - t2, 2), "J": run.metrics["target_ke_mean_J"],
+                  "solver": run.metrics["solver"]["solver"]}))
+"""
+
+
+def default_experiment(src: Path) -> dict:
+    """The DEFAULT probe from the sources in `src`, compilation cache off."""
+    env = dict(os.environ, METARIG_JAX_CACHE="", PYTHONPATH=str(src))
+    run = subprocess.run([sys.executable, "-c", DEFAULT], env=env, cwd=src, capture_output=True,
+                         text=True)
+    if run.returncode != 0:
+        raise SystemExit(run.stderr[-2000:])
+    return json.loads(run.stdout.strip().splitlines()[-1])
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scenes", nargs="+", choices=sorted(SCENES), default=["small", "full"])
     p.add_argument("--out", type=Path, default=ROOT / "benchmarks/results/bench_compile.json")
+    p.add_argument("--before", type=Path, help="a checkout of an earlier commit: the default "
+                   "experiment's first simulate_scene from it and from this one, one after the "
+                   "other (key `default_experiment`)")
     args = p.parse_args(argv)
     result = {"machine": describe(), "load_average_1min": {"before": os.getloadavg()[0]},
               "scenes": {}}
@@ -81,6 +116,12 @@ def main(argv=None) -> int:
             return 1
         result["scenes"][label] = json.loads(run.stdout.strip().splitlines()[-1])
         print(json.dumps(result["scenes"][label], indent=1), flush=True)
+    if args.before is not None:
+        result["default_experiment"] = {
+            "scene": "precompression-24x18 at 24x16, 2 % (static start + pulse)",
+            "before": {"src": str(args.before), **default_experiment(args.before)},
+            "after": default_experiment(ROOT)}
+        print(json.dumps(result["default_experiment"], indent=1), flush=True)
     result["load_average_1min"]["after"] = os.getloadavg()[0]
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1) + "\n")

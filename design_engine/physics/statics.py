@@ -171,9 +171,9 @@ def make_static_solver(lattice: Lattice, supports: Supports, *, use_contact: boo
             design loop's step check, `run.simulate_scene`) so solves it once, in one program
             per topology, and the solve's own program holds no Newton solver or continuation:
             the forward pass (value and pullback, the policy's configuration) of the 24x18
-            protection scene at 8 % compiles in 6.7 s with a start against 10.4 s solving the
-            equilibrium itself, and runs in 0.77 against 1.40 s (the static solver, compiled
-            once: 3.7 s; `benchmarks/bench_compile.py`, 2 cores).
+            protection scene at 8 % compiles in 6.6 s with a start against 8.6 s solving the
+            equilibrium itself, and runs in 0.60 against 1.47 s (the static solver, compiled
+            once: 3.5 s; `benchmarks/bench_compile.py`, 2 cores).
 
     Returns q_f (the free DOFs at equilibrium, mm / rad, in `supports.free` order;
     differentiable by the implicit function theorem) and info (not differentiated):

@@ -74,7 +74,9 @@ def check_equilibrium(info: dict, tol: float = 100 * GRADIENT_TOL) -> dict:
     if not (np.isfinite(g) and g <= tol):
         raise EquilibriumError(
             f"the static pre-compression did not converge: max |dE/dq| = {g:.3g} (tolerance "
-            f"{tol:.1g}); more load levels (n_load) or Newton iterations (newton_iters) may help")
+            f"{tol:.1g}); more load levels (n_load) or Newton iterations (newton_iters) may help, "
+            "unless the equilibrium handed to the solve (equilibrium=, start=) was another "
+            "design's")
     return info
 
 

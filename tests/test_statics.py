@@ -280,8 +280,9 @@ def test_an_equilibrium_given_as_the_start_is_taken_not_solved_again(scene, solv
 def test_the_last_equilibria_are_kept_and_forgotten_on_request(monkeypatch):
     """`equilibrium_state` solves a design's equilibrium once (the policy's frequency check,
     the solve and its half-step check share it), hands out copies, solves another design's
-    anew, and after `forget_equilibria` solves again (the timings of `studies` so pay the
-    static solve on every call, as a new design does)."""
+    anew, keeps a failure as a failure (raised again, not solved again), and after
+    `forget_equilibria` solves again (the timings of `studies` so pay the static solve on every
+    call, as a new design does)."""
     from design_engine.physics import statics
 
     static = build_scene("protection-24x18", nx=6, ny=6, strain=0.07, amplitude_m=2e-3)
@@ -301,3 +302,11 @@ def test_the_last_equilibria_are_kept_and_forgotten_on_request(monkeypatch):
     statics.forget_equilibria()
     np.testing.assert_allclose(statics.equilibrium_state(static), first, rtol=0, atol=1e-12)
     assert len(calls) == 2
+    for key in list(statics._SOLVERS):  # a solve that stops short of an equilibrium
+        monkeypatch.setitem(statics._SOLVERS, key, lambda x, *a: (
+            calls.append(1), (jnp.zeros(static.supports.free.size), {"gradient_norm": jnp.inf}))[1])
+    failing = static.with_design(static.design * 0.999)
+    for _ in range(2):
+        with pytest.raises(EquilibriumError, match="did not converge"):
+            statics.equilibrium_state(failing)
+    assert len(calls) == 3

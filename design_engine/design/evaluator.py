@@ -125,7 +125,6 @@ class TaskEvaluator:
         self.max_solve_steps = task.budget.max_solve_steps
         self.compilations = 0
         self._estimators: dict[str, object] = {}
-        self._equilibria: dict[str, tuple[bytes, object]] = {}  # the last design's, per scene
         self._state: dict[str, SceneState] = {}
         for name, scene in task.scenes.items():
             if config is not None:
@@ -145,20 +144,9 @@ class TaskEvaluator:
 
     def _equilibrium(self, name: str, x) -> np.ndarray:
         """[n_blocks, 3] the static equilibrium of design `x` under scene `name`'s closed stages
-        (the load continuation, `run.prestressed_state`), kept for the last design asked;
-        raises `SimulationError` (again, without solving again) when it does not converge."""
-        key = np.asarray(x, np.float64).tobytes()
-        if name not in self._equilibria or self._equilibria[name][0] != key:
-            scene = self.task.scenes[name]
-            try:
-                found = prestressed_state(scene.with_design(np.asarray(x, np.float64)))
-            except SimulationError as exc:
-                found = exc
-            self._equilibria[name] = (key, found)
-        found = self._equilibria[name][1]
-        if isinstance(found, SimulationError):
-            raise found
-        return found
+        (`run.prestressed_state`, which keeps the last ones found, failures too); raises
+        `SimulationError` when it does not converge."""
+        return prestressed_state(self.task.scenes[name].with_design(np.asarray(x, np.float64)))
 
     def _static(self, name: str) -> bool:
         """Whether scene `name` starts from a static pre-compression."""
@@ -349,8 +337,7 @@ class TaskEvaluator:
             return checked[0].config
 
         def solve(config):
-            start = (static_equilibrium(scene, config, x, self._equilibrium(name, x))
-                     if self._static(name) else None)
+            start = static_equilibrium(scene, config, x) if self._static(name) else None
             value, pending, terms, aux = self._solve(name, config, x, start)
             return (value, pending, terms, aux), aux
 

@@ -363,7 +363,8 @@ def make_static_solver(lattice: Lattice, supports: Supports, *, use_contact: boo
 
 
 _SOLVERS: dict[tuple, object] = {}  # jitted solvers of this process, per topology
-_STATES: dict[tuple, np.ndarray] = {}  # the last equilibria found (`equilibrium_state`)
+# the last equilibria found (`equilibrium_state`), or the message of a solve that failed
+_STATES: dict[tuple, np.ndarray | str] = {}
 KEEP_STATES = 16  # how many
 
 
@@ -376,25 +377,37 @@ def forget_equilibria() -> None:
 def equilibrium_state(scene) -> np.ndarray:
     """[n_blocks, 3] state (mm, rad) of a static pre-compression scene (`scenes.Scene`): the
     equilibrium under its closed stages with the prescribed DOFs filled in, as the pulse starts
-    from it (one compiled solver per lattice and supports; the last `KEEP_STATES` equilibria
-    are kept, so the policy's frequency check and the solve after it, or a design's re-solves,
-    do not solve it again). Raises `EquilibriumError` when the solve does not converge."""
+    from it (one compiled solver per lattice and supports; the last `KEEP_STATES` results are
+    kept, failures too, so the policy's frequency check and the solve after it, or a design's
+    re-solves, do not solve it again). Raises `EquilibriumError` when the solve does not
+    converge."""
     lat, sup = scene.lattice, scene.supports
     key = (lat.shape, lat.n_blocks, np.asarray(lat.bond_blocks).tobytes(),
            sup.constrained.tobytes(), sup.channel.tobytes(), sup.gain.tobytes(), scene.model)
     leaves, tree = jax.tree_util.tree_flatten((scene.design, scene.material, scene.loading))
     inputs = key + (str(tree), tuple(np.asarray(a).tobytes() for a in leaves))
-    if inputs in _STATES:
-        return _STATES[inputs].copy()
+    if inputs not in _STATES:
+        while len(_STATES) >= KEEP_STATES:
+            del _STATES[next(iter(_STATES))]  # the oldest
+        _STATES[inputs] = _solve_state(scene, key)
+    found = _STATES[inputs]
+    if isinstance(found, str):
+        raise EquilibriumError(found)
+    return found.copy()
+
+
+def _solve_state(scene, key: tuple) -> np.ndarray | str:
+    """`equilibrium_state`'s solve: the state, or the message of the solve's failure."""
     if key not in _SOLVERS:
-        _SOLVERS[key] = jax.jit(make_static_solver(lat, sup, model=scene.model))
+        _SOLVERS[key] = jax.jit(make_static_solver(scene.lattice, scene.supports,
+                                                   model=scene.model))
     q_f, info = _SOLVERS[key](jnp.asarray(scene.design), scene.material, scene.loading, 0.0)
-    check_equilibrium(info)
+    try:
+        check_equilibrium(info)
+    except EquilibriumError as exc:
+        return str(exc)
     values, _ = make_prescribed(scene.supports)
     q = np.zeros(3 * scene.n_units)
     q[scene.supports.free] = np.asarray(q_f)
     q[scene.supports.constrained] = np.asarray(values(jnp.asarray(0.0), scene.loading))
-    while len(_STATES) >= KEEP_STATES:
-        del _STATES[next(iter(_STATES))]  # the oldest
-    _STATES[inputs] = q.reshape(-1, 3)
-    return _STATES[inputs].copy()
+    return q.reshape(-1, 3)

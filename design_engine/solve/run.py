@@ -129,11 +129,10 @@ def at_rest_in(start_free):
     return q0, jnp.zeros_like(q0)
 
 
-def static_equilibrium(scene: Scene, config: SolverConfig, x=None, state=None):
+def static_equilibrium(scene: Scene, config: SolverConfig, x=None):
     """[n_free] the simulator's `equilibrium=` for a solve of design `x` (default the scene's)
-    with `config`: the free DOFs of the design's static equilibrium (`state` [n_blocks, 3] when
-    found already, else `prestressed_state`: one compiled solver per topology, the last
-    equilibria kept), so that the solve's own program holds no static solver
+    with `config`: the free DOFs of the design's static equilibrium (`prestressed_state`: one
+    compiled solver per topology, the last results kept), so that the solve's own program holds no static solver
     (`statics.make_static_solver(start=)`). None where the solve finds its start itself: a
     scene without a static pre-compression, a traced `x`, or a configuration whose static
     energy is not the model's (linearised strains, a scaled stretch stiffness, or contact left
@@ -147,7 +146,7 @@ def static_equilibrium(scene: Scene, config: SolverConfig, x=None, state=None):
         return None
     if x is not None:
         scene = scene.with_design(np.asarray(x, np.float64))
-    state = prestressed_state(scene) if state is None else np.asarray(state)
+    state = prestressed_state(scene)
     if not config.use_contact and past_cutoff(static_void_margin(scene, state), scene):
         return None
     return jnp.asarray(state.reshape(-1)[np.asarray(scene.supports.free)])

@@ -50,6 +50,36 @@ _WATCHED = {T.STAGE_STATE: "stage", T.CAMERA_STATUS: "camera", T.RECORDER_STATUS
 _LIFECYCLE = ("shaker", "stage")
 
 
+def until(predicate, what: str, timeout_s: float) -> None:
+    """Wait (the executor spins elsewhere) until `predicate()`; `RigError` after `timeout_s`."""
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise RigError(f"timed out waiting for {what}")
+        time.sleep(0.005)
+
+
+def ask(client, request, timeout_s: float, resend_s: float = 5.0):
+    """The answer of a query that may be repeated (a lifecycle node's state), sent again when
+    none came within `resend_s`; `RigError` after `timeout_s`. `service_is_ready()` says only
+    that this side has matched the server: a server that has just started may not yet have
+    matched this client's response reader, and Fast DDS then drops the response ("failed to
+    send response (timeout)" in the server's log), so one unanswered request says nothing."""
+    until(client.service_is_ready, f"service {client.srv_name}", timeout_s)
+    deadline = time.monotonic() + timeout_s
+    while True:
+        fut = client.call_async(request)
+        try:
+            until(fut.done, f"the answer of {client.srv_name}",
+                  min(resend_s, max(deadline - time.monotonic(), 0.0)))
+            return fut.result()
+        except RigError:
+            client.remove_pending_request(fut)
+            if time.monotonic() >= deadline:
+                raise RigError(f"timed out waiting for the answer of {client.srv_name} "
+                               f"(asked every {resend_s:g} s for {timeout_s:g} s)") from None
+
+
 class SequencerNode(Node):
     """Clock owner and `RigPort` over ROS (see module docstring)."""
 
@@ -139,19 +169,12 @@ class SequencerNode(Node):
                 self.latest[key] = msg.data
         return cb
 
-    def _until(self, predicate, what: str, timeout_s: float) -> None:
-        deadline = time.monotonic() + timeout_s
-        while not predicate():
-            if time.monotonic() > deadline:
-                raise RigError(f"timed out waiting for {what}")
-            time.sleep(0.005)
-
     def call(self, name: str, request, timeout_s: float = 30.0):
         """Call service `name` and wait for the answer; `RigError` after `timeout_s`."""
         client = self.clients_[name]
-        self._until(client.service_is_ready, f"service {client.srv_name}", timeout_s)
+        until(client.service_is_ready, f"service {client.srv_name}", timeout_s)
         fut = client.call_async(request)
-        self._until(fut.done, f"the answer of {client.srv_name}", timeout_s)
+        until(fut.done, f"the answer of {client.srv_name}", timeout_s)
         return fut.result()
 
     # RigPort ----------------------------------------------------------------------------------
@@ -199,14 +222,11 @@ class SequencerNode(Node):
         unconfigured; its log says why), and a camera in error, one line each."""
         out = []
         for name, client in self._lifecycle.items():
-            try:
-                self._until(client.service_is_ready, f"service {client.srv_name}", 30.0)
-                fut = client.call_async(GetState.Request())
-                self._until(fut.done, f"the answer of {client.srv_name}", 30.0)
+            try:  # the first call to a node that has just started: asked again if unanswered
+                label = ask(client, GetState.Request(), 30.0).current_state.label
             except RigError as e:
                 out.append(f"{name}: {e}")
                 continue
-            label = fut.result().current_state.label
             if label != "active":
                 out.append(f"{name}: the node is {label}, not active (its log says why)")
         if self.camera().get("state") == "error":
@@ -276,7 +296,7 @@ class SequencerNode(Node):
             req = SetParameters.Request(parameters=[
                 Parameter("capture_start_s", value=float(t_start_s)).to_parameter_msg()])
             fut = self._cam_params.call_async(req)
-            self._until(fut.done, "the camera's parameters", 30.0)
+            until(fut.done, "the camera's parameters", 30.0)
             if not all(r.successful for r in fut.result().results):
                 log.warning("the camera took no capture start time: it starts at its own clock")
         return self.call("cam_start", Trigger.Request()).success

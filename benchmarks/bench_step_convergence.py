@@ -32,7 +32,9 @@ keyed `/ substeps N`): whether the error at the step is the barrier's.
 
 `--gradients` instead solves value and gradient by the policy's fixed step at h, h/2, ... and
 compares both with Dopri8's at rtol 1e-10 (key `gradients`: `J_rel_err`, `grad_cosine`,
-`grad_rel_err`, `value_and_grad_s`): what the half-step check on J says of the gradient.
+`grad_rel_err`, `value_and_grad_s`): what the half-step check on J says of the gradient. With
+`--dtype` or `--order`, in that precision or order (rows keyed ` / float64`, ` / order 4`, as
+the forward rows).
 
 `--adaptive-rtols R ...` instead times value and gradient by Dopri8 with contact at those rtols
 (atol 1e-4, the fallback's, or each of `--adaptive-atols A ...`) against rtol 1e-10 on the same
@@ -129,10 +131,10 @@ def policy_config(scene, dtype: str | None = None, order: int = 2,
     return dataclasses.replace(config, solver=dataclasses.replace(config.solver, **solver))
 
 
-def gradient_row(scene, halvings: int, order: int = 2) -> dict:
+def gradient_row(scene, halvings: int, order: int = 2, dtype: str | None = None) -> dict:
     """Value and gradient by the policy's own fixed-step configuration at the design (as
-    `row_for`) at h, h/2, ... against Dopri8 at rtol 1e-10 / atol 1e-8: relative error of J,
-    gradient cosine and relative error, wall time (compiled first)."""
+    `row_for`, in `dtype` where given) at h, h/2, ... against Dopri8 at rtol 1e-10 / atol 1e-8:
+    relative error of J, gradient cosine and relative error, wall time (compiled first)."""
     import diffrax
 
     from design_engine.solve.policy import refined
@@ -140,7 +142,7 @@ def gradient_row(scene, halvings: int, order: int = 2) -> dict:
 
     ref_j, ref_g, ref_s, _ = _value_and_grad(scene, SolverConfig(
         solver=diffrax.Dopri8(), rtol=TIGHT[0], atol=TIGHT[1]))
-    config = policy_config(scene, order=order)
+    config = policy_config(scene, dtype, order)
     steps = []
     for _ in range(halvings + 1):
         try:
@@ -240,7 +242,8 @@ def main(argv=None) -> int:
     doc.update(task=args.task, run=str(args.run) if args.run else None, machine=describe())
     # the mode: (key of the results part, row of one scene, its printed line)
     if args.gradients:
-        part, make = "gradients", lambda sc: gradient_row(sc, args.halvings, args.order)
+        part, make = "gradients", lambda sc: gradient_row(sc, args.halvings, args.order,
+                                                          args.dtype)
 
         def line(row):
             return ", ".join(f"{r['dt_us']:.1f} us J {r.get('J_rel_err', float('nan')):.1e} "
@@ -269,19 +272,20 @@ def main(argv=None) -> int:
             return f"fallback {row['fallback_rel_err']:.1e}; " + ", ".join(
                 f"{s['dt_us']:.1f} us {s.get('J_rel_err', float('nan')):.1e}"
                 f" (est {s.get('step_error', float('nan')):.1e})" for s in row["steps"])
-    suffix = "".join(f" / {v}" for v in (args.dtype, args.newmark_iterations and
-                                          f"newmark {args.newmark_iterations}",
-                                          args.order != 2 and f"order {args.order}",
-                                          args.contact_substeps is not None
-                                          and f"substeps {args.contact_substeps}") if v)
+    # a row's key: the design, the scene and the options its mode takes
+    options = (args.dtype, part == "rows" and args.newmark_iterations
+               and f"newmark {args.newmark_iterations}",
+               part != "adaptive" and args.order != 2 and f"order {args.order}",
+               part == "rows" and args.contact_substeps is not None
+               and f"substeps {args.contact_substeps}")
+    suffix = "".join(f" / {v}" for v in options if v) if part != "adaptive" else ""
     if part == "adaptive" and args.adaptive_atols != [FALLBACK[1]]:
         suffix = " / atols " + " ".join(f"{a:g}" for a in args.adaptive_atols)
     if part == "adaptive" and args.adaptive_solver != "Dopri8":
         suffix += f" / {args.adaptive_solver}"
     for label, x in designs:
         for name in args.scenes or list(task.scenes):
-            key = f"{label} / {name}" + (suffix if part != "gradients" else
-                                         f" / order {args.order}" if args.order != 2 else "")
+            key = f"{label} / {name}" + suffix
             if key in doc.setdefault(part, {}):
                 continue
             row = make(task.scenes[name].with_design(x)) | {"machine": describe()}

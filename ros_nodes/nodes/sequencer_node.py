@@ -59,19 +59,21 @@ def until(predicate, what: str, timeout_s: float) -> None:
         time.sleep(0.005)
 
 
-def ask(client, request, timeout_s: float, resend_s: float = 5.0):
+def ask(client, request, timeout_s: float, resend_s: float = 5.0, wait=until):
     """The answer of a query that may be repeated (a lifecycle node's state), sent again when
     none came within `resend_s`; `RigError` after `timeout_s`. `service_is_ready()` says only
     that this side has matched the server: a server that has just started may not yet have
     matched this client's response reader, and Fast DDS then drops the response ("failed to
-    send response (timeout)" in the server's log), so one unanswered request says nothing."""
-    until(client.service_is_ready, f"service {client.srv_name}", timeout_s)
+    send response (timeout)" in the server's log), so one unanswered request says nothing.
+    `wait(predicate, what, timeout_s)` waits as `until` does (the executor spinning elsewhere)
+    or spins an executor itself, raising `RigError` when the time is up."""
+    wait(client.service_is_ready, f"service {client.srv_name}", timeout_s)
     deadline = time.monotonic() + timeout_s
     while True:
         fut = client.call_async(request)
         try:
-            until(fut.done, f"the answer of {client.srv_name}",
-                  min(resend_s, max(deadline - time.monotonic(), 0.0)))
+            wait(fut.done, f"the answer of {client.srv_name}",
+                 min(resend_s, max(deadline - time.monotonic(), 0.0)))
             return fut.result()
         except RigError:
             client.remove_pending_request(fut)

@@ -22,12 +22,13 @@ def popen(argv: list[str], env: dict[str, str]) -> subprocess.Popen:
                             text=True)
 
 
-def spin_until(executor, predicate, timeout_s: float, what: str) -> None:
-    """Spin `executor` until `predicate()` is true; fail with `what` after `timeout_s`."""
+def spin_until(executor, predicate, timeout_s: float, what: str, error=AssertionError) -> None:
+    """Spin `executor` until `predicate()` is true; raise `error` naming `what` after
+    `timeout_s`."""
     deadline = time.monotonic() + timeout_s
     while not predicate():
         if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+            raise error(f"timed out after {timeout_s} s waiting for {what}")
         executor.spin_once(timeout_sec=0.05)
 
 
@@ -37,26 +38,20 @@ def wait_for_service(client, executor, timeout_s: float = 45.0) -> None:
 
 
 def call(client, request, executor, timeout_s: float = 45.0, resend_s: float = 5.0):
-    """Call a service and spin until the response arrives.
+    """Call a service, spinning `executor` until the response arrives; a request unanswered
+    after `resend_s` is sent again, as the rig's sequencer does (`sequencer_node.ask`: right
+    after start-up Fast DDS may drop a response; tests call only services whose repeat is
+    harmless at that point)."""
+    from ros_nodes.logic.experiment import RigError
+    from ros_nodes.nodes.sequencer_node import ask
 
-    `service_is_ready()` only says that our side has matched the server; right after start-up
-    the server's response writer may not have matched our reader yet, and Fast DDS then drops
-    the response ("failed to send response (timeout)"). A request unanswered after `resend_s`
-    is therefore sent again (tests call only services whose repeat is harmless at that point).
-    """
-    wait_for_service(client, executor, timeout_s)
-    deadline = time.monotonic() + timeout_s
-    while True:
-        fut = client.call_async(request)
-        try:
-            spin_until(executor, fut.done, min(resend_s, max(deadline - time.monotonic(), 0.0)),
-                       f"response of {client.srv_name}")
-            return fut.result()
-        except AssertionError:
-            client.remove_pending_request(fut)
-            if time.monotonic() >= deadline:
-                raise AssertionError(f"timed out after {timeout_s} s waiting for the response "
-                                     f"of {client.srv_name}") from None
+    def wait(predicate, what, t):
+        spin_until(executor, predicate, t, what, error=RigError)
+
+    try:
+        return ask(client, request, timeout_s, resend_s, wait=wait)
+    except RigError as exc:
+        raise AssertionError(str(exc)) from None
 
 
 def wait_matched(pub_or_sub, executor, timeout_s: float = 20.0, count: int = 1) -> None:

@@ -84,7 +84,8 @@ def main(argv=None) -> int:
             cache = args.out / f"jax-cache-{label}"
             if not (args.out / label / "history.json").exists():
                 shutil.rmtree(cache, ignore_errors=True)  # a resumed run keeps what it compiled
-            child = [a for a in (argv if argv is not None else sys.argv[1:]) if a != "--cold"]
+            child = [a for a in (argv if argv is not None else sys.argv[1:])
+                     if a != "--cold" and not a.startswith("--runs=")]
             k = child.index("--runs") if "--runs" in child else None
             child = (child[:k] + child[k + 2:] if k is not None else child) + ["--runs", label]
             if "--out" not in child:

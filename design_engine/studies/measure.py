@@ -14,7 +14,7 @@ from design_engine.solve.simulate import SolverConfig, check_solution
 from design_engine.studies.methods import rhs_evaluations
 
 
-def _timed(fn, repeats: int):
+def timed(fn, repeats: int):
     """(first call s, median of `repeats` more s, result); every call solves a static
     pre-compression anew (`forget_equilibria`), as a new design would."""
     forget_equilibria()
@@ -42,14 +42,14 @@ def measure(scene: Scene, config: SolverConfig, *, grad: bool = True, repeats: i
     try:
         sim = compiled_simulator(scene, config)
         ts = jnp.asarray(scene.sample_times)
-        first, fwd, sol = _timed(lambda: sim(x, scene.material, scene.loading, ts), repeats)
+        first, fwd, sol = timed(lambda: sim(x, scene.material, scene.loading, ts), repeats)
         check_solution(sol, config)
         steps = int(sol.num_steps)
         out.update(forward_s=fwd, forward_compile_s=max(first - fwd, 0.0), steps=steps,
                    rhs_evals=rhs_evaluations(config, steps))
         if grad:
             vg, _ = make_objective(scene, config)
-            first, t_vg, res = _timed(lambda: vg(x), max(1, repeats - 1))
+            first, t_vg, res = timed(lambda: vg(x), max(1, repeats - 1))
             checked(res, config)
             (j, _), g = res
             out.update(J=float(j), value_and_grad_s=t_vg,

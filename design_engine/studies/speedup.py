@@ -13,8 +13,6 @@ the same (for pre-compressed scenes that includes the ramp's residual motion, a 
 import json
 import os
 import platform
-import statistics
-import time
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,9 +22,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from design_engine.physics.scenes import build_scene
-from design_engine.physics.statics import forget_equilibria
 from design_engine.solve.run import checked, default_choice, make_objective
-from design_engine.studies.measure import errors
+from design_engine.studies.measure import errors, timed
 from design_engine.studies.methods import baseline_method, reference_method
 from metarig.readback import read_npz
 
@@ -78,19 +75,9 @@ def term_scene(term: Term, precompression: str = "static"):
 
 
 def timed_value_and_grad(vg, x, config, repeats: int):
-    """(median s, compile s, J, grad) of `repeats` warm calls after one compiling call; every
-    call solves a static pre-compression anew (`forget_equilibria`), as a new design would."""
-    forget_equilibria()
-    t0 = time.perf_counter()
-    res = checked(jax.block_until_ready(vg(x)), config)
-    first = time.perf_counter() - t0
-    runs = []
-    for _ in range(repeats):
-        forget_equilibria()
-        t0 = time.perf_counter()
-        res = checked(jax.block_until_ready(vg(x)), config)
-        runs.append(time.perf_counter() - t0)
-    med = statistics.median(runs) if runs else first
+    """(median s, compile s, J, grad) of `repeats` warm calls after one compiling call, each
+    checked (`measure.timed`: every call solves a static pre-compression anew)."""
+    first, med, res = timed(lambda: checked(jax.block_until_ready(vg(x)), config), repeats)
     return med, max(first - med, 0.0), float(res[0][0]), np.asarray(res[1], np.float64)
 
 

@@ -239,11 +239,18 @@ def test_the_continued_configuration_is_read_after_the_check(scene):
 
 def test_a_solve_that_starts_in_contact_is_judged_at_half_its_step_too(scene):
     """`needs_step_check`: only a fixed step with contact whose solve started with a void past
-    the cutoff; its `step_error` (the evaluator's half-step estimate) above
-    STEP_ERROR_TOLERANCE sends it to half the step (when predicted to pass) or Dopri8, within
-    it the result stands."""
-    from design_engine.solve.policy import STEP_ERROR_TOLERANCE, needs_step_check, next_config
+    the cutoff. A whole step whose estimate is over STEP_ERROR_TOLERANCE: `after_half_step`
+    judges its half-step solve at its own half when the quarter is predicted to pass (the
+    estimate x 1/16, Verlet being second order, within half the tolerance) and the half passed
+    its other checks; `after_quarter_step` then lets the half stand on its own estimate, or the
+    quarter on its error by that pair (x 1/4) where the two changes shrink as a second-order
+    step's; else Dopri8, which is also what `next_config` says to a step whose estimate stayed
+    over the tolerance."""
+    from design_engine.solve.policy import (DEEPER, HALF, QUARTER, REJECT, STEP_ERROR_TOLERANCE,
+                                            after_half_step, after_quarter_step,
+                                            needs_step_check, next_config)
 
+    tol = STEP_ERROR_TOLERANCE
     span = float(scene.material.contact_cutoff - scene.material.contact_min)
     contact = with_contact(VERLET)
     started = healthy(scene, void_margin=0.5 * span, start_void_margin=0.5 * span)
@@ -252,74 +259,87 @@ def test_a_solve_that_starts_in_contact_is_judged_at_half_its_step_too(scene):
                                                  start_void_margin=2.0 * span), scene)
     assert not needs_step_check(VERLET, started, scene)
     assert not needs_step_check(contact_config(), started, scene)
-    assert next_config(contact, dict(started, step_error=0.5 * STEP_ERROR_TOLERANCE),
-                       scene) is None
-    # within 2x the tolerance the half step is predicted to pass (Verlet being second order:
-    # the estimate x 1/4 within half the tolerance): re-solved there, and judged again
-    nxt, why = next_config(contact, dict(started, step_error=2 * STEP_ERROR_TOLERANCE), scene)
-    assert nxt == refined(contact) and "half the step" in why and "re-solved once at" in why
-    assert needs_step_check(nxt, started, scene)
-    # a refined step rejected again, or an estimate beyond the prediction: Dopri8
-    nxt, why = next_config(refined(contact), dict(started, step_error=2 * STEP_ERROR_TOLERANCE),
-                           scene)
-    assert nxt == contact_config() and "Dopri8" in why
-    nxt, _ = next_config(contact, dict(started, step_error=2.5 * STEP_ERROR_TOLERANCE), scene)
-    assert nxt == contact_config()
-    nxt, _ = next_config(contact, dict(started, step_error=float("nan")), scene)
-    assert nxt == contact_config()
+    assert next_config(contact, dict(started, step_error=0.5 * tol), scene) is None
+    for error in (1.5 * tol, float("nan")):
+        nxt, why = next_config(contact, dict(started, step_error=error), scene)
+        assert nxt == contact_config() and "half the step" in why and "Dopri8" in why
+    half, quarter = refined(contact), refined(refined(contact))
+    assert after_half_step(8 * tol, half, started, scene) == DEEPER
+    assert after_half_step(9 * tol, half, started, scene) == REJECT
+    assert after_half_step(float("inf"), half, started, scene) == REJECT
+    # a half-step solve that failed another check is not judged further
+    assert after_half_step(2 * tol, half, dict(started, energy_error=1.0), scene) == REJECT
+    verdict, why = after_quarter_step(3 * tol, 0.9 * tol, half, quarter, started, scene)
+    assert verdict == HALF and "half-step solve" in why and "stands" in why
+    verdict, why = after_quarter_step(8 * tol, 2 * tol, half, quarter, started, scene)
+    assert verdict == QUARTER and "quarter-step solve" in why and "4.0:1" in why
+    # changes that do not shrink as the step's order says (the step not yet converging), or a
+    # quarter's own error over the tolerance, or a quarter that failed another check: Dopri8
+    assert after_quarter_step(3 * tol, 2 * tol, half, quarter, started, scene)[0] == REJECT
+    assert after_quarter_step(20 * tol, 5 * tol, half, quarter, started, scene)[0] == REJECT
+    assert after_quarter_step(8 * tol, 2 * tol, half, quarter, dict(started, energy_error=1.0),
+                              scene)[0] == REJECT
     # the next evaluation goes back to the whole step only when its estimate predicts that
     # the whole step passes (the refined estimate x 4 within half the tolerance)
     last = refined(contact)
-    assert start_config(contact, last, dict(started, step_error=0.1 * STEP_ERROR_TOLERANCE),
-                        scene) == contact
-    assert start_config(contact, last, dict(started, step_error=0.1 * STEP_ERROR_TOLERANCE
-                                            / REFINE**2), scene) == last
+    assert start_config(contact, last, dict(started, step_error=0.1 * tol), scene) == contact
+    assert start_config(contact, last, dict(started, step_error=0.1 * tol / REFINE**2),
+                        scene) == last
 
 
 def test_the_driver_judges_a_solve_that_starts_in_contact_at_half_its_step(scene):
-    """`solve_with_policy(step_error=...)`: the caller's half-step estimate is asked only for a
-    fixed step with contact that started in contact and passed the other checks, goes into the
-    health as "step_error", and an estimate over the tolerance re-solves at half the step (once,
-    judged again: asked again) or, when that is not predicted to pass, with Dopri8 (not asked:
-    an adaptive solve)."""
+    """`solve_with_policy(objective=...)`: a fixed step with contact that started in contact
+    and passed the other checks is solved again from the same start at half its step, and the
+    Richardson-scaled change of the caller's objective goes into the health as "step_error".
+    Within the tolerance the whole step stands; over it the same start is also solved at a
+    quarter of the step, and the half- or the quarter-step solve stands in its place (not
+    solved again) as `policy.after_quarter_step` says; else Dopri8 (not judged: an adaptive
+    solve)."""
     from design_engine.solve.policy import STEP_ERROR_TOLERANCE
 
+    tol = STEP_ERROR_TOLERANCE
     span = float(scene.material.contact_cutoff - scene.material.contact_min)
     contact = with_contact(VERLET)
+    half, quarter = refined(contact), refined(refined(contact))
     started = healthy(scene, void_margin=0.5 * span, start_void_margin=0.5 * span)
-    asked = []
 
-    def estimate(*values):
-        def step_error(config, result, health):
-            asked.append((config, result))
-            return values[len(asked) - 1]
-        return step_error
+    def objective(*moves):
+        """J of "result 1" = 1, each next result's J moved by the given estimate (x tol) from
+        the one before (4/3 of the relative change)."""
+        values = [1.0]
+        for m in moves:
+            values.append(values[-1] * (1.0 + 0.75 * m * tol))
+        return lambda result: values[int(result.split()[1]) - 1]
 
-    out = solve_with_policy(scene, contact, Script(started),
-                            step_error=estimate(0.5 * STEP_ERROR_TOLERANCE))
-    assert asked == [(contact, "result 1")] and out.resolves == ()
-    assert out.health["step_error"] == 0.5 * STEP_ERROR_TOLERANCE
-    asked.clear()
-    out = solve_with_policy(scene, contact, Script(started, started),
-                            step_error=estimate(1.5 * STEP_ERROR_TOLERANCE,
-                                                0.4 * STEP_ERROR_TOLERANCE))
-    assert [a[0] for a in asked] == [contact, refined(contact)] and out.config == refined(contact)
-    assert out.result == "result 2" and "half the step" in out.resolves[0]
-    asked.clear()
-    out = solve_with_policy(scene, contact, Script(started, started),
-                            step_error=estimate(5 * STEP_ERROR_TOLERANCE))
-    assert len(asked) == 1 and out.config == contact_config()
+    def run(moves, *answers):
+        solve = Script(*answers)
+        return solve, solve_with_policy(scene, contact, solve, objective=objective(*moves))
 
-    def failing(config, result, health):
-        raise SimulationError("the half-step solve diverged")
-
+    solve, out = run([0.5], started, started)
+    assert solve.calls == [contact, half] and out.result == "result 1" and out.resolves == ()
+    assert out.health["step_error"] == pytest.approx(0.5 * tol)
+    # over the tolerance: judged at a quarter; the half's own estimate passes, the half stands
+    solve, out = run([2.0, 0.5], started, started, started)
+    assert solve.calls == [contact, half, quarter] and out.result == "result 2"
+    assert out.config == half and "stands" in out.resolves[0] and len(out.resolves) == 1
+    assert out.health["step_error"] == pytest.approx(0.5 * tol)
+    # the half's estimate over it, the changes 4:1: the quarter stands on that pair
+    solve, out = run([6.0, 1.5], started, started, started)
+    assert solve.calls == [contact, half, quarter] and out.result == "result 3"
+    assert out.config == quarter and out.health["step_error"] == pytest.approx(1.5 / 4 * tol)
+    # changes that grow (not converging): Dopri8, solved and not judged
+    solve, out = run([3.0, 3.0], started, started, started, started)
+    assert solve.calls == [contact, half, quarter, contact_config()]
+    assert out.result == "result 4" and out.config == contact_config()
+    assert "Dopri8" in out.resolves[0]
+    # not predicted to pass at a quarter: Dopri8 at once
+    solve, out = run([20.0], started, started, started)
+    assert solve.calls == [contact, half, contact_config()] and out.result == "result 3"
     # a half-step solve that fails leaves the result untrusted at its step: inf, then Dopri8
-    out = solve_with_policy(scene, contact, Script(started, started), step_error=failing)
+    solve, out = run([], started, SimulationError("the half-step solve diverged"), started)
     assert out.config == contact_config() and "inf" in out.resolves[0]
-    asked.clear()  # a solve that did not start in contact, or drifted, is not asked
-    solve_with_policy(scene, contact, Script(healthy(scene, void_margin=0.5 * span,
-                                                     start_void_margin=2 * span)),
-                      step_error=estimate(1.0))
-    solve_with_policy(scene, contact, Script(dict(started, energy_error=1.0), started),
-                      step_error=estimate(0.0))
-    assert asked == []
+    # a solve that did not start in contact, or drifted, is not judged so
+    solve, _ = run([0.0], healthy(scene, void_margin=0.5 * span, start_void_margin=2 * span))
+    assert solve.calls == [contact]
+    solve, _ = run([0.0], dict(started, energy_error=1.0), started)
+    assert solve.calls == [contact, contact_config()]

@@ -293,16 +293,17 @@ def test_a_forward_run_that_starts_in_contact_is_judged_at_half_its_step(jammed,
     also solved at half its step from the same equilibrium, and `metrics["solver"]["step_error"]`
     is 4/3 of the relative change of J, as independent solves at both steps give it (static
     start included); below the tolerance the fixed step stands."""
+    from design_engine.solve import driver
     from design_engine.solve import run as run_mod
     from design_engine.solve.policy import STEP_ERROR_TOLERANCE, refined
 
-    estimates, original = [], run_mod.relative_step_error
+    estimates, original = [], driver.relative_step_error
 
     def spy(value, half):
         estimates.append(original(value, half))
         return estimates[-1]
 
-    monkeypatch.setattr(run_mod, "relative_step_error", spy)
+    monkeypatch.setattr(driver, "relative_step_error", spy)
     run = simulate_scene(jammed)
     solver = run.metrics["solver"]
     assert solver["solver"] == "FixedStepVerlet" and solver["resolves"] == []
@@ -327,15 +328,16 @@ def test_the_policy_objective_differentiates_only_the_solve_that_stands(jammed, 
                                                                          monkeypatch):
     """`make_objective(scene)` under the policy, value and gradient: the small scene's fixed
     step stands, with its half-step estimate; with the tolerance then set just below that
-    estimate, the step is rejected after its forward pass alone and the step refined once
-    stands; the one reverse pass is the refined step's: the value is that step's own objective,
-    and the gradient its central difference along a random direction."""
-    from design_engine.solve import policy
+    estimate, the step is rejected after its forward pass alone, the half-step solve that
+    judged it is judged in turn at a quarter of the step and stands (not solved again), and
+    the one reverse pass is the half step's: the value is that step's own objective, and the
+    gradient its central difference along a random direction."""
+    from design_engine.solve import driver, policy
     from design_engine.solve.policy import refined
 
     x, config = jammed.design, jammed_choice.config
     passes, estimates = {"forward": [], "reverse": []}, []
-    split, estimate = run_mod._split_objective, run_mod.relative_step_error
+    split, estimate = run_mod._split_objective, driver.relative_step_error
 
     def spy(scene, cfg, weights):
         forward, reverse = split(scene, cfg, weights)
@@ -343,16 +345,18 @@ def test_the_policy_objective_differentiates_only_the_solve_that_stands(jammed, 
                 (lambda *a: (passes["reverse"].append(cfg), reverse(*a))[1]))
 
     monkeypatch.setattr(run_mod, "_split_objective", spy)
-    monkeypatch.setattr(run_mod, "relative_step_error",
+    monkeypatch.setattr(driver, "relative_step_error",
                         lambda *a: (estimates.append(estimate(*a)), estimates[-1])[1])
     value_and_grad = run_mod.make_objective(jammed)[0]
     value_and_grad(x)
-    assert passes == {"forward": [config], "reverse": [config]} and len(estimates) == 1
+    assert passes == {"forward": [config, refined(config)], "reverse": [config]}
+    assert len(estimates) == 1
     passes["forward"].clear()
     passes["reverse"].clear()
     monkeypatch.setattr(policy, "STEP_ERROR_TOLERANCE", 0.9 * estimates[0])
     (value, _), grad = value_and_grad(x)
-    assert passes == {"forward": [config, refined(config)], "reverse": [refined(config)]}
+    half = refined(config)
+    assert passes == {"forward": [config, half, refined(half)], "reverse": [half]}
     assert estimates[1] == pytest.approx(estimates[0], rel=1e-9) and estimates[2] < estimates[1]
     # the refined step's own value program (it compiles in 5.6 s cold, a value and gradient
     # program in 14 s): its value, and its central difference along a random direction,

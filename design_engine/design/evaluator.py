@@ -40,9 +40,8 @@ from design_engine.solve.driver import PolicyFailed, solve_with_policy
 from design_engine.solve.fixed_step import is_fixed_step
 from design_engine.solve.objectives import objective_term
 from design_engine.solve.policy import (STABILITY_SAFETY, choose_config, contact_config,
-                                        for_gradient, initial_vector, make_frequency_estimator,
-                                        refined, relative_step_error)
-from design_engine.solve.run import (at_rest_in, checked, compile_key, config_summary,
+                                        for_gradient, initial_vector, make_frequency_estimator)
+from design_engine.solve.run import (checked, compile_key, config_summary,
                                      prestressed_state, split_gradient, static_equilibrium)
 from design_engine.solve.simulate import (SimulationError, Solution, SolverConfig, make_simulator,
                                           solve_health)
@@ -166,20 +165,18 @@ class TaskEvaluator:
             omega, v = est(jnp.asarray(x), v, state)
         return float(omega), np.asarray(v)
 
-    def _function(self, name: str, config: SolverConfig, forward: bool = False):
+    def _function(self, name: str, config: SolverConfig):
         """The scene's compiled objective `(x, material, loading, ts, weights, initial,
         equilibrium)` as two programs, the forward pass `-> (value, aux, pullback)` and the
         reverse pass `(pullback, 1.0) -> gradient`, so that a solve the policy rejects is not
         also differentiated (`driver.solve_with_policy(finish=)`), and the objective itself
         `-> (value, aux)`, not compiled (`benchmarks/bench_reverse_split.py` sets its fused value
-        and gradient beside the two); or with `forward` the value alone from a given start (free
-        DOFs and their rates), without the static solve."""
+        and gradient beside the two)."""
         scene = self.task.scenes[name]
         terms = [t for t in self.task.terms if t.scene == name]
         key = compile_key(scene, config, "task", scene.sample_times) + tuple(
             (t.quantity, tuple(self.task.targets[t.target])) for t in terms) + (
-            None if self.task.spin_point is None else tuple(self.task.spin_point),
-            "forward" if forward else "gradient")
+            None if self.task.spin_point is None else tuple(self.task.spin_point),)
         if key in _PROGRAMS:
             return _PROGRAMS[key]
         sim = make_simulator(scene.lattice, scene.supports, config, scene.sample_times,
@@ -192,11 +189,10 @@ class TaskEvaluator:
             sol = sim(x, material, loading, ts, initial, equilibrium)
             raw = [objective_term(q, sol, ids, point) for q, ids in zip(quantities, targets)]
             value = sum(weights[k] * OPTIMISER_SCALE[q] * raw[k] for k, q in enumerate(quantities))
-            aux = dict(solve_health(sol), terms=jnp.stack(raw), start_free=sol.start_free)
+            aux = dict(solve_health(sol), terms=jnp.stack(raw))
             return value, aux
 
-        fn = (jax.jit(lambda *args: objective(*args)[0]) if forward
-              else (*split_gradient(objective), objective))
+        fn = (*split_gradient(objective), objective)
         _PROGRAMS[key] = fn
         self.compilations += 1
         return fn
@@ -245,18 +241,6 @@ class TaskEvaluator:
     def _weights(self, name: str):
         """The weights of the scene's terms, in the order its compiled objective takes them."""
         return jnp.asarray([t.weight for t in self.task.terms if t.scene == name])
-
-    def _step_error(self, name: str, config: SolverConfig, x: np.ndarray, value: float,
-                    aux: dict) -> float:
-        """The relative error of a fixed-step solve's objective `value`, estimated by solving
-        the same start forward at half the step (Richardson: 4/3 of the change, Verlet being
-        second order; `policy.STEP_ERROR_TOLERANCE`)."""
-        scene = self.task.scenes[name]
-        fn = self._function(name, refined(config), forward=True)
-        half = float(fn(jnp.asarray(x), scene.material, scene.loading,
-                        jnp.asarray(scene.sample_times), self._weights(name),
-                        at_rest_in(aux["start_free"])))  # the static equilibrium, at t = 0
-        return relative_step_error(value, half)
 
     # --- the policy ------------------------------------------------------------------------
 
@@ -345,9 +329,6 @@ class TaskEvaluator:
             value, pending, terms, aux = result
             return value, self._gradient(pending), terms, aux
 
-        def step_error(config, result, aux):
-            return self._step_error(name, config, x, result[0], aux)
-
         def log(step):
             events.append(f"{name}: {step.error}; {step.reason}" if step.error
                           else f"{name}: {step.reason}")
@@ -356,7 +337,7 @@ class TaskEvaluator:
             out = solve_with_policy(scene, st.config, solve, check=check,
                                     previous=lambda: (checked[0].last_config,
                                                       checked[0].last_health),
-                                    budget_fails_at_once=True, step_error=step_error,
+                                    budget_fails_at_once=True, objective=lambda r: r[0],
                                     on_step=log, finish=finish)
         except PolicyFailed as exc:
             raise EvaluationFailed(f"{name}: {exc}", checked[0]) from None
@@ -365,7 +346,7 @@ class TaskEvaluator:
         why = list(st.reasons) + [s.reason for s in out.steps[1:]]
         if not out.fell_back:
             st = dataclasses.replace(st, last_config=out.config, last_health={
-                k: np.asarray(v) for k, v in aux.items() if k != "start_free"})
+                k: np.asarray(v) for k, v in aux.items()})
         record = self._record(out.config, why, name)
         if "step_error" in out.health:  # the half-step check judged the solve that counted
             record["step_error"] = float(out.health["step_error"])

@@ -11,7 +11,9 @@ through `decide` (what to do after a solve) and, for one solve at a time, `solve
 2. after a solve that did not fail, `policy.next_config` says whether the result stands or which
    configuration solves again (contact, half the step, Dopri8); a fixed step with contact that
    started in contact and passed the other checks is first also judged on the caller's
-   objective at half its step (`step_error`, `policy.needs_step_check`);
+   objective at half its step (`objective`, `policy.needs_step_check`) and, when it moved too
+   much, at a quarter, the half- or quarter-step solve standing in its place where its own
+   error passes (`policy.after_half_step`, `policy.after_quarter_step`);
 3. after a fixed-step solve with contact that failed, the same step with its contact forces
    substepped (`policy.after_failure`, once); after any other solve that failed
    (`SimulationError`), the fallback solves once
@@ -29,8 +31,10 @@ from typing import Generic, TypeVar
 
 from design_engine.physics.scenes import Scene
 from design_engine.solve.fixed_step import is_fixed_step
-from design_engine.solve.policy import (after_failure, fallback_config, needs_step_check,
-                                        next_config, start_config)
+from design_engine.solve.policy import (HALF, REFINE, REJECT, after_failure,
+                                        after_half_step, after_quarter_step, fallback_config,
+                                        needs_step_check, next_config, refined,
+                                        relative_step_error, start_config)
 from design_engine.solve.simulate import SimulationError, SolverConfig, StepBudgetError
 
 R = TypeVar("R")
@@ -119,13 +123,43 @@ def decide(config: SolverConfig, scene: Scene, *, health: dict | None = None,
     return Step(FALLBACK, fb, reason, str(error))
 
 
-def _half_step_error(step_error, cfg: SolverConfig, result, health: dict) -> float:
-    """The caller's half-step estimate of a result (`solve_with_policy(step_error=...)`); inf when
-    its half-step solve failed."""
+def _judged_at_half_steps(scene: Scene, steps: list, result, health: dict, solve, objective,
+                          on_step) -> tuple:
+    """Judge a fixed-step solve that `policy.needs_step_check` names (the last of `steps`,
+    with `result` and `health`) on the caller's `objective`, by the same start solved with
+    `solve` at half its step and, where `policy.after_half_step` says so, at a quarter:
+    returns the `(result, health)` that goes on to `policy.next_config`, `health["step_error"]`
+    being its estimate. A half- or quarter-step solve that `policy.after_quarter_step` lets
+    stand is appended to `steps` as a RESOLVE and returned (it is not solved again). A
+    half-step solve that fails leaves the result untrusted at its step (inf)."""
+    cfg = steps[-1].config
+    half = refined(cfg)
     try:
-        return float(step_error(cfg, result, health))
+        half_result, half_health = solve(half)
+        error = relative_step_error(float(objective(result)), float(objective(half_result)))
     except SimulationError:
-        return float("inf")
+        return result, dict(health, step_error=float("inf"))
+    health = dict(health, step_error=error)
+    if (next_config(cfg, health, scene) is None
+            or after_half_step(error, half, half_health, scene) == REJECT):
+        return result, health
+    quarter = refined(half)
+    try:
+        quarter_result, quarter_health = solve(quarter)
+        half_error = relative_step_error(float(objective(half_result)),
+                                         float(objective(quarter_result)))
+    except SimulationError:
+        return result, health
+    verdict, reason = after_quarter_step(error, half_error, half, quarter, quarter_health, scene)
+    if verdict == REJECT:
+        return result, health
+    stands = ((half, half_result, dict(half_health, step_error=half_error)) if verdict == HALF
+              else (quarter, quarter_result, dict(quarter_health,
+                                                  step_error=half_error * REFINE**2)))
+    steps.append(Step(RESOLVE, stands[0], reason))
+    if on_step is not None:
+        on_step(steps[-1])
+    return stands[1], stands[2]
 
 
 def solve_with_policy(scene: Scene, config: SolverConfig,
@@ -135,7 +169,7 @@ def solve_with_policy(scene: Scene, config: SolverConfig,
                       | None = None,
                       budget_fails_at_once: bool = False,
                       fallback: SolverConfig | None = None,
-                      step_error: Callable[[SolverConfig, R, dict], float] | None = None,
+                      objective: Callable[[R], float] | None = None,
                       on_step: Callable[[Step], None] | None = None,
                       finish: Callable[[R], R] | None = None) -> Outcome[R]:
     """Solve under the policy, starting from `config` (the choice for this scene).
@@ -147,12 +181,12 @@ def solve_with_policy(scene: Scene, config: SolverConfig,
     solve. `previous() -> (config, health)`: what the caller's last evaluation ended with
     (optimisers: `policy.start_config` may continue with it), asked after `check`, whose
     re-checked step the continued configuration must take. `fallback` replaces the policy's
-    fallback configuration. `step_error(config, result, health) -> float`: the relative change
-    of the caller's objective when the same start is solved forward at half the step,
-    Richardson-scaled (`policy.STEP_ERROR_TOLERANCE`; a half-step solve that raises
-    `SimulationError` counts as inf: the result is then not trusted at its step), asked
-    for a solve that `policy.needs_step_check` names once it passed the other checks; it goes
-    into the health as "step_error". `on_step` sees each step after the first as it is taken
+    fallback configuration. `objective(result) -> float`: the caller's objective of a result;
+    with it, a solve that `policy.needs_step_check` names once it passed the other checks is
+    also solved at half its step by `solve` and judged by the change of the objective
+    (`_judged_at_half_steps`: Richardson-scaled into the health as "step_error"; a half- or
+    quarter-step solve whose own error passes stands in its place, not solved again).
+    `on_step` sees each step after the first as it is taken
     (event logs). `finish(result) -> result`: the part of a solve that only the result that
     stands needs (an optimiser's reverse pass: `solve` returns the forward pass and what the
     reverse one needs, so that a rejected solve does not pay for its gradient); its
@@ -178,11 +212,12 @@ def solve_with_policy(scene: Scene, config: SolverConfig,
             except SimulationError as exc:
                 pending = exc
             else:
-                if (step_error is not None and health is not None and not fallen_back
+                if (objective is not None and health is not None and not fallen_back
                         and needs_step_check(cfg, health, scene)
                         and next_config(cfg, health, scene) is None):
-                    health = dict(health, step_error=_half_step_error(step_error, cfg, result,
-                                                                      health))
+                    result, health = _judged_at_half_steps(scene, steps, result, health, solve,
+                                                           objective, on_step)
+                    cfg = steps[-1].config
         if pending is not None:
             try:
                 step = decide(cfg, scene, error=pending, fallen_back=fallen_back,

@@ -77,16 +77,21 @@ CONTACT_SUBSTEPS_MAX = 8
 # barrier outgrew the step (benchmarks/bench_focusing_run.py)
 CONTACT_ENTRY_SUBSTEPS = 4
 # a fixed-step solve with contact that starts in contact (a static pre-compression past the
-# cutoff) is also judged on the objective itself: its caller solves the same start forward at
-# half the step (`driver.solve_with_policy(step_error=...)`), and a J that moves by more than
-# this (x 4/3, Richardson: the error of the whole step) is solved again at REFINE x the step
-# when that is predicted to pass (the estimate x REFINE^2 within half of this; the refined
-# solve is judged the same way, at half its step), else with Dopri8. On such designs the
-# work-energy balance does not bound J: on the focus-vs-protect run's designs at 8 % the
-# policy's step missed J by 6.2e-4 and 1.1e-3 at drifts of 3.0e-5 and 2.5e-5
-# (`benchmarks/bench_outer_step.py`); where this estimate accepts, it was within 0.6-1.7x of
-# the true error (`benchmarks/bench_step_convergence.py`)
+# cutoff) is also judged on the objective itself: the driver solves the same start at half the
+# step (`driver.solve_with_policy(objective=...)`), and a J that moves by more than this (x 4/3,
+# Richardson: the error of the whole step) does not stand. The half-step solve is then judged
+# at its own half when the quarter of the step is predicted to pass (`after_half_step`): it
+# stands when its own estimate passes; else the quarter-step solve stands when its error by
+# that pair (a quarter of it) passes and the two changes shrink as a second-order step's
+# (by at least STEP_CONVERGENCE_MIN, 4 in theory: `after_quarter_step`); else Dopri8. The
+# judging solves are the candidates: none is solved twice. On such designs the work-energy
+# balance does not bound J: on the focus-vs-protect run's designs at 8 % the policy's step
+# missed J by 6.2e-4 and 1.1e-3 at drifts of 3.0e-5 and 2.5e-5 (`benchmarks/bench_outer_step.py`);
+# where this estimate accepts, it was within 0.6-1.7x of the true error, and where the step was
+# not yet converging (a half-step change larger than the whole step's) it fell 3.8x short
+# (`benchmarks/bench_step_convergence.py`)
 STEP_ERROR_TOLERANCE = 1e-4
+STEP_CONVERGENCE_MIN = 2.0
 # an adaptive solve whose gradient an optimiser takes (`for_gradient`) controls its error to
 # this absolute tolerance on mm and mm/s instead of the reference's 1e-4 (with states of
 # millimetres, rtol 1e-8 is far below either, so atol sets the steps). At 1e-4 Dopri8's J on a
@@ -342,6 +347,56 @@ def relative_step_error(value: float, half: float) -> float:
     return 4.0 / 3.0 * abs(value - half) / max(abs(value), 1e-300)
 
 
+DEEPER, HALF, QUARTER, REJECT = "deeper", "half", "quarter", "reject"
+
+
+def moved(step_error: float) -> str:
+    """Why a fixed-step solve's half-step estimate `step_error` rejects it."""
+    return (f"the objective moved by {float(step_error):.2e} of itself at half the step "
+            f"(> {STEP_ERROR_TOLERANCE:g}; a solve that starts in contact, where the "
+            "work-energy balance does not bound it)")
+
+
+def after_half_step(step_error: float, half: SolverConfig, half_health: dict,
+                    scene: Scene) -> str:
+    """After a fixed-step solve whose objective moved by `step_error` (over
+    STEP_ERROR_TOLERANCE, Richardson-scaled) when the same start was solved at half its step
+    (`half`, with its `solve_health` `half_health`): DEEPER when the half-step solve is to be
+    judged at its own half (its other checks pass, `next_config`, and the quarter of the step
+    is predicted to pass: the estimate x REFINE^4 within half the tolerance), so that the
+    half or the quarter may stand (`after_quarter_step`), else REJECT (then `next_config`
+    says Dopri8)."""
+    if (np.isfinite(step_error) and next_config(half, half_health, scene) is None
+            and step_error_passes(step_error * REFINE**4)):
+        return DEEPER
+    return REJECT
+
+
+def after_quarter_step(step_error: float, half_error: float, half: SolverConfig,
+                       quarter: SolverConfig, quarter_health: dict,
+                       scene: Scene) -> tuple[str, str]:
+    """After `after_half_step` said DEEPER and the same start was solved at a quarter of the
+    step (`quarter`, with its `quarter_health`): which solve stands and why. HALF when the
+    half-step solve's own estimate (`half_error`, from it and the quarter) is within
+    STEP_ERROR_TOLERANCE: judged as the whole step was. QUARTER when the quarter's own error by
+    the same pair (`half_error` x REFINE^2) is within it, its other checks pass, and the two
+    changes show the step's second order (`step_error` / `half_error` at least
+    STEP_CONVERGENCE_MIN, where 4 is second order: a pair whose changes do not shrink, the
+    step not yet converging, says nothing of the error). Else REJECT."""
+    what = f"{moved(step_error)}, and by {half_error:.2e} between a half and a quarter of it"
+    if half_error <= STEP_ERROR_TOLERANCE:
+        return HALF, (f"{moved(step_error)}: the half-step solve ({half.solver.max_dt * 1e3:.1f}"
+                      f" us) stands, judged at its own half ({half_error:.2e})")
+    own = half_error * REFINE**2
+    if (np.isfinite(half_error) and own <= STEP_ERROR_TOLERANCE
+            and step_error >= STEP_CONVERGENCE_MIN * half_error
+            and next_config(quarter, quarter_health, scene) is None):
+        return QUARTER, (f"{what}: the quarter-step solve ({quarter.solver.max_dt * 1e3:.1f} us)"
+                         f" stands, its own error by that pair {own:.2e} (the changes "
+                         f"{step_error / half_error:.1f}:1, second order)")
+    return REJECT, ""
+
+
 def step_error_passes(step_error: float) -> bool:
     """Whether a predicted half-step estimate `step_error` passes STEP_ERROR_TOLERANCE with the
     margin a prediction needs (within half of it)."""
@@ -365,10 +420,9 @@ def next_config(config: SolverConfig, health: dict, scene: Scene) -> tuple[Solve
     solve again with and why, or None when the result stands.
 
     - voids reached the contact cutoff without contact terms: `with_contact(config)`;
-    - a `step_error` in `health` (the caller's half-step check, `needs_step_check`) above
-      STEP_ERROR_TOLERANCE: re-solved once at REFINE x the step when that is predicted to pass
-      (the estimate x REFINE^2 within half the tolerance; the refined solve is judged at half
-      its own step in turn), else, and for a refined step, Dopri8;
+    - a `step_error` in `health` (the driver's half-step check, `needs_step_check`) above
+      STEP_ERROR_TOLERANCE: Dopri8 (the driver has already tried the half-step solves,
+      `after_half_step`);
     - an explicit fixed-step solve whose work-energy balance drifted by more than
       ENERGY_TOLERANCE of the energy it moved (`Solution.energy_error`), or, with contact, whose
       barrier frequency at the deepest void (`contact_frequency`) exceeds CONTACT_STEP_LIMIT /
@@ -387,14 +441,7 @@ def next_config(config: SolverConfig, health: dict, scene: Scene) -> tuple[Solve
         return None
     step_error = health.get("step_error")
     if step_error is not None and not float(step_error) <= STEP_ERROR_TOLERANCE:
-        what = (f"the objective moved by {float(step_error):.2e} of itself at half the step "
-                f"(> {STEP_ERROR_TOLERANCE:g}; a solve that starts in contact, where the "
-                "work-energy balance does not bound it)")
-        if not solver.refined and step_error_passes(float(step_error) * REFINE**2):
-            nxt = refined(config)
-            return nxt, (f"{what}: re-solved once at {REFINE:g} x the step "
-                         f"({nxt.solver.max_dt * 1e3:.1f} us), judged again at half of that")
-        return contact_config(), f"{what}: re-solved with adaptive Dopri8"
+        return contact_config(), f"{moved(step_error)}: re-solved with adaptive Dopri8"
     drift = float(health.get("energy_error", 0.0))
     substeps = getattr(solver, "contact_substeps", 1)
     ratio = contact_step_ratio(solver, health, scene) if config.use_contact else 0.0

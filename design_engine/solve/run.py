@@ -20,8 +20,7 @@ from design_engine.solve.fixed_step import is_fixed_step
 from design_engine.solve.objectives import (angular_momentum, block_kinetic_energy, objective_term,
                                             peak_energy_along_units, region_energy,
                                             region_energy_ratio)
-from design_engine.solve.policy import (Choice, choose_config, for_gradient, refined,
-                                        relative_step_error)
+from design_engine.solve.policy import Choice, choose_config, for_gradient
 from design_engine.solve.simulate import (SimulationError, Solution, SolverConfig, check_solution,
                                           make_simulator, simulation_error, solve_health)
 from metarig.trajectory import Trajectory
@@ -122,13 +121,6 @@ def solver_stats(sol: Solution) -> dict:
             "num_rejected_steps": int(sol.num_rejected)}
 
 
-def at_rest_in(start_free):
-    """The simulator's `initial` for a start at rest in the free DOFs `start_free` [n_free] (a
-    solution's `start_free`: a static scene's equilibrium, solved once)."""
-    q0 = jnp.asarray(start_free)
-    return q0, jnp.zeros_like(q0)
-
-
 def static_equilibrium(scene: Scene, config: SolverConfig, x=None):
     """[n_free] the simulator's `equilibrium=` for a solve of design `x` (default the scene's)
     with `config`: the free DOFs of the design's static equilibrium (`prestressed_state`: one
@@ -193,15 +185,8 @@ def _run_with_policy(scene: Scene, config: SolverConfig | None, ts_ms=None, load
         walls.append(w)
         return sol, solve_health(sol, np)
 
-    def step_error(cfg, sol, _health):
-        # from the same start (a static equilibrium is kept, not solved again), by the program
-        # a solve at the refined step would use
-        half, w = _simulate(scene, refined(cfg), ts_ms, loading)
-        walls.append(w)
-        return relative_step_error(float(scene_objective(scene, sol)),
-                                   float(scene_objective(scene, half)))
-
-    out = solve_with_policy(scene, choice.config, solve, step_error=step_error)
+    out = solve_with_policy(scene, choice.config, solve,
+                            objective=lambda sol: scene_objective(scene, sol))
     return (out.result, sum(walls), out.config, choice.reasons + out.resolves, out.resolves,
             out.health.get("step_error"))
 
@@ -377,20 +362,14 @@ def make_objective(scene: Scene, config: SolverConfig | None = None, weights=Non
             checked(out[:2], cfg)
             return (cfg, out), out[1]
 
-        def step_error(cfg, result, health):
-            # from the same start (a static equilibrium is kept, not solved again), by the
-            # value program a solve at the refined step would use
-            half = checked(program(refined(cfg), False)(
-                x, None, static_equilibrium(scene, refined(cfg), x)), refined(cfg))[0]
-            return relative_step_error(float(result[1][0]), float(half))
-
         def finish(result):  # the reverse pass, for the solve that stands only
             cfg, (value, aux, pullback) = result
             return (value, aux), program(cfg, True)[1](pullback, jnp.ones_like(value))
 
         outcome = solve_with_policy(scene, default_choice(scene).config, solve,
                                     previous=lambda: (last["config"], last["health"]),
-                                    step_error=step_error, finish=finish if gradient else None)
+                                    objective=lambda result: result[1][0],
+                                    finish=finish if gradient else None)
         last.update(config=outcome.config, health=outcome.health)
         return outcome.result if gradient else outcome.result[1]
 

@@ -331,7 +331,7 @@ def test_the_driver_judges_a_solve_that_starts_in_contact_at_half_its_step(scene
     solve, out = run([3.0, 3.0], started, started, started, started)
     assert solve.calls == [contact, half, quarter, contact_config()]
     assert out.result == "result 4" and out.config == contact_config()
-    assert "Dopri8" in out.resolves[0]
+    assert "Dopri8" in out.resolves[0] and "(the changes 1.0:1)" in out.resolves[0]
     # not predicted to pass at a quarter: Dopri8 at once
     solve, out = run([20.0], started, started, started)
     assert solve.calls == [contact, half, contact_config()] and out.result == "result 3"

@@ -129,7 +129,8 @@ def _judged_at_half_steps(scene: Scene, steps: list, result, health: dict, solve
     with `result` and `health`) on the caller's `objective`, by the same start solved with
     `solve` at half its step and, where `policy.after_half_step` says so, at a quarter:
     returns the `(result, health)` that goes on to `policy.next_config`, `health["step_error"]`
-    being its estimate. A half- or quarter-step solve that `policy.after_quarter_step` lets
+    being its estimate (and "half_step_error" the half-step solve's, where it was judged at a
+    quarter and did not stand). A half- or quarter-step solve that `policy.after_quarter_step` lets
     stand is appended to `steps` as a RESOLVE and returned (it is not solved again). A
     half-step solve that fails leaves the result untrusted at its step (inf)."""
     cfg = steps[-1].config
@@ -149,10 +150,10 @@ def _judged_at_half_steps(scene: Scene, steps: list, result, health: dict, solve
         half_error = relative_step_error(float(objective(half_result)),
                                          float(objective(quarter_result)))
     except SimulationError:
-        return result, health
+        return result, dict(health, half_step_error=float("inf"))
     verdict, reason = after_quarter_step(error, half_error, half, quarter, quarter_health, scene)
     if verdict == REJECT:
-        return result, health
+        return result, dict(health, half_step_error=half_error)
     stands = ((half, half_result, dict(half_health, step_error=half_error)) if verdict == HALF
               else (quarter, quarter_result, dict(quarter_health,
                                                   step_error=half_error * REFINE**2)))

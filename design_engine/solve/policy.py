@@ -350,11 +350,16 @@ def relative_step_error(value: float, half: float) -> float:
 DEEPER, HALF, QUARTER, REJECT = "deeper", "half", "quarter", "reject"
 
 
-def moved(step_error: float) -> str:
-    """Why a fixed-step solve's half-step estimate `step_error` rejects it."""
-    return (f"the objective moved by {float(step_error):.2e} of itself at half the step "
-            f"(> {STEP_ERROR_TOLERANCE:g}; a solve that starts in contact, where the "
-            "work-energy balance does not bound it)")
+def moved(step_error: float, half_error: float | None = None) -> str:
+    """Why a fixed-step solve's half-step estimate `step_error` rejects it (with `half_error`,
+    the half-step solve's own estimate at a quarter of the step, where it was judged so)."""
+    why = (f"the objective moved by {float(step_error):.2e} of itself at half the step "
+           f"(> {STEP_ERROR_TOLERANCE:g}; a solve that starts in contact, where the "
+           "work-energy balance does not bound it)")
+    if half_error is None:
+        return why
+    return (f"{why}, and by {float(half_error):.2e} between a half and a quarter of the step "
+            f"(the changes {float(step_error) / float(half_error):.1f}:1)")
 
 
 def after_half_step(step_error: float, half: SolverConfig, half_health: dict,
@@ -383,17 +388,16 @@ def after_quarter_step(step_error: float, half_error: float, half: SolverConfig,
     changes show the step's second order (`step_error` / `half_error` at least
     STEP_CONVERGENCE_MIN, where 4 is second order: a pair whose changes do not shrink, the
     step not yet converging, says nothing of the error). Else REJECT."""
-    what = f"{moved(step_error)}, and by {half_error:.2e} between a half and a quarter of it"
+    what = moved(step_error, half_error)
     if half_error <= STEP_ERROR_TOLERANCE:
-        return HALF, (f"{moved(step_error)}: the half-step solve ({half.solver.max_dt * 1e3:.1f}"
-                      f" us) stands, judged at its own half ({half_error:.2e})")
+        return HALF, (f"{what}: the half-step solve ({half.solver.max_dt * 1e3:.1f} us) stands "
+                      "on its own estimate")
     own = half_error * REFINE**2
     if (np.isfinite(half_error) and own <= STEP_ERROR_TOLERANCE
             and step_error >= STEP_CONVERGENCE_MIN * half_error
             and next_config(quarter, quarter_health, scene) is None):
         return QUARTER, (f"{what}: the quarter-step solve ({quarter.solver.max_dt * 1e3:.1f} us)"
-                         f" stands, its own error by that pair {own:.2e} (the changes "
-                         f"{step_error / half_error:.1f}:1, second order)")
+                         f" stands, its own error by that pair {own:.2e}")
     return REJECT, ""
 
 
@@ -441,7 +445,8 @@ def next_config(config: SolverConfig, health: dict, scene: Scene) -> tuple[Solve
         return None
     step_error = health.get("step_error")
     if step_error is not None and not float(step_error) <= STEP_ERROR_TOLERANCE:
-        return contact_config(), f"{moved(step_error)}: re-solved with adaptive Dopri8"
+        return contact_config(), (f"{moved(step_error, health.get('half_step_error'))}: "
+                                  "re-solved with adaptive Dopri8")
     drift = float(health.get("energy_error", 0.0))
     substeps = getattr(solver, "contact_substeps", 1)
     ratio = contact_step_ratio(solver, health, scene) if config.use_contact else 0.0

@@ -276,6 +276,7 @@ def test_a_solve_that_starts_in_contact_is_judged_at_half_its_step_too(scene):
     # changes that do not shrink as the step's order says (the step not yet converging), or a
     # quarter's own error over the tolerance, or a quarter that failed another check: Dopri8
     assert after_quarter_step(3 * tol, 2 * tol, half, quarter, started, scene)[0] == REJECT
+    assert after_quarter_step(3 * tol, 0.0, half, quarter, started, scene)[0] == HALF
     assert after_quarter_step(20 * tol, 5 * tol, half, quarter, started, scene)[0] == REJECT
     assert after_quarter_step(8 * tol, 2 * tol, half, quarter, dict(started, energy_error=1.0),
                               scene)[0] == REJECT

@@ -358,8 +358,10 @@ def moved(step_error: float, half_error: float | None = None) -> str:
            "work-energy balance does not bound it)")
     if half_error is None:
         return why
-    return (f"{why}, and by {float(half_error):.2e} between a half and a quarter of the step "
-            f"(the changes {float(step_error) / float(half_error):.1f}:1)")
+    why = f"{why}, and by {float(half_error):.2e} between a half and a quarter of the step"
+    if not float(half_error) > 0.0:
+        return why
+    return f"{why} (the changes {float(step_error) / float(half_error):.1f}:1)"
 
 
 def after_half_step(step_error: float, half: SolverConfig, half_health: dict,

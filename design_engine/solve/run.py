@@ -400,8 +400,7 @@ def _objective(scene: Scene, config: SolverConfig, weights, jit: bool = False):
 
     def objective(x, initial=None, equilibrium=None):
         sol = sim(x, scene.material, scene.loading, ts, initial, equilibrium)
-        return scene_objective(scene, sol, weights), dict(solve_health(sol),
-                                                          start_free=sol.start_free)
+        return scene_objective(scene, sol, weights), solve_health(sol)
 
     return jax.jit(objective) if jit else objective
 

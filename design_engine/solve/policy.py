@@ -25,8 +25,9 @@ The default policy, read off the work-precision and speed-up charts (README, `me
   fixed-step solve) with Dopri8. A fixed step takes the contact terms with
   CONTACT_ENTRY_SUBSTEPS substeps from its first solve with them. An optimiser's next
   evaluation starts where the last one ended while that was in contact, with a fixed step with
-  contact for the rest of the run (a refined step only while the last solve predicts the whole
-  step would fail), with the fixed step if that was Dopri8 (`start_config`);
+  contact for the rest of the run (a refined step climbing back one halving an evaluation
+  toward the chosen step unless its drift or the barrier predicts a failure), with the fixed
+  step if that was Dopri8 (`start_config`);
 - the dynamic pre-compression ramp (`precompression="ramp"`, the reference's protocol):
   adaptive Dopri8 at the reference tolerances with contact (the ramp lasts 40-320 ms).
 `full_model=True` forces the reference configuration (Dopri5, spec tolerances).
@@ -509,11 +510,16 @@ def start_config(choice: SolverConfig, last: SolverConfig | None, health: dict |
     forth compiled a program for each at every new step); else the choice. When the
     previous evaluation ended with Dopri8 after a rejected fixed step, the fixed step with
     contact gets its chance again (`with_contact(choice)`): it costs 1/15-1/25 of Dopri8 and a
-    design a step away may be accepted at it. A refined step (`refined`) continues only while
-    the last solve predicts that the whole step would be rejected again (its drift x 1 /
-    REFINE^2, Verlet being second order, above half the tolerance, or the barrier past the whole
-    step); else the whole step is back. Either way `next_config` still judges the result, so
-    this changes the cost, not the answer."""
+    design a step away may be accepted at it. A refined step (`refined`) climbs back one
+    halving an evaluation toward the choice's step (marked refined while below it), unless the
+    last solve predicts that step would be rejected again by the work-energy balance (its drift
+    x 1 / REFINE^2, Verlet being second order, above half the tolerance) or the barrier (past
+    the larger step). Its half-step estimate is not such a prediction: the step check solves
+    the same start at half and a quarter of the larger step, and a half that stands is that
+    solve (`after_quarter_step`), so a failed climb costs one forward solve at the larger step,
+    where a step that never climbed would stay halved for the rest of the run. Either way
+    `next_config` and the step check still judge the result, so this changes the cost, not the
+    answer."""
     if last is None or health is None or last == choice or not last.use_contact:
         return choice
     if not past_cutoff(health["void_margin"], scene) and not is_fixed_step(last.solver):
@@ -521,12 +527,14 @@ def start_config(choice: SolverConfig, last: SolverConfig | None, health: dict |
     if is_fixed_step(choice.solver) and not is_fixed_step(last.solver):
         return with_contact(choice)
     if is_fixed_step(last.solver) and getattr(last.solver, "refined", False):
-        whole = dataclasses.replace(last, solver=dataclasses.replace(
-            last.solver, max_dt=last.solver.max_dt / REFINE, refined=False))
-        if (passes(float(health.get("energy_error", 0.0)) / REFINE**2,
-                   contact_step_ratio(whole.solver, health, scene))
-                and step_error_passes(float(health.get("step_error", 0.0)) / REFINE**2)):
-            return whole
+        top = (choice.solver.max_dt if is_fixed_step(choice.solver)
+               else last.solver.max_dt / REFINE)
+        dt = min(last.solver.max_dt / REFINE, top)
+        up = dataclasses.replace(last, solver=dataclasses.replace(last.solver, max_dt=dt,
+                                                                  refined=dt < top))
+        if passes(float(health.get("energy_error", 0.0)) / REFINE**2,
+                  contact_step_ratio(up.solver, health, scene)):
+            return up
     return last
 
 

@@ -2,7 +2,9 @@
 
 A task run for `--evals` evaluations from the same start with each configuration:
 
-- `default`: the automatic policy on the default model (static pre-compression);
+- `default`: the automatic policy on the default model (static pre-compression), its solves
+  on every core this process may use (`TaskEvaluator(threads=None)`);
+- `default-1thread`: the same on one thread, as a Dask worker of a sweep runs it;
 - `dopri8-static`: adaptive Dopri8 at the reference tolerances with contact, static model;
 - `baseline`: the reference configuration (Dopri5 at the spec tolerances, backsolve adjoint,
   float64) on the reference model (the dynamic pre-compression ramp where the task has one).
@@ -36,7 +38,7 @@ from pathlib import Path
 from machine import cpu_model
 
 HERE = Path(__file__).resolve().parent
-RUNS = ("default", "dopri8-static", "baseline")
+RUNS = ("default", "default-1thread", "dopri8-static", "baseline")
 TASKS = ("focus-vs-protect", "focusing")
 
 
@@ -115,10 +117,11 @@ def main(argv=None) -> int:
     report.update(task=args.task, evals=args.evals, machine={
         "platform": platform.platform(), "cpu": cpu_model(), "cpus": os.cpu_count(),
         "load_before": os.getloadavg()})
-    setups = {"default": ("static", None), "dopri8-static": ("static", contact_config()),
-              "baseline": ("ramp", baseline_method().config)}
+    setups = {"default": ("static", None, None), "default-1thread": ("static", None, 1),
+              "dopri8-static": ("static", contact_config(), None),
+              "baseline": ("ramp", baseline_method().config, None)}
     for label in labels:
-        model, config = setups[label]
+        model, config, threads = setups[label]
         task = load_task(files[model], max_evals=args.evals)
         folder = args.out / label
         print(f"{label}: {args.evals} evaluations"
@@ -128,7 +131,7 @@ def main(argv=None) -> int:
             >= args.evals
         load = [os.getloadavg()[0]]
         run = run_design(task, folder, resume=resumable(folder), progress=True,
-                         evaluator=TaskEvaluator(task, config=config))
+                         evaluator=TaskEvaluator(task, config=config, threads=threads))
         load.append(os.getloadavg()[0])
         if done:  # replayed from its record: the load of the invocation that ran it
             load = report["runs"].get(label, {}).get("load_1min", load)

@@ -599,24 +599,32 @@ def test_an_invalid_trial_design_is_not_simulated_and_the_run_steps_back(tmp_pat
     assert len(ev) == 6 and res.best != 2
 
 
-def _protect_task(tmp_path, max_evals: int = 1):
-    """The protection scene of focus-vs-protect (8 %, static pre-compression past the contact
-    cutoff) alone, on 6x6 under a 1 mm pulse."""
-    text = preset_path("focus-vs-protect").read_text()
-    text = text[:text.index("[scenes.strain_1pct]")] + """
-[scenes.strain_8pct]
+_PROTECT_SCENE = """
+[scenes.{name}]
 preset = "protection-24x18"
 strain = 0.08
 contact_deg = [-10.0, -5.0]
 precompression = "static"
-amplitude_m = 0.001
+amplitude_m = {amplitude}
 
 [[objective]]
-name = "protect"
-scene = "strain_8pct"
+name = "{objective}"
+scene = "{name}"
 target = "target"
 """
-    path = tmp_path / "protect-1mm.toml"
+
+
+def _protect_task(tmp_path, max_evals: int = 1, second: bool = False):
+    """The protection scene of focus-vs-protect (8 %, static pre-compression past the contact
+    cutoff) alone, on 6x6 under a 1 mm pulse (`second`: with the same scene under a 0.8 mm
+    pulse as a second scene, whose programs are the first one's: the pulse is an argument)."""
+    text = preset_path("focus-vs-protect").read_text()
+    text = text[:text.index("[scenes.strain_1pct]")] + _PROTECT_SCENE.format(
+        name="strain_8pct", amplitude=0.001, objective="protect")
+    if second:
+        text += _PROTECT_SCENE.format(name="strain_8pct_b", amplitude=0.0008,
+                                      objective="protect_b")
+    path = tmp_path / ("protect-two.toml" if second else "protect-1mm.toml")
     path.write_text(text)
     return load_task(path, size=(6, 6), max_evals=max_evals)
 
@@ -656,6 +664,31 @@ def test_a_design_in_static_contact_is_step_checked_at_its_own_equilibrium(tmp_p
     with pytest.raises(SimulationError, match="did not converge") as err:
         evaluator._solve("strain_8pct", config, x1, jnp.asarray(own[0].reshape(-1)[free]))
     assert "\n" not in str(err.value)
+
+
+def test_two_threads_evaluate_as_one_does(tmp_path, monkeypatch):
+    """`TaskEvaluator(threads=2)`: the two scenes of a task are solved side by side, and from
+    the second design on (whose previous solve started in contact) each scene's half-step
+    check is started beside its step; two designs evaluate to the same value, gradient, terms,
+    records and events as on one thread, bit for bit."""
+    import threading
+
+    task = _protect_task(tmp_path, second=True)
+    x0 = np.asarray(task.initial_design, np.float64)
+    xs = (x0, x0 + 0.05 * np.sin(np.arange(x0.size)))
+    one, two = TaskEvaluator(task, threads=1), TaskEvaluator(task, threads=2)
+    threads = set()
+    solve = two._solve
+    monkeypatch.setattr(two, "_solve", lambda *a: (
+        threads.add(threading.current_thread().name.rsplit("_", 1)[0]), solve(*a))[1])
+    for x in xs:
+        a, b = one.evaluate(x), two.evaluate(x)
+        assert a.value == b.value and np.array_equal(a.grad, b.grad) and a.terms == b.terms
+        assert a.solver == b.solver and a.events == b.events
+    assert set(a.terms) == {"protect", "protect_b"}
+    assert threads == {"metarig-scene", "metarig-ahead"}
+    with pytest.raises(ValueError, match="threads"):
+        TaskEvaluator(task, threads=0)
 
 
 def test_a_scene_that_starts_in_contact_is_judged_on_its_objective_at_half_the_step(tmp_path):

@@ -344,3 +344,70 @@ def test_the_driver_judges_a_solve_that_starts_in_contact_at_half_its_step(scene
     assert solve.calls == [contact]
     solve, _ = run([0.0], dict(started, energy_error=1.0), started)
     assert solve.calls == [contact, contact_config()]
+
+
+class ByConfig:
+    """A stand-in solve that may be called from several threads: answers each configuration
+    with its own entry of `answers` (`[(config, health or exception)]`, each solved at most
+    once) and records which thread solved it, as the solve ends."""
+
+    def __init__(self, answers):
+        self.answers, self.threads = answers, []
+
+    def __call__(self, config):
+        import threading
+
+        k = next(k for k, (c, _) in enumerate(self.answers) if c == config)
+        answer = self.answers[k][1]
+        self.threads.append((k, threading.current_thread().name))
+        if isinstance(answer, Exception):
+            raise answer
+        return f"result {k}", answer
+
+
+def test_a_half_step_solve_started_ahead_changes_nothing_but_the_thread(scene):
+    """`solve_with_policy(ahead=)`: when the previous evaluation's solve started in contact,
+    the half-step solve that the check will most likely ask for starts on the executor beside
+    the step's own solve. Where the policy then asks for that configuration (the step check,
+    or a re-solve at half the step after a drift) it takes that solve, which ran on the other
+    thread; where it does not (a drift beyond refining: Dopri8) the solve is waited for and
+    dropped. Each outcome (result, configuration, reasons, health) equals the one without the
+    executor, with the same solves but that dropped one."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from design_engine.solve.policy import STEP_ERROR_TOLERANCE
+
+    tol = STEP_ERROR_TOLERANCE
+    span = float(scene.material.contact_cutoff - scene.material.contact_min)
+    contact = with_contact(VERLET)
+    half, quarter = refined(contact), refined(refined(contact))
+    started = healthy(scene, void_margin=0.5 * span, start_void_margin=0.5 * span)
+    drift = dict(started, energy_error=2 * ENERGY_TOLERANCE)  # refining predicted to pass
+    cases = {  # answers, J of each answer in turn
+        "stands": ([(contact, started), (half, started)], [1.0, 1.0 + 0.375 * tol]),
+        "the half stands": ([(contact, started), (half, started), (quarter, started)],
+                            [1.0, 1.0 + 1.5 * tol, 1.0 + 1.875 * tol]),
+        "refined after a drift": ([(contact, drift), (half, started), (quarter, started)],
+                                  [1.0, 1.0, 1.0 + 0.375 * tol]),
+        "Dopri8 after a drift": ([(contact, dict(started, energy_error=1.0)), (half, started),
+                                  (contact_config(), started)], [1.0, 1.0, 1.0]),
+    }
+    for case, (answers, values) in cases.items():
+        def solve_with(ahead, solve):
+            return solve_with_policy(scene, contact, solve, previous=lambda: (None, started),
+                                     objective=lambda r: values[int(r.split()[1])],
+                                     ahead=ahead)
+
+        plain, alone = ByConfig(answers), None
+        alone = solve_with(None, plain)
+        with ThreadPoolExecutor(1, "ahead") as pool:
+            both = ByConfig(answers)
+            beside = solve_with(pool, both)
+            solved = sorted(both.threads)  # every solve started ahead has ended
+        assert (beside.result, beside.config, beside.resolves, beside.health) == \
+            (alone.result, alone.config, alone.resolves, alone.health), case
+        dropped = [1] if case == "Dopri8 after a drift" else []
+        assert [k for k, _ in solved] == sorted([k for k, _ in plain.threads] + dropped), case
+        assert solved[1] == (1, "ahead_0"), case  # the half step, on the executor's thread
+        assert all(name == "MainThread" for k, name in solved if k != 1), case
+    assert beside.config == contact_config() and "Dopri8" in beside.resolves[0]

@@ -24,10 +24,19 @@ that an optimisation needs:
   near-singular contact), so the optimiser records a failed design and steps back instead of
   spending an hour on it.
 Every such step is recorded with its reason.
+
+XLA runs each of these programs on one core. With `threads` above 1 (the default: the cores
+this process may use) an evaluation solves its scenes side by side, and a scene's half-step
+check starts beside its step (`driver.solve_with_policy(ahead=)`); the results, events and
+records are the same as on one thread. A Dask worker of a sweep, whose neighbours already fill
+the cores, evaluates on one (`threads=1`).
 """
 
 import dataclasses
+import os
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import jax
@@ -66,6 +75,7 @@ def task_terms(task: Task, solutions: dict[str, Solution]) -> dict[str, float]:
 # compiled value-and-gradient programs of this process, shared by every evaluator: the weights
 # are arguments, so the runs of a sweep (other weights, other starts) reuse them
 _PROGRAMS: dict[tuple, object] = {}
+_PROGRAMS_LOCK = threading.Lock()  # scenes and half-step solves run on several threads
 
 
 class EvaluationFailed(RuntimeError):
@@ -115,12 +125,21 @@ class SceneState:
 class TaskEvaluator:
     """Evaluates a task's scalarised objective and its gradient (see module docstring)."""
 
-    def __init__(self, task: Task, config: SolverConfig | None = None):
+    def __init__(self, task: Task, config: SolverConfig | None = None,
+                 threads: int | None = None):
         """`config` forces one configuration on every scene, with no policy (no step checks,
         no re-solves, no fallback, its own step budget): for comparisons against a fixed
-        method."""
+        method. `threads`: how many solves may run at once (default: the cores this process
+        may use; 1 solves one after the other)."""
         self.task = task
         self.forced = config
+        threads = len(os.sched_getaffinity(0)) if threads is None else threads
+        if threads < 1:
+            raise ValueError(f"threads must be at least 1, got {threads}")
+        # scenes side by side, and each scene's half-step solve started ahead on a pool of its
+        # own (a scene waits on that pool, never the other way round)
+        self._scenes = ThreadPoolExecutor(threads, "metarig-scene") if threads > 1 else None
+        self._ahead = ThreadPoolExecutor(threads, "metarig-ahead") if threads > 1 else None
         self.max_solve_steps = task.budget.max_solve_steps
         self.compilations = 0
         self._estimators: dict[str, object] = {}
@@ -177,8 +196,16 @@ class TaskEvaluator:
         key = compile_key(scene, config, "task", scene.sample_times) + tuple(
             (t.quantity, tuple(self.task.targets[t.target])) for t in terms) + (
             None if self.task.spin_point is None else tuple(self.task.spin_point),)
-        if key in _PROGRAMS:
+        with _PROGRAMS_LOCK:  # building one is quick (jax.jit compiles at its first call)
+            if key not in _PROGRAMS:
+                _PROGRAMS[key] = self._program(name, config)
+                self.compilations += 1
             return _PROGRAMS[key]
+
+    def _program(self, name: str, config: SolverConfig):
+        """`_function`'s programs, built."""
+        scene = self.task.scenes[name]
+        terms = [t for t in self.task.terms if t.scene == name]
         sim = make_simulator(scene.lattice, scene.supports, config, scene.sample_times,
                              model=scene.model)
         targets = [np.asarray(self.task.targets[t.target]) for t in terms]
@@ -192,10 +219,7 @@ class TaskEvaluator:
             aux = dict(solve_health(sol), terms=jnp.stack(raw))
             return value, aux
 
-        fn = (*split_gradient(objective), objective)
-        _PROGRAMS[key] = fn
-        self.compilations += 1
-        return fn
+        return (*split_gradient(objective), objective)
 
     def _budgeted(self, config: SolverConfig, name: str) -> SolverConfig:
         """`config` as this evaluator solves scene `name`: if adaptive, with the task's step
@@ -338,7 +362,7 @@ class TaskEvaluator:
                                     previous=lambda: (checked[0].last_config,
                                                       checked[0].last_health),
                                     budget_fails_at_once=True, objective=lambda r: r[0],
-                                    on_step=log, finish=finish)
+                                    on_step=log, finish=finish, ahead=self._ahead)
         except PolicyFailed as exc:
             raise EvaluationFailed(f"{name}: {exc}", checked[0]) from None
         st = checked[0]
@@ -361,16 +385,29 @@ class TaskEvaluator:
         start = time.perf_counter()
         events: list[str] = []
         value, grad, terms, solver = 0.0, np.zeros(self.task.lattice.n_design), {}, {}
-        for name in self.task.scenes:
-            if not any(t.scene == name for t in self.task.terms):
-                continue
+        x = np.asarray(x, np.float64)
+        names = [n for n in self.task.scenes if any(t.scene == n for t in self.task.terms)]
+
+        def scene(name):
             try:
-                v, g, tm, s, ev, self._state[name] = self._solve_scene(
-                    name, self._state[name], np.asarray(x, np.float64))
+                return self._solve_scene(name, self._state[name], x)
             except EvaluationFailed as exc:
-                if exc.state is not None:
-                    self._state[name] = exc.state
-                raise
+                return exc
+
+        if self._scenes is None or len(names) == 1:
+            outs = []
+            for name in names:  # one after the other: a failed scene ends the evaluation
+                outs.append(scene(name))
+                if isinstance(outs[-1], EvaluationFailed):
+                    break
+        else:
+            outs = list(self._scenes.map(scene, names))
+        for name, out in zip(names, outs):  # in the task's order, as one after the other
+            if isinstance(out, EvaluationFailed):
+                if out.state is not None:
+                    self._state[name] = out.state
+                raise out
+            v, g, tm, s, ev, self._state[name] = out
             events += ev
             value, grad = value + v, grad + g
             terms.update(tm)

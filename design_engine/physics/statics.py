@@ -34,6 +34,8 @@ exact at an equilibrium. `info["gradient_norm"]` says how close to one the solve
 Internal units (mm, rad, N mm).
 """
 
+import threading
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -366,6 +368,7 @@ _SOLVERS: dict[tuple, object] = {}  # jitted solvers of this process, per topolo
 # the last equilibria found (`equilibrium_state`), or the message of a solve that failed
 _STATES: dict[tuple, np.ndarray | str] = {}
 KEEP_STATES = 16  # how many
+_STATES_LOCK = threading.Lock()  # the design loop solves scenes on several threads
 
 
 def forget_equilibria() -> None:
@@ -386,11 +389,14 @@ def equilibrium_state(scene) -> np.ndarray:
            sup.constrained.tobytes(), sup.channel.tobytes(), sup.gain.tobytes(), scene.model)
     leaves, tree = jax.tree_util.tree_flatten((scene.design, scene.material, scene.loading))
     inputs = key + (str(tree), tuple(np.asarray(a).tobytes() for a in leaves))
-    if inputs not in _STATES:
-        while len(_STATES) >= KEEP_STATES:
-            del _STATES[next(iter(_STATES))]  # the oldest
-        _STATES[inputs] = _solve_state(scene, key)
-    found = _STATES[inputs]
+    with _STATES_LOCK:
+        found = _STATES.get(inputs)
+    if found is None:
+        found = _solve_state(scene, key)
+        with _STATES_LOCK:
+            while len(_STATES) >= KEEP_STATES:
+                del _STATES[next(iter(_STATES))]  # the oldest
+            _STATES[inputs] = found
     if isinstance(found, str):
         raise EquilibriumError(found)
     return found.copy()

@@ -22,10 +22,19 @@ through `decide` (what to do after a solve) and, for one solve at a time, `solve
    (an optimiser steps back rather than grinding on a near-singular contact);
 4. a fallback that fails too raises.
 
+With an executor (`ahead`), the half-step solve that step 2 will most likely ask for (the
+previous evaluation's solve started in contact: `policy.needs_step_check` on its health) runs
+on another thread while the step itself is solved: XLA runs each of these programs on one core,
+so on two cores the check costs the longer of the two solves, not their sum. It is taken where
+the policy asks for that configuration (the check, or a re-solve at half the step) and
+otherwise waited for and dropped, so the sequence of decisions and the result are the same as
+without it.
+
 What happened comes back as a typed record (`Outcome`, a tuple of `Step`), not as strings.
 """
 
 from collections.abc import Callable
+from concurrent.futures import Executor, Future
 from dataclasses import dataclass
 from typing import Generic, TypeVar
 
@@ -172,7 +181,8 @@ def solve_with_policy(scene: Scene, config: SolverConfig,
                       fallback: SolverConfig | None = None,
                       objective: Callable[[R], float] | None = None,
                       on_step: Callable[[Step], None] | None = None,
-                      finish: Callable[[R], R] | None = None) -> Outcome[R]:
+                      finish: Callable[[R], R] | None = None,
+                      ahead: Executor | None = None) -> Outcome[R]:
     """Solve under the policy, starting from `config` (the choice for this scene).
 
     `solve(config) -> (result, health)` runs one solve and raises `SimulationError` on failure;
@@ -191,10 +201,48 @@ def solve_with_policy(scene: Scene, config: SolverConfig,
     (event logs). `finish(result) -> result`: the part of a solve that only the result that
     stands needs (an optimiser's reverse pass: `solve` returns the forward pass and what the
     reverse one needs, so that a rejected solve does not pay for its gradient); its
-    `SimulationError` counts as that solve's failure. Raises `PolicyFailed` when every allowed
-    configuration failed.
+    `SimulationError` counts as that solve's failure. `ahead`: an executor on which the
+    half-step solve the check most likely needs (see the module docstring) is started beside
+    the step's own solve; `solve` must then be safe to call from two threads. Raises
+    `PolicyFailed` when every allowed configuration failed.
     """
-    pending = None
+    early: list[tuple[SolverConfig, Future]] = []  # half-step solves started ahead
+
+    def solved(cfg: SolverConfig):
+        """`solve(cfg)`, or the result of the same solve started ahead (solved here when it
+        has not started yet)."""
+        for k, (started, future) in enumerate(early):
+            if started == cfg:
+                del early[k]
+                return solve(cfg) if future.cancel() else future.result()
+        return solve(cfg)
+
+    def drop(wait: bool) -> None:
+        """Solves started ahead and not asked for: cancelled, or waited for (so that they do
+        not run into the caller's next solve) unless interrupted."""
+        for _, future in early:
+            if not future.cancel() and wait:
+                future.exception()
+
+    try:
+        outcome = _solve_with_policy(scene, config, solved, check, previous,
+                                     budget_fails_at_once, fallback, objective, on_step, finish,
+                                     None if ahead is None else (ahead, solve, early))
+    except Exception:
+        drop(wait=True)
+        raise
+    except BaseException:  # an interrupt does not wait for a solve nobody will use
+        drop(wait=False)
+        raise
+    drop(wait=True)
+    return outcome
+
+
+def _solve_with_policy(scene, config, solve, check, previous, budget_fails_at_once, fallback,
+                       objective, on_step, finish, ahead) -> Outcome:
+    """`solve_with_policy`'s loop; `ahead`: (executor, the caller's solve, the list of
+    `(config, future)` started ahead, which `solve` takes from)."""
+    pending, prior = None, None
     if check is not None:
         try:
             config = check()
@@ -202,12 +250,17 @@ def solve_with_policy(scene: Scene, config: SolverConfig,
             pending = exc
     steps = [Step(START, config, "")]
     if pending is None and previous is not None:
-        start = start_config(config, *previous(), scene)
+        last, prior = previous()
+        start = start_config(config, last, prior, scene)
         if start != config:
             steps.append(Step(CONTINUED, start, CONTINUED_REASON))
     while True:
         cfg, fallen_back = steps[-1].config, steps[-1].kind == FALLBACK
         if pending is None:
+            if (ahead is not None and objective is not None and prior is not None
+                    and not fallen_back and needs_step_check(cfg, prior, scene)
+                    and not ahead[2]):
+                ahead[2].append((refined(cfg), ahead[0].submit(ahead[1], refined(cfg))))
             try:
                 result, health = solve(cfg)
             except SimulationError as exc:

@@ -393,7 +393,7 @@ def test_a_half_step_solve_started_ahead_changes_nothing_but_the_thread(scene):
                                   (contact_config(), started)], [1.0, 1.0, 1.0]),
     }
     for case, (answers, values) in cases.items():
-        def solve_with(ahead, solve):
+        def solve_with(ahead, solve, values=values):
             return solve_with_policy(scene, contact, solve, previous=lambda: (None, started),
                                      objective=lambda r: values[int(r.split()[1])],
                                      ahead=ahead)

@@ -45,6 +45,9 @@ def design_main(argv: list[str] | None = None) -> int:
     p.add_argument("--initial", type=Path, help="start from this design file (metarig-design/1, "
                    "the task's lattice) instead of the periodic design, e.g. to redesign a "
                    "tested design with a calibrated --material")
+    p.add_argument("--threads", type=positive(int), help="solves that may run at once: the "
+                   "task's scenes side by side, a half-step check beside its step (default: "
+                   "the cores this process may use)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out")
     p.add_argument("--list", action="store_true", help="list the task presets and exit")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
@@ -65,6 +68,7 @@ def design_main(argv: list[str] | None = None) -> int:
     logging.getLogger("metarig").setLevel(logging.INFO)
 
     import design_engine  # noqa: F401  (x64, cache)
+    from design_engine.design.evaluator import TaskEvaluator
     from design_engine.design.optimize import ResumeError, read_record, run_design
     from design_engine.design.task import TaskError, load_task
     from design_engine.physics.geometry import InvalidDesignError
@@ -85,7 +89,8 @@ def design_main(argv: list[str] | None = None) -> int:
                  4 * task.lattice.n_bonds + task.lattice.n_blocks * task.lattice.n_vertices,
                  len(task.scenes), task.budget.max_evals, task.budget.max_time_s,
                  task.optimizer.algorithm)
-        result = run_design(task, out, resume=args.resume, progress=not args.quiet)
+        result = run_design(task, out, resume=args.resume, progress=not args.quiet,
+                            evaluator=TaskEvaluator(task, threads=args.threads))
     except (TaskError, ResumeError, InvalidDesignError, SimulationError, OSError) as exc:
         print(f"metarig design: error: {exc}", file=sys.stderr)
         return 2

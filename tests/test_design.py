@@ -146,6 +146,11 @@ def test_design_cli_refuses_a_bad_task_in_one_line(tmp_path, capsys):
     assert e.value.code == 2
     assert err == ["metarig design: error: argument --seed: must be 0 or more, got -1"]
     assert not (tmp_path / "s").exists()
+    with pytest.raises(SystemExit) as e:
+        design_main(["focusing-demo", "--threads", "0", "--out", str(tmp_path / "t")])
+    err = [line for line in capsys.readouterr().err.splitlines() if "error" in line]
+    assert e.value.code == 2 and len(err) == 1 and "--threads" in err[0]
+    assert not (tmp_path / "t").exists()
 
 
 def test_sparse_constraint_jacobian_equals_the_dense_one():

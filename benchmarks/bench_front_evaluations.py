@@ -1,0 +1,106 @@
+"""What a Pareto front's evaluations cost and how many fail (issue 26's front targets).
+
+Runs (or resumes, or finds finished) a `metarig pareto` sweep with the given settings into
+--out, then reads every run's `history.json` and reports: the evaluations, how many failed and
+why (used up the step budget `budget.max_solve_steps`; any other reason, named), and the wall
+time of an evaluation on a worker (median, 90th percentile, longest; the first evaluation of a
+run, which compiles, apart), with how often each scene counted a Dopri8 solve. JSON in
+OUT/bench_front_evaluations.json, copied to benchmarks/results/.
+
+    .venv/bin/python benchmarks/bench_front_evaluations.py [--task focus-vs-protect]
+        [--weights 0,0.2,0.4,0.6,0.8,1] [--starts 20,30] [--max-evals 12] [--workers 2]
+        [--out runs/bench-front-evaluations]
+
+Ctrl-C stops the sweep; running the same command again resumes it.
+"""
+
+import argparse
+import json
+import os
+import platform
+import shutil
+import time
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+from machine import cpu_model
+
+HERE = Path(__file__).resolve().parent
+BUDGET = "step budget"  # in the event of an evaluation that used up budget.max_solve_steps
+
+
+def summarise(out: Path) -> dict:
+    """The evaluations of every run of the sweep in `out`: counts, failures by reason, times."""
+    evals, first, failed, reasons, dopri8 = [], [], 0, Counter(), Counter()
+    budget = 0
+    runs = sorted((out / "runs").glob("*/history.json"))
+    for path in runs:
+        for e in json.loads(path.read_text())["evaluations"]:
+            (first if e["eval"] == 1 else evals).append(float(e["wall_s"]))
+            if e.get("failed"):
+                failed += 1
+                event = e.get("event") or ""
+                if BUDGET in event:
+                    budget += 1
+                else:
+                    reasons[event[:120]] += 1
+            for scene, rec in (e.get("solver") or {}).items():
+                if rec["config"]["solver"] == "Dopri8":
+                    dopri8[scene] += 1
+    n = len(evals) + len(first)
+    t = np.asarray(evals)
+    return {
+        "runs": len(runs), "evaluations": n, "failed": failed,
+        "failed_step_budget": budget, "failed_step_budget_share": budget / n if n else None,
+        "failed_other": dict(reasons), "dopri8_evaluations_per_scene": dict(dopri8),
+        "eval_s_after_the_first": {
+            "median": float(np.median(t)), "p90": float(np.percentile(t, 90)),
+            "max": float(t.max()), "mean": float(t.mean()), "count": int(t.size)},
+        "first_eval_s": {"median": float(np.median(first)), "max": float(max(first))},
+        "worker_s_total": float(t.sum() + sum(first)),
+    }
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--task", default="focus-vs-protect")
+    p.add_argument("--weights", default="0,0.2,0.4,0.6,0.8,1")
+    p.add_argument("--starts", default="20,30")
+    p.add_argument("--max-evals", type=int, default=12)
+    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--out", type=Path, default=Path("runs/bench-front-evaluations"))
+    args = p.parse_args(argv)
+
+    from design_engine.sweeps.pareto_sweep import run_sweep
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    load = [os.getloadavg()[0]]
+    start = time.perf_counter()
+    run_sweep(args.task, args.out, weights=[float(w) for w in args.weights.split(",")],
+              starts=[float(s) for s in args.starts.split(",")], max_evals=args.max_evals,
+              workers=args.workers, progress=True)
+    wall = time.perf_counter() - start
+    load.append(os.getloadavg()[0])
+    report = {"task": args.task, "weights": args.weights, "starts": args.starts,
+              "max_evals": args.max_evals, "workers": args.workers,
+              "sweep_wall_s_this_invocation": wall, "load_1min": load,
+              "machine": {"platform": platform.platform(), "cpu": cpu_model(),
+                          "cpus": os.cpu_count()},
+              **summarise(args.out)}
+    path = args.out / "bench_front_evaluations.json"
+    path.write_text(json.dumps(report, indent=2))
+    shutil.copy(path, HERE / "results" / path.name)
+    e = report["eval_s_after_the_first"]
+    print(f"{report['evaluations']} evaluations in {report['runs']} runs: "
+          f"{report['failed_step_budget']} used up the step budget "
+          f"({100 * (report['failed_step_budget_share'] or 0):.1f} %), "
+          f"{report['failed'] - report['failed_step_budget']} failed otherwise; an evaluation "
+          f"after the first: median {e['median']:.1f} s, 90 % {e['p90']:.1f} s, longest "
+          f"{e['max']:.1f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

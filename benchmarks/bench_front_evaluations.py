@@ -9,9 +9,11 @@ OUT/bench_front_evaluations.json, copied to benchmarks/results/.
 
     .venv/bin/python benchmarks/bench_front_evaluations.py [--task focus-vs-protect]
         [--weights 0,0.2,0.4,0.6,0.8,1] [--starts 20,30] [--max-evals 12] [--workers 2]
-        [--out runs/bench-front-evaluations]
+        [--out runs/bench-front-evaluations] [--report-only]
 
-Ctrl-C stops the sweep; running the same command again resumes it.
+Ctrl-C stops the sweep and reports what its runs recorded so far (`"complete": false`);
+running the same command again resumes it. `--report-only` reports the runs in --out without
+running anything (`"complete"`: whether every run recorded its budget).
 """
 
 import argparse
@@ -36,6 +38,8 @@ def summarise(out: Path) -> dict:
     evals, first, failed, reasons, dopri8 = [], [], 0, Counter(), Counter()
     budget = 0
     runs = sorted((out / "runs").glob("*/history.json"))
+    if not runs:
+        raise SystemExit(f"no design runs recorded in {out / 'runs'}")
     for path in runs:
         for e in json.loads(path.read_text())["evaluations"]:
             (first if e["eval"] == 1 else evals).append(float(e["wall_s"]))
@@ -71,20 +75,34 @@ def main(argv=None) -> int:
     p.add_argument("--max-evals", type=int, default=12)
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--out", type=Path, default=Path("runs/bench-front-evaluations"))
+    p.add_argument("--report-only", action="store_true",
+                   help="report the runs in --out, run nothing")
     args = p.parse_args(argv)
-
-    from design_engine.sweeps.pareto_sweep import run_sweep
+    weights = [float(w) for w in args.weights.split(",")]
+    starts = [float(s) for s in args.starts.split(",")]
 
     args.out.mkdir(parents=True, exist_ok=True)
     load = [os.getloadavg()[0]]
     start = time.perf_counter()
-    run_sweep(args.task, args.out, weights=[float(w) for w in args.weights.split(",")],
-              starts=[float(s) for s in args.starts.split(",")], max_evals=args.max_evals,
-              workers=args.workers, progress=True)
-    wall = time.perf_counter() - start
+    complete = True
+    if args.report_only:
+        wall = None
+        complete = sum(1 for _ in (args.out / "runs").glob("*/history.json")) == \
+            len(weights) * len(starts) and all(
+                len(json.loads(h.read_text())["evaluations"]) >= args.max_evals
+                for h in (args.out / "runs").glob("*/history.json"))
+    else:
+        from design_engine.sweeps.pareto_sweep import run_sweep
+
+        try:
+            run_sweep(args.task, args.out, weights=weights, starts=starts,
+                      max_evals=args.max_evals, workers=args.workers, progress=True)
+        except KeyboardInterrupt:
+            complete = False
+        wall = time.perf_counter() - start
     load.append(os.getloadavg()[0])
     report = {"task": args.task, "weights": args.weights, "starts": args.starts,
-              "max_evals": args.max_evals, "workers": args.workers,
+              "max_evals": args.max_evals, "workers": args.workers, "complete": complete,
               "sweep_wall_s_this_invocation": wall, "load_1min": load,
               "machine": {"platform": platform.platform(), "cpu": cpu_model(),
                           "cpus": os.cpu_count()},

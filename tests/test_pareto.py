@@ -65,11 +65,11 @@ def cluster():
     import dask
     from distributed import Client, LocalCluster
 
-    from design_engine.sweeps.distributed import worker_environment
+    from design_engine.sweeps.distributed import worker_environment, worker_xla_flags
 
     with dask.config.set({"distributed.nanny.pre-spawn-environ": worker_environment()}):
         lc = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                          dashboard_address=None)
+                          dashboard_address=None, env=worker_xla_flags())
     client = Client(lc)
     yield lc, client
     client.close()
@@ -279,3 +279,19 @@ def test_a_damaged_sweep_record_is_refused_in_one_line_before_any_run(tmp_path, 
         assert err[0].startswith(f"metarig pareto: error: {out / damaged}: damaged")
         assert "restore it from a copy" in err[0] and "another --out" in err[0]
         assert files() == before
+
+
+def test_local_workers_start_with_the_worker_environment():
+    """`dask_client(workers=N)`'s worker processes see every variable of `WORKER_ENV`, among
+    them glibc's trim threshold (Dask's own default for its workers, which replacing the
+    pre-spawn environment had dropped) and XLA on one thread, after this process's XLA_FLAGS
+    (which the nanny had let win: the workers ran XLA on every core)."""
+    from design_engine.sweeps.distributed import WORKER_ENV, dask_client
+
+    assert WORKER_ENV["MALLOC_TRIM_THRESHOLD_"] == "65536"
+    assert os.environ["XLA_FLAGS"]  # design_engine's, set in this process
+    with dask_client(workers=1) as client:
+        (seen,) = client.run(lambda: {k: os.environ.get(k) for k in WORKER_ENV}).values()
+    flags = seen.pop("XLA_FLAGS")
+    assert seen == {k: v for k, v in WORKER_ENV.items() if k != "XLA_FLAGS"}
+    assert flags == f"{os.environ['XLA_FLAGS']} {WORKER_ENV['XLA_FLAGS']}"

@@ -21,16 +21,30 @@ WORKER_ENV = {
     "MKL_NUM_THREADS": "1",
     "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1",
     "EQX_ON_ERROR": "nan",
+    # glibc hands freed memory back to the system (Dask's own default for its workers, which
+    # replacing its pre-spawn environment dropped: a focus-vs-protect front's workers then grew
+    # to 10-11 GB and Dask paused them)
+    "MALLOC_TRIM_THRESHOLD_": "65536",
 }
 
 
 def worker_environment() -> dict[str, str]:
-    """Environment variables every worker process starts with."""
+    """Environment variables every worker process starts with. Dask's nanny lets a variable of
+    its own process win over its pre-spawn environment, and this process has XLA_FLAGS set
+    (`design_engine` sets its code generators), so `dask_client` also hands the workers'
+    XLA_FLAGS to the nanny as the worker's own environment (`worker_xla_flags`)."""
     env = dict(WORKER_ENV)
     cache = os.environ.get("METARIG_JAX_CACHE")
     if cache is not None:
         env["METARIG_JAX_CACHE"] = cache
     return env
+
+
+def worker_xla_flags() -> dict[str, str]:
+    """The workers' XLA_FLAGS: this process's (the user's and `design_engine`'s) and one thread
+    for XLA (`WORKER_ENV`)."""
+    return {"XLA_FLAGS": " ".join(filter(None, (os.environ.get("XLA_FLAGS", ""),
+                                                 WORKER_ENV["XLA_FLAGS"])))}
 
 
 @contextlib.contextmanager
@@ -63,7 +77,7 @@ def dask_client(workers: int | None = None, scheduler: str | None = None):
     with dask.config.set({"distributed.nanny.pre-spawn-environ": worker_environment()}):
         cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
                                host="127.0.0.1", dashboard_address="127.0.0.1:0",
-                               silence_logs=logging.WARNING)
+                               silence_logs=logging.WARNING, env=worker_xla_flags())
         client = Client(cluster)
         try:
             log.info("local Dask cluster: %d single-threaded workers; dashboard %s", n,

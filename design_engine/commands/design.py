@@ -68,7 +68,6 @@ def design_main(argv: list[str] | None = None) -> int:
     logging.getLogger("metarig").setLevel(logging.INFO)
 
     import design_engine  # noqa: F401  (x64, cache)
-    from design_engine.design.evaluator import TaskEvaluator
     from design_engine.design.optimize import ResumeError, read_record, run_design
     from design_engine.design.task import TaskError, load_task
     from design_engine.physics.geometry import InvalidDesignError
@@ -90,7 +89,7 @@ def design_main(argv: list[str] | None = None) -> int:
                  len(task.scenes), task.budget.max_evals, task.budget.max_time_s,
                  task.optimizer.algorithm)
         result = run_design(task, out, resume=args.resume, progress=not args.quiet,
-                            evaluator=TaskEvaluator(task, threads=args.threads))
+                            threads=args.threads)
     except (TaskError, ResumeError, InvalidDesignError, SimulationError, OSError) as exc:
         print(f"metarig design: error: {exc}", file=sys.stderr)
         return 2

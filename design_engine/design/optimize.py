@@ -196,7 +196,8 @@ def best_feasible(evaluations: list[dict], goal: str) -> int | None:
 
 
 def run_design(task: Task, out: Path, *, resume: bool = False, progress: bool = True,
-               evaluator: TaskEvaluator | None = None) -> DesignRun:
+               evaluator: TaskEvaluator | None = None,
+               threads: int | None = None) -> DesignRun:
     """Optimise `task`, recording into folder `out` (see module docstring).
 
     Args:
@@ -204,7 +205,9 @@ def run_design(task: Task, out: Path, *, resume: bool = False, progress: bool = 
         out: run folder (created); with `resume`, an earlier run of the same task.
         resume: continue the run recorded in `out`.
         progress: show a progress bar on stderr.
-        evaluator: objective evaluator (default a new `TaskEvaluator(task)`).
+        evaluator: objective evaluator (default a new `TaskEvaluator(task, threads=threads)`,
+            made once the run folder has been checked).
+        threads: solves that may run at once (`TaskEvaluator`; default the usable cores).
 
     Raises:
         ResumeError: `out` cannot be resumed (or holds a run and `resume` is False).
@@ -219,7 +222,7 @@ def run_design(task: Task, out: Path, *, resume: bool = False, progress: bool = 
     elif (out / "checkpoint.npz").exists():
         raise ResumeError(f"{out} already holds a design run; pass --resume to continue it or "
                           "choose another --out folder")
-    evaluator = evaluator or TaskEvaluator(task)
+    evaluator = evaluator or TaskEvaluator(task, threads=threads)
     free, x_base = task.free, task.initial_design
     constraints = make_sparse_constraints(task.lattice, task.limits, x_base, free)
     budget = task.budget

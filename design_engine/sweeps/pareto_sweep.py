@@ -58,7 +58,6 @@ def run_one(spec: RunSpec, out: str) -> dict:
     Returns a small summary; everything that matters is in the run folder.
     """
     import design_engine  # noqa: F401  (x64, cache)
-    from design_engine.design.evaluator import TaskEvaluator
     from design_engine.design.optimize import resumable, run_design
     from design_engine.design.run_outputs import write_outputs
 
@@ -72,8 +71,7 @@ def run_one(spec: RunSpec, out: str) -> dict:
                     "compilations": 0}
     t0 = time.perf_counter()
     # one thread: the other workers fill the other cores
-    res = run_design(task, folder, resume=resumable(folder), progress=False,
-                     evaluator=TaskEvaluator(task, threads=1))
+    res = run_design(task, folder, resume=resumable(folder), progress=False, threads=1)
     write_outputs(task, folder, res, plots=False)
     return {"run": spec.name, "evaluations": len(res.evaluations), "skipped": False,
             "compilations": res.compilations, "wall_s": time.perf_counter() - t0,

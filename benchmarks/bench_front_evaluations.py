@@ -40,8 +40,11 @@ def summarise(out: Path) -> dict:
     runs = sorted((out / "runs").glob("*/history.json"))
     if not runs:
         raise SystemExit(f"no design runs recorded in {out / 'runs'}")
+    per_run = []
     for path in runs:
-        for e in json.loads(path.read_text())["evaluations"]:
+        history = json.loads(path.read_text())["evaluations"]
+        per_run.append(len(history))
+        for e in history:
             (first if e["eval"] == 1 else evals).append(float(e["wall_s"]))
             if e.get("failed"):
                 failed += 1
@@ -56,7 +59,7 @@ def summarise(out: Path) -> dict:
     n = len(evals) + len(first)
     t = np.asarray(evals)
     return {
-        "runs": len(runs), "evaluations": n, "failed": failed,
+        "runs": len(runs), "evaluations_per_run": per_run, "evaluations": n, "failed": failed,
         "failed_step_budget": budget, "failed_step_budget_share": budget / n if n else None,
         "failed_other": dict(reasons), "dopri8_evaluations_per_scene": dict(dopri8),
         "eval_s_after_the_first": {
@@ -85,12 +88,8 @@ def main(argv=None) -> int:
     load = [os.getloadavg()[0]]
     start = time.perf_counter()
     complete = True
-    if args.report_only:
+    if args.report_only:  # complete when every run recorded its budget (below)
         wall = None
-        complete = sum(1 for _ in (args.out / "runs").glob("*/history.json")) == \
-            len(weights) * len(starts) and all(
-                len(json.loads(h.read_text())["evaluations"]) >= args.max_evals
-                for h in (args.out / "runs").glob("*/history.json"))
     else:
         from design_engine.sweeps.pareto_sweep import run_sweep
 
@@ -101,12 +100,16 @@ def main(argv=None) -> int:
             complete = False
         wall = time.perf_counter() - start
     load.append(os.getloadavg()[0])
+    summary = summarise(args.out)
+    per_run = summary["evaluations_per_run"]
+    complete = complete and len(per_run) == len(weights) * len(starts) and \
+        min(per_run) >= args.max_evals
     report = {"task": args.task, "weights": args.weights, "starts": args.starts,
               "max_evals": args.max_evals, "workers": args.workers, "complete": complete,
               "sweep_wall_s_this_invocation": wall, "load_1min": load,
               "machine": {"platform": platform.platform(), "cpu": cpu_model(),
                           "cpus": os.cpu_count()},
-              **summarise(args.out)}
+              **summary}
     path = args.out / "bench_front_evaluations.json"
     path.write_text(json.dumps(report, indent=2))
     shutil.copy(path, HERE / "results" / path.name)

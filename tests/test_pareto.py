@@ -62,14 +62,11 @@ def test_pareto_weights_follow_the_spec_rules():
 @pytest.fixture(scope="module")
 def cluster():
     """A 2-worker local cluster (nannies restart killed workers), single-threaded workers."""
-    import dask
-    from distributed import Client, LocalCluster
+    from distributed import Client
 
-    from design_engine.sweeps.distributed import worker_environment, worker_xla_flags
+    from design_engine.sweeps.distributed import local_cluster
 
-    with dask.config.set({"distributed.nanny.pre-spawn-environ": worker_environment()}):
-        lc = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                          dashboard_address=None, env=worker_xla_flags())
+    lc = local_cluster(2, dashboard_address=None)
     client = Client(lc)
     yield lc, client
     client.close()

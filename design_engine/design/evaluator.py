@@ -394,15 +394,11 @@ class TaskEvaluator:
             except EvaluationFailed as exc:
                 return exc
 
-        if self._scenes is None or len(names) == 1:
-            outs = []
-            for name in names:  # one after the other: a failed scene ends the evaluation
-                outs.append(scene(name))
-                if isinstance(outs[-1], EvaluationFailed):
-                    break
-        else:
-            outs = list(self._scenes.map(scene, names))
-        for name, out in zip(names, outs):  # in the task's order, as one after the other
+        # one after the other (lazily: a failed scene ends the evaluation), or side by side,
+        # every scene waited for; either way taken in the task's order
+        outs = (map(scene, names) if self._scenes is None or len(names) == 1
+                else list(self._scenes.map(scene, names)))
+        for name, out in zip(names, outs):
             if isinstance(out, EvaluationFailed):
                 if out.state is not None:
                     self._state[name] = out.state

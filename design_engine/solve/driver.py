@@ -224,10 +224,15 @@ def solve_with_policy(scene: Scene, config: SolverConfig,
             if not future.cancel() and wait:
                 future.exception()
 
+    def start_ahead(cfg: SolverConfig) -> None:
+        """Start `solve(cfg)` on the executor, unless one started ahead is still pending."""
+        if not early:
+            early.append((cfg, ahead.submit(solve, cfg)))
+
     try:
         outcome = _solve_with_policy(scene, config, solved, check, previous,
                                      budget_fails_at_once, fallback, objective, on_step, finish,
-                                     None if ahead is None else (ahead, solve, early))
+                                     None if ahead is None else start_ahead)
     except Exception:
         drop(wait=True)
         raise
@@ -240,8 +245,8 @@ def solve_with_policy(scene: Scene, config: SolverConfig,
 
 def _solve_with_policy(scene, config, solve, check, previous, budget_fails_at_once, fallback,
                        objective, on_step, finish, ahead) -> Outcome:
-    """`solve_with_policy`'s loop; `ahead`: (executor, the caller's solve, the list of
-    `(config, future)` started ahead, which `solve` takes from)."""
+    """`solve_with_policy`'s loop; `ahead(config)`: start that solve on the executor (`solve`
+    takes it from there)."""
     pending, prior = None, None
     if check is not None:
         try:
@@ -258,9 +263,8 @@ def _solve_with_policy(scene, config, solve, check, previous, budget_fails_at_on
         cfg, fallen_back = steps[-1].config, steps[-1].kind == FALLBACK
         if pending is None:
             if (ahead is not None and objective is not None and prior is not None
-                    and not fallen_back and needs_step_check(cfg, prior, scene)
-                    and not ahead[2]):
-                ahead[2].append((refined(cfg), ahead[0].submit(ahead[1], refined(cfg))))
+                    and not fallen_back and needs_step_check(cfg, prior, scene)):
+                ahead(refined(cfg))
             try:
                 result, health = solve(cfg)
             except SimulationError as exc:

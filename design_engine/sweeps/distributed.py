@@ -29,10 +29,7 @@ WORKER_ENV = {
 
 
 def worker_environment() -> dict[str, str]:
-    """Environment variables every worker process starts with. Dask's nanny lets a variable of
-    its own process win over its pre-spawn environment, and this process has XLA_FLAGS set
-    (`design_engine` sets its code generators), so `dask_client` also hands the workers'
-    XLA_FLAGS to the nanny as the worker's own environment (`worker_xla_flags`)."""
+    """Environment variables every worker process starts with."""
     env = dict(WORKER_ENV)
     cache = os.environ.get("METARIG_JAX_CACHE")
     if cache is not None:
@@ -40,11 +37,20 @@ def worker_environment() -> dict[str, str]:
     return env
 
 
-def worker_xla_flags() -> dict[str, str]:
-    """The workers' XLA_FLAGS: this process's (the user's and `design_engine`'s) and one thread
-    for XLA (`WORKER_ENV`)."""
-    return {"XLA_FLAGS": " ".join(filter(None, (os.environ.get("XLA_FLAGS", ""),
-                                                 WORKER_ENV["XLA_FLAGS"])))}
+def local_cluster(n: int, dashboard_address: str | None = "127.0.0.1:0"):
+    """A `LocalCluster` of `n` single-threaded worker processes on 127.0.0.1 that start with
+    `worker_environment()`. Dask's nanny lets a variable of its own process win over its
+    pre-spawn environment, and this process has XLA_FLAGS set (`design_engine` sets its code
+    generators), so the workers' XLA_FLAGS (this process's, then one thread for XLA) go to the
+    nanny as the worker's own environment, set before the worker starts XLA."""
+    import dask
+    from distributed import LocalCluster
+
+    xla = " ".join(filter(None, (os.environ.get("XLA_FLAGS", ""), WORKER_ENV["XLA_FLAGS"])))
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": worker_environment()}):
+        return LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                            host="127.0.0.1", dashboard_address=dashboard_address,
+                            silence_logs=logging.WARNING, env={"XLA_FLAGS": xla})
 
 
 @contextlib.contextmanager
@@ -55,8 +61,7 @@ def dask_client(workers: int | None = None, scheduler: str | None = None):
         workers: worker processes of a new LocalCluster (default `os.cpu_count()`).
         scheduler: address of an existing scheduler (`tcp://HOST:PORT`); excludes `workers`.
     """
-    import dask
-    from distributed import Client, LocalCluster
+    from distributed import Client
 
     logging.getLogger("distributed").setLevel(logging.WARNING)
 
@@ -74,15 +79,12 @@ def dask_client(workers: int | None = None, scheduler: str | None = None):
     n = workers or os.cpu_count() or 1
     if n < 1:
         raise ValueError(f"need at least one worker, got {n}")
-    with dask.config.set({"distributed.nanny.pre-spawn-environ": worker_environment()}):
-        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                               host="127.0.0.1", dashboard_address="127.0.0.1:0",
-                               silence_logs=logging.WARNING, env=worker_xla_flags())
-        client = Client(cluster)
-        try:
-            log.info("local Dask cluster: %d single-threaded workers; dashboard %s", n,
-                     client.dashboard_link)
-            yield client
-        finally:
-            client.close()
-            cluster.close()
+    cluster = local_cluster(n)
+    client = Client(cluster)
+    try:
+        log.info("local Dask cluster: %d single-threaded workers; dashboard %s", n,
+                 client.dashboard_link)
+        yield client
+    finally:
+        client.close()
+        cluster.close()

@@ -4,13 +4,13 @@ against handed to it (`simulate(..., equilibrium=)`, as `run.static_equilibrium`
 the static solver itself (compiled once per topology). Writes
 benchmarks/results/bench_compile.json.
 
-    .venv/bin/python benchmarks/bench_compile.py [--scenes small full] [--before DIR]
-                                                 [--out FILE]
+    .venv/bin/python benchmarks/bench_compile.py [--scenes [small] [full]] [--before DIR]
+                                                 [--repeats N] [--out FILE]
 
 `--before DIR` (a checkout of an earlier commit, e.g. `git worktree add DIR REF`) also times the
 default experiment (24x16 at 2 %, static start) as a new user first runs it: `simulate_scene`
 in a fresh process with the cache off, the first call (compilation included) and a second one,
-from DIR and from this checkout.
+from DIR and from this checkout (`--repeats N`: N times, alternating).
 
 Each scene runs in a fresh process with the compilation cache off. Per program: XLA's lowering
 and compilation (`jit(...).lower(...)` and `.compile()`, s) and one run of the compiled program;
@@ -97,11 +97,14 @@ def default_experiment(src: Path) -> dict:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--scenes", nargs="+", choices=sorted(SCENES), default=["small", "full"])
+    p.add_argument("--scenes", nargs="*", choices=sorted(SCENES), default=["small", "full"],
+                   help="the scenes whose programs are timed (none: the default experiment only)")
     p.add_argument("--out", type=Path, default=ROOT / "benchmarks/results/bench_compile.json")
     p.add_argument("--before", type=Path, help="a checkout of an earlier commit: the default "
                    "experiment's first simulate_scene from it and from this one, one after the "
                    "other (key `default_experiment`)")
+    p.add_argument("--repeats", type=int, default=1, help="with --before: the two sides this "
+                   "many times, alternating (every pair in `default_experiment.runs`)")
     args = p.parse_args(argv)
     result = {"machine": describe(), "load_average_1min": {"before": os.getloadavg()[0]},
               "scenes": {}}
@@ -117,10 +120,14 @@ def main(argv=None) -> int:
         result["scenes"][label] = json.loads(run.stdout.strip().splitlines()[-1])
         print(json.dumps(result["scenes"][label], indent=1), flush=True)
     if args.before is not None:
+        runs = []
+        for k in range(max(args.repeats, 1)):
+            print(f"default experiment {k + 1}/{args.repeats}, before and after ...", flush=True)
+            runs.append({"before": {"src": str(args.before), **default_experiment(args.before)},
+                         "after": default_experiment(ROOT)})
         result["default_experiment"] = {
-            "scene": "precompression-24x18 at 24x16, 2 % (static start + pulse)",
-            "before": {"src": str(args.before), **default_experiment(args.before)},
-            "after": default_experiment(ROOT)}
+            "scene": "precompression-24x18 at 24x16, 2 % (static start + pulse)", **runs[0],
+            **({"runs": runs} if len(runs) > 1 else {})}
         print(json.dumps(result["default_experiment"], indent=1), flush=True)
     result["load_average_1min"]["after"] = os.getloadavg()[0]
     args.out.parent.mkdir(parents=True, exist_ok=True)

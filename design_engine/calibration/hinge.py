@@ -136,7 +136,7 @@ def _hinge_programs(sample: HingeSample, newton_steps: int):
 
     def force_at(qs, d, k, loaded, sign):
         h = jax.lax.stop_gradient(hess_f(qs, d, jax.lax.stop_gradient(k), loaded, sign))
-        qd = implicit_point(qs, -spd_solve(h, grad_f(qs, d, k, loaded, sign)))
+        qd = implicit_point(qs, lambda d, k: -spd_solve(h, grad_f(qs, d, k, loaded, sign)), d, k)
         g = jax.grad(lambda qq: total(qq, k))(full(qd, d, loaded, sign))
         return sign * jnp.sum(g[loaded])
 

@@ -114,7 +114,8 @@ def _oscillation_model(sample: OscillationSample, ts_ms, config):
             return z - spd_solve(h(z, ps, ms), g(z, ps, ms))
 
         uv = jax.lax.stop_gradient(jax.lax.fori_loop(0, 12, newton, jnp.zeros(2)))
-        uv = implicit_point(uv, -spd_solve(jax.lax.stop_gradient(h(uv, ps, ms)), g(uv, phi0, mat)))
+        h_s = jax.lax.stop_gradient(h(uv, ps, ms))
+        uv = implicit_point(uv, lambda p, m: -spd_solve(h_s, g(uv, p, m)), phi0, mat)
         q0 = jnp.concatenate([uv, jnp.reshape(phi0, (1,))])
         v0 = jnp.zeros(3).at[2].set(omega0)
         sol = sim(jnp.asarray(sample.design), mat, Loading(), ts, initial=(q0, v0))

@@ -352,8 +352,11 @@ def make_static_solver(lattice: Lattice, supports: Supports, *, use_contact: boo
                                               ms, x.dtype)
         q_s = jax.lax.stop_gradient(q_s)
         h = jax.lax.stop_gradient(hess(q_s, qc_s, bonds_s, ms))
-        qc, bonds = constants(x, loading, t_hold)
-        q = implicit_point(q_s, -_solve(h, grad(q_s, qc, bonds, material)))
+        def step(x, material, loading):
+            qc, bonds = constants(x, loading, t_hold)
+            return -_solve(h, grad(q_s, qc, bonds, material))
+
+        q = implicit_point(q_s, step, x, material, loading)
         # a continuation that stopped short of lambda = 1 reports the residual at full load
         residual = jnp.max(jnp.abs(grad(q_s, qc_s, bonds_s, ms)))
         info = {"gradient_norm": jnp.where(jnp.isfinite(residual), residual, jnp.inf),

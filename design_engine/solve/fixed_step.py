@@ -166,8 +166,8 @@ class FixedStepVerlet(AbstractFixedStep):
 
     Attributes:
         max_dt: largest step, ms. Stability needs max_dt < 2 / omega_max (omega in rad/ms).
-        remat: recompute the steps between two samples in the backward pass instead of storing
-            them (less memory, one more forward pass).
+        remat: store each step's start state only and recompute the step in the backward pass
+            instead of storing its intermediates (less memory, one more forward pass).
         refined: the step is a refinement the policy took after a rejected solve
             (`policy.next_config`), which it does not refine again.
         contact_substeps: with contact, the contact forces are stepped this many times per
@@ -246,17 +246,23 @@ def march(step, carry, ts, t0: float, n_pre: int, n_sub: int, remat: bool = Fals
         ts: [n_t] sample times (the first may equal t0).
         n_pre: steps from t0 to ts[0] (static; 0 when ts[0] == t0).
         n_sub: equal steps between consecutive samples (static).
-        remat: recompute the steps between two samples in the backward pass.
+        remat: store each step's start state (the carry) only, and recompute the step from it
+            in the backward pass, right before its own reverse step.
 
     Returns:
         (carry at ts[-1], q [n_t, ...], v [n_t, ...]).
     """
 
+    # remat step by step, not a sample interval at a time (which stored the intermediates of
+    # all the interval's steps when it recomputed them): the reverse pass ran 25-30 % faster
+    # and compiled 1.5-2 s sooner, in as much memory (benchmarks/bench_programs.py, bench_programs_step_remat.json)
+    step_fn = jax.checkpoint(step) if remat else step
+
     def advance(carry, t_start, t_end, n):
         dt = (t_end - t_start) / n
 
         def body(c, k):
-            return step(c, t_start + k * dt, dt), None
+            return step_fn(c, t_start + k * dt, dt), None
 
         return jax.lax.scan(body, carry, jnp.arange(n, dtype=ts.dtype))[0]
 
@@ -265,8 +271,7 @@ def march(step, carry, ts, t0: float, n_pre: int, n_sub: int, remat: bool = Fals
     first = carry
 
     def interval(c, pair):
-        advance_fn = jax.checkpoint(advance, static_argnums=(3,)) if remat else advance
-        c = advance_fn(c, pair[0], pair[1], n_sub)
+        c = advance(c, pair[0], pair[1], n_sub)
         return c, (c[0], c[1])
 
     last, (qs, vs) = jax.lax.scan(interval, carry, jnp.stack([ts[:-1], ts[1:]], axis=1))
@@ -325,7 +330,7 @@ def integrate(method: FixedStepVerlet, force, inv_mass, damping, y0, ts, t0: flo
 
         def substep(k, c):
             # a loop, not n copies of the substep: a value and gradient compiles 2-3 s faster
-            # and runs 5-25 % faster, J unchanged (benchmarks/bench_substep_loop.py)
+            # and runs 5-25 % faster, J unchanged (benchmarks/bench_programs.py, bench_substep_loop.json)
             q, v, ff, work = c
             v = v + 0.5 * h * inv_mass * ff[0]
             q = q + h * v

@@ -36,7 +36,7 @@ class ImplicitNewmark(AbstractFixedStep):
         iterations: chord iterations per step (force evaluations per step).
         tol: largest accepted last correction of q (mm for u, v; rad for theta); above it the
             iterations did not converge and the solve is reported as failed.
-        remat: recompute the steps between two samples in the backward pass.
+        remat: recompute each step from its start state in the backward pass (`march`).
     """
 
     max_dt: float = eqx.field(static=True, default=0.16)

@@ -226,10 +226,11 @@ def choose_config(scene: Scene, *, full_model: bool = False,
     if ld.strain > 0.0:
         reasons += ("static pre-compression: the pulse starts from rest in the equilibrium under "
                     "the closed stages (float64 Newton continuation, implicit gradient)",)
-    # remat: the reverse pass recomputes each sample interval's steps instead of storing them;
-    # on the 24x16 focusing design in contact (6965 steps) value-and-gradient took 13.1-13.4 s
+    # remat: the reverse pass recomputes the steps instead of storing their intermediates; on
+    # the 24x16 focusing design in contact (6965 steps) value-and-gradient took 13.1-13.4 s
     # CPU against 16.1-16.4 s, and 19 MB of residuals against 2.2 GB
-    # (benchmarks/bench_contact_step.py --profile): memory traffic, not arithmetic, was the cost
+    # (benchmarks/bench_contact_step.py --profile): memory traffic, not arithmetic, was the cost.
+    # Since then a step at a time, from its stored start state (`fixed_step.march`)
     config = SolverConfig(solver=FixedStepVerlet(max_dt=dt, remat=True), use_contact=False,
                           dtype="float32")
     if in_contact:

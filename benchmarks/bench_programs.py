@@ -1,0 +1,131 @@
+"""The policy's programs of a scene from this checkout against an earlier one (issue 26, "per-step
+cost"): compile time and run time of the value, the fused value and gradient, and the design
+loop's forward and reverse passes, on scenes that start in contact and on the focusing scene,
+from this checkout and from `--before DIR` (a checkout of an earlier commit, `git worktree add
+DIR REF`). Writes benchmarks/results/bench_programs.json (or --out).
+
+    .venv/bin/python benchmarks/bench_programs.py --before DIR [--scenes small full focusing]
+        [--programs value vg split] [--repeats 2] [--out FILE]
+
+Each case runs in a fresh process with the compilation cache off, the two checkouts alternating
+(before, after, before, after, ...) so that a change of load hits both. Each program starts
+from the design's static equilibrium where the scene has one, as the design loop solves it:
+lowering, XLA compilation and the best of three runs of the compiled program (`split`: the
+forward pass, value and pullback, and the reverse pass, `run.split_gradient`); J of both
+checkouts is recorded (they must agree), and with `split` the gradient's norm. The process's
+peak memory (`maxrss_gb`) and the load average before and after are recorded.
+"""
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from machine import describe
+
+ROOT = Path(__file__).resolve().parent.parent
+SCENES = {
+    "small": ("protection-24x18 6x6 at 7 %, 2 mm pulse (the tests' jammed scene)",
+              'build_scene("protection-24x18", nx=6, ny=6, strain=0.07, amplitude_m=2e-3)'),
+    "full": ("protection-24x18 at 8 % (focus-vs-protect's protection scene)",
+             'build_scene("protection-24x18", strain=0.08)'),
+    "focusing": ("focusing-24x16 (the paper's 8.1 scene, from rest)",
+                 'build_scene("focusing-24x16")'),
+}
+PROGRAMS = ("value", "vg", "split")
+
+CHILD = """
+import json, resource, time
+import jax, numpy as np
+from design_engine.physics.scenes import build_scene
+from design_engine.solve import run as run_mod
+from design_engine.solve.policy import choose_config
+
+scene = %s
+programs = %r
+config = choose_config(scene).config
+x = scene.design
+start = (run_mod.static_equilibrium(scene, config, x) if scene.loading.is_static else None)
+objective = run_mod._objective(scene, config, None)
+out = {"config": run_mod.config_summary(config)}
+
+
+def timed(fn, *args):
+    t = time.perf_counter(); lowered = jax.jit(fn).lower(*args); t1 = time.perf_counter()
+    compiled = lowered.compile(); t2 = time.perf_counter()
+    runs = []
+    for _ in range(3):
+        t3 = time.perf_counter(); result = jax.block_until_ready(compiled(*args))
+        runs.append(time.perf_counter() - t3)
+    return result, {"lower_s": round(t1 - t, 2), "compile_s": round(t2 - t1, 2),
+                    "run_s": round(min(runs), 4)}
+
+
+if "value" in programs:
+    result, row = timed(objective, x, None, start)
+    out["value"] = {**row, "J": float(result[0])}
+if "vg" in programs:
+    result, row = timed(jax.value_and_grad(objective, has_aux=True), x, None, start)
+    out["value and gradient"] = {**row, "J": float(result[0][0])}
+if "split" in programs:
+    forward, reverse = run_mod.split_gradient(objective)
+    result, row = timed(forward, x, None, start)
+    out["forward pass"] = {**row, "J": float(result[0])}
+    grad, row = timed(reverse, result[2], np.ones_like(result[0]))
+    out["reverse pass"] = {**row, "gradient_norm": float(np.linalg.norm(grad))}
+out["maxrss_gb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6, 2)
+print(json.dumps(out))
+"""
+
+
+def run_case(checkout: Path, scene_code: str, programs: list[str]) -> dict:
+    env = {**os.environ, "JAX_ENABLE_COMPILATION_CACHE": "false", "PYTHONPATH": str(checkout)}
+    proc = subprocess.run([sys.executable, "-c", CHILD % (scene_code, tuple(programs))],
+                          cwd=checkout, env=env,
+                          capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise SystemExit(f"{checkout}: {proc.stderr.strip().splitlines()[-1]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--before", type=Path, required=True,
+                    help="a checkout of the earlier commit (git worktree add DIR REF)")
+    ap.add_argument("--scenes", nargs="+", choices=list(SCENES), default=list(SCENES))
+    ap.add_argument("--programs", nargs="+", choices=PROGRAMS, default=list(PROGRAMS))
+    ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--out", type=Path,
+                    default=ROOT / "benchmarks" / "results" / "bench_programs.json")
+    args = ap.parse_args()
+    if not (args.before / "design_engine").is_dir():
+        raise SystemExit(f"--before {args.before}: not a checkout of this project")
+    sides = {"before": args.before.resolve(), "after": ROOT}
+    result = {"before": str(args.before), "programs": args.programs, "machine": describe(),
+              "scenes": {},
+              "load_average_1min": {"before": round(os.getloadavg()[0], 2)}}
+    for key in args.scenes:
+        label, code = SCENES[key]
+        rows = {side: [] for side in sides}
+        for k in range(args.repeats):
+            for side, checkout in sides.items():
+                print(f"{key} {k + 1}/{args.repeats} {side} ...", flush=True)
+                rows[side].append(run_case(checkout, code, args.programs))
+        result["scenes"][key] = {"scene": label, "runs": rows}
+        args.out.write_text(json.dumps(result, indent=1) + "\n")
+    result["load_average_1min"]["after"] = round(os.getloadavg()[0], 2)
+    args.out.write_text(json.dumps(result, indent=1) + "\n")
+    for key, entry in result["scenes"].items():
+        for side, runs in entry["runs"].items():
+            for prog in ("value", "value and gradient", "forward pass", "reverse pass"):
+                if prog in runs[0]:
+                    print(f"{key:8} {side:6} {prog:18} compile "
+                          f"{', '.join(str(r[prog]['compile_s']) for r in runs)} s, run "
+                          f"{', '.join(str(r[prog]['run_s']) for r in runs)} s")
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()

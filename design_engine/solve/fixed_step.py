@@ -254,8 +254,8 @@ def march(step, carry, ts, t0: float, n_pre: int, n_sub: int, remat: bool = Fals
     """
 
     # remat step by step, not a sample interval at a time (which stored the intermediates of
-    # all the interval's steps when it recomputed them): the reverse pass ran 25-30 % faster
-    # and compiled 1.5-2 s sooner, in as much memory (benchmarks/bench_programs.py, bench_programs_step_remat.json)
+    # all the interval's steps when it recomputed them): the reverse pass ran 24-34 % faster
+    # in no more memory (benchmarks/bench_programs.py, bench_programs_step_remat.json)
     step_fn = jax.checkpoint(step) if remat else step
 
     def advance(carry, t_start, t_end, n):

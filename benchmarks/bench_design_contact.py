@@ -183,6 +183,7 @@ def _plot(report: dict, path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
     ramps = report.get("task", "focus-vs-protect") == "focus-vs-protect"
@@ -201,7 +202,10 @@ def _plot(report: dict, path: Path) -> None:
         if r.get("true_static"):
             ax.plot([r["wall_s"]], [r["true_static"]["objective"] * 1e3], "s", mfc="none",
                     color=line.get_color(), label=f"{label}: best design, static model")
-    ax.set_xscale("log")
+    ax.set_xscale("log")  # plain numbers at 1, 2 and 5 of each decade
+    ax.xaxis.set_major_locator(matplotlib.ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
+    ax.xaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
+    ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     ax.set_xlabel("wall time of the run, s (2 cores)")
     if ramps:
         ax.set_ylabel("0.75 J(1 %) - 0.25 J(8 %), mJ")

@@ -1,6 +1,9 @@
 """`linalg.make_sparse_spd_solve`: the block Cholesky in a lattice Hessian's banded order (the
 static solver's Newton steps) equals a dense solve, differentiates like one, and fails like the
-dense Cholesky on a matrix that is not positive definite."""
+dense Cholesky on a matrix that is not positive definite. `linalg.implicit_point`: an
+equilibrium's implicit-function derivative, whose solve only a differentiated program holds."""
+
+import re
 
 import jax
 import jax.numpy as jnp
@@ -8,7 +11,7 @@ import numpy as np
 import pytest
 
 from design_engine.physics.lattice import quads
-from design_engine.physics.linalg import make_sparse_spd_solve
+from design_engine.physics.linalg import implicit_point, make_sparse_spd_solve, spd_solve
 
 
 def _lattice_matrix(nx: int, ny: int, seed: int = 0):
@@ -49,3 +52,43 @@ def test_a_matrix_that_is_not_positive_definite_gives_non_finite_values():
     solve = make_sparse_spd_solve(a.shape[0], rows, cols)
     x = solve(jnp.asarray(a), jnp.ones(a.shape[0]))
     assert not np.all(np.isfinite(np.asarray(x)))
+
+
+def test_an_implicit_point_is_the_equilibrium_and_differentiates_like_a_re_solved_one():
+    """g(q; theta) = sinh(q) + A q - theta = 0 (A SPD): the point's value is the equilibrium
+    it is given, to the bit; its Jacobian, forward and reverse, equals central differences of
+    equilibria re-solved at theta +- h; the value's program holds no solve (no loop of
+    `spd_solve`), the differentiated one does."""
+    rng = np.random.default_rng(0)
+    m = rng.normal(size=(6, 6))
+    a = m @ m.T + 6.0 * np.eye(6)
+
+    def g(q, theta):
+        return jnp.sinh(q) + jnp.asarray(a) @ q - theta
+
+    def equilibrium(theta):  # Newton in float64, converged to rounding
+        q = np.zeros(6)
+        for _ in range(50):
+            q = q - np.linalg.solve(np.diag(np.cosh(q)) + a, np.sinh(q) + a @ q - theta)
+        return q
+
+    def point(theta, q_s):
+        h_s = jnp.diag(jnp.cosh(q_s)) + jnp.asarray(a)
+        return implicit_point(q_s, lambda th: -spd_solve(h_s, g(q_s, th)), theta)
+
+    theta = rng.normal(size=6)
+    q_s = equilibrium(theta)
+    assert np.abs(np.sinh(q_s) + a @ q_s - theta).max() < 1e-12
+    np.testing.assert_array_equal(np.asarray(jax.jit(point)(theta, q_s)), q_s)
+    h = 1e-5
+    fd = np.stack([(equilibrium(theta + h * e) - equilibrium(theta - h * e)) / (2 * h)
+                   for e in np.eye(6)], axis=1)
+    forward = np.asarray(jax.jacfwd(point)(theta, q_s))
+    reverse = np.asarray(jax.jacrev(point)(theta, q_s))
+    np.testing.assert_allclose(forward, fd, rtol=1e-7, atol=1e-9)
+    np.testing.assert_allclose(reverse, forward, rtol=1e-12, atol=1e-15)
+
+    def has_loop(fn):  # spd_solve's elimination: a while or a scan (its bounds are static)
+        return re.search(r"\b(while|scan)\[", str(jax.make_jaxpr(fn)(theta, q_s))) is not None
+
+    assert not has_loop(point) and has_loop(jax.jacfwd(point)) and has_loop(jax.jacrev(point))

@@ -5,7 +5,7 @@ from this checkout and from `--before DIR` (a checkout of an earlier commit, `gi
 DIR REF`). Writes benchmarks/results/bench_programs.json (or --out).
 
     .venv/bin/python benchmarks/bench_programs.py --before DIR [--scenes small full focusing]
-        [--programs value vg split] [--repeats 2] [--out FILE]
+        [--programs value vg split] [--repeats 2] [--max-dt US ...] [--out FILE]
 
 Each case runs in a fresh process with the compilation cache off, the two checkouts alternating
 (before, after, before, after, ...) so that a change of load hits both. Each program starts
@@ -13,7 +13,9 @@ from the design's static equilibrium where the scene has one, as the design loop
 lowering, XLA compilation and the best of three runs of the compiled program (`split`: the
 forward pass, value and pullback, and the reverse pass, `run.split_gradient`); J of both
 checkouts is recorded (they must agree), and with `split` the gradient's norm. The process's
-peak memory (`maxrss_gb`) and the load average before and after are recorded.
+peak memory (`maxrss_gb`) and the load average before and after are recorded. `--max-dt`:
+the policy's configuration at the given fixed steps instead (the refined steps of deep
+contact), each a case of its own.
 """
 
 import argparse
@@ -37,7 +39,7 @@ SCENES = {
 PROGRAMS = ("value", "vg", "split")
 
 CHILD = """
-import json, resource, time
+import dataclasses, json, resource, time
 import jax, numpy as np
 from design_engine.physics.scenes import build_scene
 from design_engine.solve import run as run_mod
@@ -45,7 +47,11 @@ from design_engine.solve.policy import choose_config
 
 scene = %s
 programs = %r
+max_dt_us = %r
 config = choose_config(scene).config
+if max_dt_us is not None:  # the policy's fixed step, at another step
+    config = dataclasses.replace(config, solver=dataclasses.replace(config.solver,
+                                                                    max_dt=max_dt_us * 1e-3))
 x = scene.design
 start = (run_mod.static_equilibrium(scene, config, x) if scene.loading.is_static else None)
 objective = run_mod._objective(scene, config, None)
@@ -80,9 +86,9 @@ print(json.dumps(out))
 """
 
 
-def run_case(checkout: Path, scene_code: str, programs: list[str]) -> dict:
+def run_case(checkout: Path, scene_code: str, programs: list[str], max_dt_us=None) -> dict:
     env = {**os.environ, "JAX_ENABLE_COMPILATION_CACHE": "false", "PYTHONPATH": str(checkout)}
-    proc = subprocess.run([sys.executable, "-c", CHILD % (scene_code, tuple(programs))],
+    proc = subprocess.run([sys.executable, "-c", CHILD % (scene_code, tuple(programs), max_dt_us)],
                           cwd=checkout, env=env,
                           capture_output=True, text=True)
     if proc.returncode != 0:
@@ -97,6 +103,9 @@ def main() -> None:
     ap.add_argument("--scenes", nargs="+", choices=list(SCENES), default=list(SCENES))
     ap.add_argument("--programs", nargs="+", choices=PROGRAMS, default=list(PROGRAMS))
     ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--max-dt", type=float, nargs="+", metavar="US",
+                    help="solve at these fixed steps (us) instead of the policy's own (each "
+                    "scene's results keyed `<scene> at <US> us`)")
     ap.add_argument("--out", type=Path,
                     default=ROOT / "benchmarks" / "results" / "bench_programs.json")
     args = ap.parse_args()
@@ -106,14 +115,17 @@ def main() -> None:
     result = {"before": str(args.before), "programs": args.programs, "machine": describe(),
               "scenes": {},
               "load_average_1min": {"before": round(os.getloadavg()[0], 2)}}
-    for key in args.scenes:
+    cases = [(key, None) for key in args.scenes] if not args.max_dt else [
+        (key, dt) for key in args.scenes for dt in args.max_dt]
+    for key, dt in cases:
         label, code = SCENES[key]
+        name = key if dt is None else f"{key} at {dt:g} us"
         rows = {side: [] for side in sides}
         for k in range(args.repeats):
             for side, checkout in sides.items():
-                print(f"{key} {k + 1}/{args.repeats} {side} ...", flush=True)
-                rows[side].append(run_case(checkout, code, args.programs))
-        result["scenes"][key] = {"scene": label, "runs": rows}
+                print(f"{name} {k + 1}/{args.repeats} {side} ...", flush=True)
+                rows[side].append(run_case(checkout, code, args.programs, dt))
+        result["scenes"][name] = {"scene": label, "max_dt_us": dt, "runs": rows}
         args.out.write_text(json.dumps(result, indent=1) + "\n")
     result["load_average_1min"]["after"] = round(os.getloadavg()[0], 2)
     args.out.write_text(json.dumps(result, indent=1) + "\n")
@@ -121,7 +133,7 @@ def main() -> None:
         for side, runs in entry["runs"].items():
             for prog in ("value", "value and gradient", "forward pass", "reverse pass"):
                 if prog in runs[0]:
-                    print(f"{key:8} {side:6} {prog:18} compile "
+                    print(f"{key:16} {side:6} {prog:18} compile "
                           f"{', '.join(str(r[prog]['compile_s']) for r in runs)} s, run "
                           f"{', '.join(str(r[prog]['run_s']) for r in runs)} s")
     print(f"wrote {args.out}")

@@ -330,7 +330,7 @@ def integrate(method: FixedStepVerlet, force, inv_mass, damping, y0, ts, t0: flo
 
         def substep(k, c):
             # a loop, not n copies of the substep: a value and gradient compiles 2-3 s faster
-            # and runs 5-25 % faster, J unchanged (benchmarks/bench_programs.py, bench_substep_loop.json)
+            # and runs 5-30 % faster, J unchanged (benchmarks/bench_programs.py, bench_substep_loop.json)
             q, v, ff, work = c
             v = v + 0.5 * h * inv_mass * ff[0]
             q = q + h * v

@@ -25,17 +25,14 @@ import subprocess
 import sys
 from pathlib import Path
 
+import bench_compile
 from machine import describe
 
 ROOT = Path(__file__).resolve().parent.parent
-SCENES = {
-    "small": ("protection-24x18 6x6 at 7 %, 2 mm pulse (the tests' jammed scene)",
-              'build_scene("protection-24x18", nx=6, ny=6, strain=0.07, amplitude_m=2e-3)'),
-    "full": ("protection-24x18 at 8 % (focus-vs-protect's protection scene)",
-             'build_scene("protection-24x18", strain=0.08)'),
-    "focusing": ("focusing-24x16 (the paper's 8.1 scene, from rest)",
-                 'build_scene("focusing-24x16")'),
-}
+# bench_compile's scenes that start in contact, and the focusing scene from rest
+SCENES = {**bench_compile.SCENES,
+          "focusing": ("focusing-24x16 (the paper's 8.1 scene, from rest)",
+                       'build_scene("focusing-24x16")')}
 PROGRAMS = ("value", "vg", "split")
 
 CHILD = """

@@ -85,14 +85,20 @@ print(json.dumps({"import_s": round(t1 - t, 2), "first_s": round(t2 - t1, 2),
 """
 
 
-def default_experiment(src: Path) -> dict:
-    """The DEFAULT probe from the sources in `src`, compilation cache off."""
+def child_json(code: str, src: Path) -> dict:
+    """Run `code` in a fresh process on the sources in `src`, compilation cache off; the JSON
+    its last line of output prints."""
     env = dict(os.environ, METARIG_JAX_CACHE="", PYTHONPATH=str(src))
-    run = subprocess.run([sys.executable, "-c", DEFAULT], env=env, cwd=src, capture_output=True,
+    run = subprocess.run([sys.executable, "-c", code], env=env, cwd=src, capture_output=True,
                          text=True)
     if run.returncode != 0:
-        raise SystemExit(run.stderr[-2000:])
+        raise SystemExit(f"{src}: {run.stderr[-2000:]}")
     return json.loads(run.stdout.strip().splitlines()[-1])
+
+
+def default_experiment(src: Path) -> dict:
+    """The DEFAULT probe from the sources in `src`, compilation cache off."""
+    return child_json(DEFAULT, src)
 
 
 def main(argv=None) -> int:
@@ -106,6 +112,8 @@ def main(argv=None) -> int:
     p.add_argument("--repeats", type=int, default=1, help="with --before: the two sides this "
                    "many times, alternating (every pair in `default_experiment.runs`)")
     args = p.parse_args(argv)
+    if args.repeats < 1:
+        p.error(f"--repeats must be at least 1, got {args.repeats}")
     result = {"machine": describe(), "load_average_1min": {"before": os.getloadavg()[0]},
               "scenes": {}}
     for key in args.scenes:
@@ -121,7 +129,7 @@ def main(argv=None) -> int:
         print(json.dumps(result["scenes"][label], indent=1), flush=True)
     if args.before is not None:
         runs = []
-        for k in range(max(args.repeats, 1)):
+        for k in range(args.repeats):
             print(f"default experiment {k + 1}/{args.repeats}, before and after ...", flush=True)
             runs.append({"before": {"src": str(args.before), **default_experiment(args.before)},
                          "after": default_experiment(ROOT)})

@@ -21,8 +21,6 @@ contact), each a case of its own.
 import argparse
 import json
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import bench_compile
@@ -83,16 +81,6 @@ print(json.dumps(out))
 """
 
 
-def run_case(checkout: Path, scene_code: str, programs: list[str], max_dt_us=None) -> dict:
-    env = {**os.environ, "JAX_ENABLE_COMPILATION_CACHE": "false", "PYTHONPATH": str(checkout)}
-    proc = subprocess.run([sys.executable, "-c", CHILD % (scene_code, tuple(programs), max_dt_us)],
-                          cwd=checkout, env=env,
-                          capture_output=True, text=True)
-    if proc.returncode != 0:
-        raise SystemExit(f"{checkout}: {proc.stderr.strip().splitlines()[-1]}")
-    return json.loads(proc.stdout.strip().splitlines()[-1])
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--before", type=Path, required=True,
@@ -106,6 +94,8 @@ def main() -> None:
     ap.add_argument("--out", type=Path,
                     default=ROOT / "benchmarks" / "results" / "bench_programs.json")
     args = ap.parse_args()
+    if args.repeats < 1:
+        ap.error(f"--repeats must be at least 1, got {args.repeats}")
     if not (args.before / "design_engine").is_dir():
         raise SystemExit(f"--before {args.before}: not a checkout of this project")
     sides = {"before": args.before.resolve(), "after": ROOT}
@@ -121,7 +111,8 @@ def main() -> None:
         for k in range(args.repeats):
             for side, checkout in sides.items():
                 print(f"{name} {k + 1}/{args.repeats} {side} ...", flush=True)
-                rows[side].append(run_case(checkout, code, args.programs, dt))
+                rows[side].append(bench_compile.child_json(
+                    CHILD % (code, tuple(args.programs), dt), checkout))
         result["scenes"][name] = {"scene": label, "max_dt_us": dt, "runs": rows}
         args.out.write_text(json.dumps(result, indent=1) + "\n")
     result["load_average_1min"]["after"] = round(os.getloadavg()[0], 2)

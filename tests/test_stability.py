@@ -18,8 +18,7 @@ from design_engine.solve.run import simulate_scene
 from design_engine.solve.simulate import SimulationError, SolverConfig
 from gradcheck import central_difference, directional_check
 
-# the tight Dopri8 reference (`studies.methods.reference_method`): one compiled program for the
-# 8x6 focusing lattice, shared by the two tests that solve its designs with it
+# the tight Dopri8 reference (`studies.methods.reference_method`) for the 8x6 focusing lattice
 TIGHT = SolverConfig(solver=contact_config().solver, rtol=1e-11, atol=1e-9, max_steps=400_000)
 
 

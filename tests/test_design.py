@@ -234,7 +234,9 @@ def test_small_focusing_run_improves_and_stays_feasible(tmp_path, focus_run):
     hist = json.loads((out / "history.json").read_text())
     assert [e["eval"] for e in hist["evaluations"]] == list(range(1, 9))
     assert set(hist["evaluations"][0]) >= {"eval", "objective", "objectives", "max_constraint",
-                                           "feasible", "wall_s", "event"}
+                                           "feasible", "wall_s", "event", "ahead_unused"}
+    # out of contact no half-step solve is started ahead, so none is lost
+    assert all(e["ahead_unused"] == 0 for e in hist["evaluations"])
     # objective = the target's mean kinetic energy over the window, in J (as simulate reports)
     from design_engine.solve.run import simulate_scene
     from design_engine.solve.simulate import SolverConfig

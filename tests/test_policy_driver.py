@@ -372,7 +372,7 @@ def test_a_half_step_solve_started_ahead_changes_nothing_but_the_thread(scene):
     or a re-solve at half the step after a drift) it takes that solve, which ran on the other
     thread; where it does not (a drift beyond refining: Dopri8) the solve is waited for and
     dropped. Each outcome (result, configuration, reasons, health) equals the one without the
-    executor, with the same solves but that dropped one."""
+    executor, with the same solves but that dropped one, which the outcome counts as unused."""
     from concurrent.futures import ThreadPoolExecutor
 
     from design_engine.solve.policy import STEP_ERROR_TOLERANCE
@@ -408,6 +408,7 @@ def test_a_half_step_solve_started_ahead_changes_nothing_but_the_thread(scene):
             (alone.result, alone.config, alone.resolves, alone.health), case
         dropped = [1] if case == "Dopri8 after a drift" else []
         assert [k for k, _ in solved] == sorted([k for k, _ in plain.threads] + dropped), case
+        assert (alone.unused_ahead, beside.unused_ahead) == (0, len(dropped)), case
         assert solved[1] == (1, "ahead_0"), case  # the half step, on the executor's thread
         assert all(name == "MainThread" for k, name in solved if k != 1), case
     assert beside.config == contact_config() and "Dopri8" in beside.resolves[0]

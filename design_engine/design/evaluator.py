@@ -98,6 +98,8 @@ class Evaluation:
         solver: scene name -> {"config": summary, "why": [reasons]} of the solve that counted.
         events: what happened beyond the plain solve (step re-chosen, contact, fallback).
         sim_s: wall time of the solves and step checks, s.
+        ahead_unused: half-step solves started ahead on another thread (`threads` > 1) that
+            ran and were not asked for, over the scenes (`driver.Outcome.unused_ahead`).
     """
 
     value: float
@@ -106,6 +108,7 @@ class Evaluation:
     solver: dict[str, dict]
     events: tuple[str, ...] = field(default=())
     sim_s: float = 0.0
+    ahead_unused: int = 0
 
 
 @dataclass(frozen=True)
@@ -325,7 +328,8 @@ class TaskEvaluator:
 
     def _solve_scene(self, name: str, st: SceneState, x: np.ndarray):
         """One scene's value, gradient and terms at `x` under the policy: returns them with the
-        record of the configuration that counted, the events and the scene's next state.
+        record of the configuration that counted, the events, the scene's next state and how
+        many solves started ahead went unused.
         Raises `EvaluationFailed` (with the state to keep) when every configuration failed."""
         scene = self.task.scenes[name]
         if self.forced is not None:
@@ -334,7 +338,7 @@ class TaskEvaluator:
                 grad = self._gradient(pending)
             except SimulationError as exc:
                 raise EvaluationFailed(f"{name}: {exc}") from None
-            return value, grad, terms, self._record(st.config, list(st.reasons), name), [], st
+            return value, grad, terms, self._record(st.config, list(st.reasons), name), [], st, 0
 
         events: list[str] = []
         checked = [st]  # the state after the step check (kept even when the design fails)
@@ -374,7 +378,7 @@ class TaskEvaluator:
         record = self._record(out.config, why, name)
         if "step_error" in out.health:  # the half-step check judged the solve that counted
             record["step_error"] = float(out.health["step_error"])
-        return value, grad, terms, record, events, st
+        return value, grad, terms, record, events, st, out.unused_ahead
 
     def evaluate(self, x: np.ndarray) -> Evaluation:
         """Value and gradient of the scalarised objective at design `x` [n_design] (mm).
@@ -385,6 +389,7 @@ class TaskEvaluator:
         start = time.perf_counter()
         events: list[str] = []
         value, grad, terms, solver = 0.0, np.zeros(self.task.lattice.n_design), {}, {}
+        unused = 0
         x = np.asarray(x, np.float64)
         names = [n for n in self.task.scenes if any(t.scene == n for t in self.task.terms)]
 
@@ -403,13 +408,15 @@ class TaskEvaluator:
                 if out.state is not None:
                     self._state[name] = out.state
                 raise out
-            v, g, tm, s, ev, self._state[name] = out
+            v, g, tm, s, ev, self._state[name], lost = out
+            unused += lost
             events += ev
             value, grad = value + v, grad + g
             terms.update(tm)
             solver[name] = s
         return Evaluation(value=value, grad=grad, terms=terms, solver=solver,
-                          events=tuple(events), sim_s=time.perf_counter() - start)
+                          events=tuple(events), sim_s=time.perf_counter() - start,
+                          ahead_unused=unused)
 
     def configurations(self) -> dict[str, dict]:
         """Scene name -> the configuration currently chosen for it and why."""

@@ -261,14 +261,14 @@ def run_design(task: Task, out: Path, *, resume: bool = False, progress: bool = 
         opt_s = time.perf_counter() - state["last_end"]
         x = task.embed(xf)
         t0 = time.perf_counter()
-        event, terms, solver = None, None, None
+        event, terms, solver, unused = None, None, None, 0
         try:
             # a trial may leave the constraint set; a unit that is inverted or self-intersecting
             # (a free-edge vertex swung across, which the spec's constraints allow) is no design
             check_design(task.lattice, x)
             ev = evaluator.evaluate(x)
             f, grad = -task.sign * ev.value, -task.sign * ev.grad[free]
-            terms, solver, sim_s = ev.terms, ev.solver, ev.sim_s
+            terms, solver, sim_s, unused = ev.terms, ev.solver, ev.sim_s, ev.ahead_unused
             if ev.events:
                 event = "; ".join(ev.events)
         except EvaluationFailed as exc:
@@ -290,7 +290,7 @@ def run_design(task: Task, out: Path, *, resume: bool = False, progress: bool = 
             "wall_s": time.perf_counter() - t0 + opt_s,
             "event": event,
             "failed": terms is None,
-            "sim_s": sim_s, "jac_s": jac_s, "opt_s": opt_s,
+            "sim_s": sim_s, "jac_s": jac_s, "opt_s": opt_s, "ahead_unused": unused,
             "optimiser_value": _json_number(f),
             "metrics": {} if terms is None else task.metrics(terms),
             "solver": solver,

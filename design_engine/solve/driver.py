@@ -28,14 +28,14 @@ on another thread while the step itself is solved: XLA runs each of these progra
 so on two cores the check costs the longer of the two solves, not their sum. It is taken where
 the policy asks for that configuration (the check, or a re-solve at half the step) and
 otherwise waited for and dropped, so the sequence of decisions and the result are the same as
-without it.
+without it; `Outcome.unused_ahead` counts the dropped solves that had run (the work lost).
 
 What happened comes back as a typed record (`Outcome`, a tuple of `Step`), not as strings.
 """
 
 from collections.abc import Callable
 from concurrent.futures import Executor, Future
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Generic, TypeVar
 
 from design_engine.physics.scenes import Scene
@@ -73,6 +73,9 @@ class Outcome(Generic[R]):
     result: R
     health: dict | None  # `simulate.solve_health` of the counted solve (None if not given)
     steps: tuple[Step, ...]
+    # half-step solves started ahead (`solve_with_policy(ahead=)`) that ran and were not asked
+    # for: the work the speculation lost
+    unused_ahead: int = 0
 
     @property
     def config(self) -> SolverConfig:
@@ -217,12 +220,17 @@ def solve_with_policy(scene: Scene, config: SolverConfig,
                 return solve(cfg) if future.cancel() else future.result()
         return solve(cfg)
 
-    def drop(wait: bool) -> None:
+    def drop(wait: bool) -> int:
         """Solves started ahead and not asked for: cancelled, or waited for (so that they do
-        not run into the caller's next solve) unless interrupted."""
+        not run into the caller's next solve) unless interrupted. Returns how many had
+        started (could not be cancelled)."""
+        ran = 0
         for _, future in early:
-            if not future.cancel() and wait:
-                future.exception()
+            if not future.cancel():
+                ran += 1
+                if wait:
+                    future.exception()
+        return ran
 
     def start_ahead(cfg: SolverConfig) -> None:
         """Start `solve(cfg)` on the executor, unless one started ahead is still pending."""
@@ -239,8 +247,8 @@ def solve_with_policy(scene: Scene, config: SolverConfig,
     except BaseException:  # an interrupt does not wait for a solve nobody will use
         drop(wait=False)
         raise
-    drop(wait=True)
-    return outcome
+    unused = drop(wait=True)
+    return replace(outcome, unused_ahead=unused) if unused else outcome
 
 
 def _solve_with_policy(scene, config, solve, check, previous, budget_fails_at_once, fallback,

@@ -1,15 +1,20 @@
 """The fast test suite as `make test` runs it: wall time, counts and the slowest tests, with the
 machine and its load. Writes benchmarks/results/bench_suite.json (the README's "Tests" figures).
 
-    .venv/bin/python benchmarks/bench_suite.py [--cold] [--out benchmarks/results/bench_suite.json]
-                                               [-- extra pytest arguments]
+    .venv/bin/python benchmarks/bench_suite.py [--cold] [--compile-profile]
+        [--out benchmarks/results/bench_suite.json] [-- extra pytest arguments]
 
 `--cold` empties the suite's compilation cache (`.pytest_cache/jax`) first, as on a fresh clone
 (CI); without it the cache of an earlier run is reused. A cold run that passes also writes each
 test file's seconds (set-up, call and tear-down of its tests) to tests/file_seconds.json, from
 which tests/conftest.py hands out the longest files first. The load average is read before and
 after the run: a figure taken beside other work says so. The pytest arguments are those of the
-Makefile's `test` target (`PYTEST_ARGS` there), so the figure is what a user gets.
+Makefile's `test` target (`PYTEST_ARGS` there), so the figure is what a user gets. `cpu_s` is
+the CPU time (user + system) of the run's processes, tests' subprocesses included.
+
+`--compile-profile` also records, per test and test file, the seconds JAX spent in the test
+processes themselves tracing, lowering and compiling programs, and how many it compiled
+(`suite_compile_profile.py`, a pytest plugin; key `compile_profile`).
 """
 
 import argparse
@@ -17,9 +22,11 @@ import json
 import os
 import platform
 import re
+import resource
 import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -42,6 +49,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cold", action="store_true",
                         help="empty .pytest_cache/jax first (a fresh clone's first run)")
+    parser.add_argument("--compile-profile", action="store_true",
+                        help="also time JAX's tracing, lowering and compiling per test")
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks/results/bench_suite.json")
     parser.add_argument("pytest_args", nargs="*", help="extra pytest arguments (after --)")
     args = parser.parse_args(argv)
@@ -50,10 +59,20 @@ def main(argv: list[str] | None = None) -> int:
         shutil.rmtree(ROOT / ".pytest_cache" / "jax", ignore_errors=True)
     cmd = [sys.executable, "-m", "pytest", *MAKE_TEST_ARGS, "-q", "--durations=0",
            "--durations-min=0", *args.pytest_args]
+    env = dict(os.environ)
+    profile_dir = None
+    if args.compile_profile:
+        profile_dir = Path(tempfile.mkdtemp(prefix="metarig-suite-profile-"))
+        cmd += ["-p", "suite_compile_profile"]
+        env["PYTHONPATH"] = os.pathsep.join(filter(None, (str(ROOT / "benchmarks"),
+                                                          env.get("PYTHONPATH"))))
+        from suite_compile_profile import DIR_ENV
+        env[DIR_ENV] = str(profile_dir)
     load_before = os.getloadavg()
+    cpu_before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            text=True)
+                            text=True, env=env)
     lines = []
     assert proc.stdout is not None
     for line in proc.stdout:  # show the run as it goes
@@ -61,6 +80,7 @@ def main(argv: list[str] | None = None) -> int:
         lines.append(line.rstrip("\n"))
     rc = proc.wait()
     wall = time.perf_counter() - t0
+    cpu_after = resource.getrusage(resource.RUSAGE_CHILDREN)
     load_after = os.getloadavg()
 
     summary = next((m for m in map(SUMMARY.search, reversed(lines)) if m), None)
@@ -73,6 +93,8 @@ def main(argv: list[str] | None = None) -> int:
         "exit_code": rc,
         "wall_s": round(wall, 1),
         "pytest_s": float(summary[2]) if summary else None,
+        "cpu_s": round(cpu_after.ru_utime + cpu_after.ru_stime
+                       - cpu_before.ru_utime - cpu_before.ru_stime, 1),
         "counts": _counts(summary[1]) if summary else {},
         "slowest": durations[:10],
         "machine": {"cpu": cpu_model(), "cores": os.cpu_count(),
@@ -81,6 +103,10 @@ def main(argv: list[str] | None = None) -> int:
                               "after": round(load_after[0], 2)},
         "date": time.strftime("%Y-%m-%d %H:%M", time.gmtime()) + " UTC",
     }
+    if profile_dir is not None:
+        from suite_compile_profile import summarise
+        result["compile_profile"] = summarise(profile_dir)
+        shutil.rmtree(profile_dir, ignore_errors=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
     if args.cold and rc == 0 and durations:

@@ -86,12 +86,9 @@ def main(argv=None) -> int:
             cache = args.out / f"jax-cache-{label}"
             if not (args.out / label / "history.json").exists():
                 shutil.rmtree(cache, ignore_errors=True)  # a resumed run keeps what it compiled
-            child = [a for a in (argv if argv is not None else sys.argv[1:])
-                     if a != "--cold" and not a.startswith("--runs=")]
-            k = child.index("--runs") if "--runs" in child else None
-            child = (child[:k] + child[k + 2:] if k is not None else child) + ["--runs", label]
-            if "--out" not in child:
-                child += ["--out", str(args.out)]
+            # this run alone, with every other option as parsed here
+            child = ["--task", args.task, "--evals", str(args.evals), "--runs", label,
+                     "--out", str(args.out), "--recheck-at", *map(str, args.recheck_at)]
             rc = subprocess.call([sys.executable, __file__, *child],
                                  env=dict(os.environ, METARIG_JAX_CACHE=str(cache.resolve())))
             if rc:

@@ -96,11 +96,6 @@ def child_json(code: str, src: Path) -> dict:
     return json.loads(run.stdout.strip().splitlines()[-1])
 
 
-def default_experiment(src: Path) -> dict:
-    """The DEFAULT probe from the sources in `src`, compilation cache off."""
-    return child_json(DEFAULT, src)
-
-
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scenes", nargs="*", choices=sorted(SCENES), default=["small", "full"],
@@ -131,8 +126,8 @@ def main(argv=None) -> int:
         runs = []
         for k in range(args.repeats):
             print(f"default experiment {k + 1}/{args.repeats}, before and after ...", flush=True)
-            runs.append({"before": {"src": str(args.before), **default_experiment(args.before)},
-                         "after": default_experiment(ROOT)})
+            runs.append({"before": {"src": str(args.before), **child_json(DEFAULT, args.before)},
+                         "after": child_json(DEFAULT, ROOT)})
         result["default_experiment"] = {
             "scene": "precompression-24x18 at 24x16, 2 % (static start + pulse)", **runs[0],
             **({"runs": runs} if len(runs) > 1 else {})}

@@ -4,9 +4,9 @@ Runs (or resumes, or finds finished) a `metarig pareto` sweep with the given set
 --out, then reads every run's `history.json` and reports: the evaluations, how many failed and
 why (used up the step budget `budget.max_solve_steps`; any other reason, named), and the wall
 time of an evaluation on a worker (median, 90th percentile, longest; the first evaluation of a
-run, which compiles, apart), with how often each scene counted a Dopri8 solve and why (`dopri8_why_per_scene`: after a
-work-energy drift, with the last drift the evaluation's event reports for the scene; after the
-half-step check; otherwise). JSON in
+run, which compiles, apart), with how often each scene counted a Dopri8 solve and why
+(`dopri8_why_per_scene`: after a work-energy drift, with the last drift the evaluation's event
+reports for the scene; after the half-step check; otherwise). JSON in
 OUT/bench_front_evaluations.json, copied to benchmarks/results/.
 
     .venv/bin/python benchmarks/bench_front_evaluations.py [--task focus-vs-protect]
@@ -40,7 +40,7 @@ BUDGET = "step budget"  # in the event of an evaluation that used up budget.max_
 def summarise(out: Path) -> dict:
     """The evaluations of every run of the sweep in `out`: counts, failures by reason, times."""
     evals, first, failed, reasons, dopri8 = [], [], 0, Counter(), Counter()
-    why: dict[str, dict] = {}  # scene -> why its Dopri8 solves counted
+    why: dict[str, dict] = {}  # scene -> why its Dopri8 solves counted (the report's entry)
     budget = 0
     runs = sorted((out / "runs").glob("*/history.json"))
     if not runs:
@@ -58,28 +58,30 @@ def summarise(out: Path) -> dict:
                     budget += 1
                 else:
                     reasons[event[:120]] += 1
+            event = e.get("event") or ""
             for scene, rec in (e.get("solver") or {}).items():
-                if rec["config"]["solver"] == "Dopri8":
-                    dopri8[scene] += 1
-                    why.setdefault(scene, {"drift": [], "half_step_check": 0, "other": 0})
-                    drifts = re.findall(rf"{scene}: the work-energy balance drifted by "
-                                        r"([0-9.e+-]+)", e.get("event") or "")
-                    if drifts:
-                        why[scene]["drift"].append(float(drifts[-1]))
-                    elif f"{scene}: the objective moved by" in (e.get("event") or ""):
-                        why[scene]["half_step_check"] += 1
-                    else:
-                        why[scene]["other"] += 1
+                if rec["config"]["solver"] != "Dopri8":
+                    continue
+                dopri8[scene] += 1
+                w = why.setdefault(scene, {"after_drift": 0, "drifts": [],
+                                           "after_half_step_check": 0, "other": 0})
+                drifts = re.findall(rf"{scene}: the work-energy balance drifted by ([0-9.e+-]+)",
+                                    event)
+                if drifts:
+                    w["after_drift"] += 1
+                    w["drifts"].append(float(drifts[-1]))
+                elif f"{scene}: the objective moved by" in event:
+                    w["after_half_step_check"] += 1
+                else:
+                    w["other"] += 1
     n = len(evals) + len(first)
     t = np.asarray(evals)
     return {
         "runs": len(runs), "evaluations_per_run": per_run, "evaluations": n, "failed": failed,
         "failed_step_budget": budget, "failed_step_budget_share": budget / n if n else None,
         "failed_other": dict(reasons), "dopri8_evaluations_per_scene": dict(dopri8),
-        "dopri8_why_per_scene": {
-            scene: {"after_drift": len(w["drift"]), "drifts": sorted(w["drift"]),
-                    "after_half_step_check": w["half_step_check"], "other": w["other"]}
-            for scene, w in why.items()},
+        "dopri8_why_per_scene": {scene: {**w, "drifts": sorted(w["drifts"])}
+                                 for scene, w in why.items()},
         "eval_s_after_the_first": {
             "median": float(np.median(t)), "p90": float(np.percentile(t, 90)),
             "max": float(t.max()), "mean": float(t.mean()), "count": int(t.size)},
@@ -103,16 +105,14 @@ def main(argv=None) -> int:
     starts = [float(s) for s in args.starts.split(",")]
 
     args.out.mkdir(parents=True, exist_ok=True)
-    load = [os.getloadavg()[0]]
+    load_start = os.getloadavg()[0]
     start = time.perf_counter()
     complete = True
     path = args.out / "bench_front_evaluations.json"
     if args.report_only:  # complete when every run recorded its budget (below)
-        wall = None
-        if path.exists():  # keep the wall time and load of the invocation that ran the sweep
-            earlier = json.loads(path.read_text())
-            wall = earlier.get("sweep_wall_s_this_invocation")
-            load = earlier.get("load_1min") or load
+        # the wall time and load of the invocation that ran the sweep, if it wrote its report
+        earlier = json.loads(path.read_text()) if path.exists() else {}
+        wall, load = earlier.get("sweep_wall_s_this_invocation"), earlier.get("load_1min")
     else:
         from design_engine.sweeps.pareto_sweep import run_sweep
 
@@ -122,8 +122,7 @@ def main(argv=None) -> int:
         except KeyboardInterrupt:
             complete = False
         wall = time.perf_counter() - start
-    if not args.report_only or len(load) == 1:
-        load.append(os.getloadavg()[0])
+        load = [load_start, os.getloadavg()[0]]
     summary = summarise(args.out)
     per_run = summary["evaluations_per_run"]
     complete = complete and len(per_run) == len(weights) * len(starts) and \

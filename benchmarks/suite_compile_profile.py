@@ -13,7 +13,6 @@ import time
 from collections import defaultdict
 from pathlib import Path
 
-import jax.monitoring
 import pytest
 
 DIR_ENV = "METARIG_SUITE_PROFILE_DIR"
@@ -33,7 +32,11 @@ def _listen(event: str, duration: float, **_) -> None:
         _count[key] += 1
 
 
-jax.monitoring.register_event_duration_secs_listener(_listen)
+def pytest_configure(config):
+    # here, not at import: `bench_suite.py` imports this module for `summarise` without JAX
+    import jax.monitoring
+
+    jax.monitoring.register_event_duration_secs_listener(_listen)
 
 
 @pytest.hookimpl(hookwrapper=True)

@@ -13,8 +13,10 @@ Makefile's `test` target (`PYTEST_ARGS` there), so the figure is what a user get
 the CPU time (user + system) of the run's processes, tests' subprocesses included.
 
 `--compile-profile` also records, per test and test file, the seconds JAX spent in the test
-processes themselves tracing, lowering and compiling programs, and how many it compiled
-(`suite_compile_profile.py`, a pytest plugin; key `compile_profile`).
+processes themselves tracing, lowering and compiling programs, how many it compiled and how many
+it read from the compilation cache, and each test's CPU seconds (`suite_compile_profile.py`, a
+pytest plugin; key `compile_profile`); every test's row goes to `<out>_tests.json` beside
+`--out`, longest first.
 """
 
 import argparse
@@ -103,11 +105,13 @@ def main(argv: list[str] | None = None) -> int:
                               "after": round(load_after[0], 2)},
         "date": time.strftime("%Y-%m-%d %H:%M", time.gmtime()) + " UTC",
     }
-    if profile_dir is not None:
-        from suite_compile_profile import summarise
-        result["compile_profile"] = summarise(profile_dir)
-        shutil.rmtree(profile_dir, ignore_errors=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
+    if profile_dir is not None:
+        from suite_compile_profile import all_rows, summarise
+        result["compile_profile"] = summarise(profile_dir)
+        rows_out = args.out.with_name(args.out.stem + "_tests.json")
+        rows_out.write_text(json.dumps(all_rows(profile_dir), indent=0) + "\n")
+        shutil.rmtree(profile_dir, ignore_errors=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
     if args.cold and rc == 0 and durations:
         per_file: dict[str, float] = {}

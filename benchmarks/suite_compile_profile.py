@@ -1,6 +1,8 @@
 """pytest plugin for `bench_suite.py --compile-profile`: per test, the seconds JAX spent in the
-test's own process tracing programs, lowering them and compiling them (XLA's backend), and how
-many programs it compiled. Programs compiled in processes a test starts (commands, ROS nodes,
+test's own process tracing programs, lowering them and compiling them (XLA's backend), how
+many programs it compiled and how many it read from the persistent compilation cache instead
+(`cache_hits`), and the CPU seconds of the test (`cpu_s`: its process, plus the subprocesses it
+started and waited for). Programs compiled in processes a test starts (commands, ROS nodes,
 Dask workers) are not seen.
 
 Each test process (the session, or each xdist worker) writes its rows to
@@ -9,6 +11,7 @@ Each test process (the session, or each xdist worker) writes its rows to
 
 import json
 import os
+import resource
 import time
 from collections import defaultdict
 from pathlib import Path
@@ -18,7 +21,8 @@ import pytest
 DIR_ENV = "METARIG_SUITE_PROFILE_DIR"
 EVENTS = {"/jax/core/compile/backend_compile_duration": "compile_s",
           "/jax/core/compile/jaxpr_trace_duration": "trace_s",
-          "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower_s"}
+          "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower_s",
+          "/jax/compilation_cache/cache_retrieval_time_sec": "cache_read_s"}
 
 _seconds: dict[str, float] = defaultdict(float)
 _count: dict[str, int] = defaultdict(int)
@@ -39,15 +43,23 @@ def pytest_configure(config):
     jax.monitoring.register_event_duration_secs_listener(_listen)
 
 
+def _cpu() -> float:
+    own, children = (resource.getrusage(w) for w in (resource.RUSAGE_SELF,
+                                                     resource.RUSAGE_CHILDREN))
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_protocol(item, nextitem):
     _seconds.clear()
     _count.clear()
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), _cpu()
     yield
     _rows.append({"test": item.nodeid, "wall_s": time.perf_counter() - start,
+                  "cpu_s": _cpu() - cpu,
                   **{k: _seconds.get(k, 0.0) for k in EVENTS.values()},
-                  "programs": _count.get("compile_s", 0)})
+                  "programs": _count.get("compile_s", 0),
+                  "cache_hits": _count.get("cache_read_s", 0)})
 
 
 def pytest_sessionfinish(session):
@@ -57,14 +69,22 @@ def pytest_sessionfinish(session):
         (Path(folder) / f"rows_{worker}.json").write_text(json.dumps(_rows))
 
 
+def all_rows(folder: Path) -> list[dict]:
+    """Every test's row in `folder`, longest first, seconds rounded to 0.01."""
+    rows = [r for f in sorted(folder.glob("rows_*.json")) for r in json.loads(f.read_text())]
+    return [{k: (round(v, 2) if isinstance(v, float) else v) for k, v in r.items()}
+            for r in sorted(rows, key=lambda r: -r["wall_s"])]
+
+
 def summarise(folder: Path, top: int = 15) -> dict:
     """The rows in `folder`: totals, and per test file (longest first) and the `top` tests."""
-    rows = [r for f in sorted(folder.glob("rows_*.json")) for r in json.loads(f.read_text())]
-    keys = ("wall_s", *EVENTS.values())
+    rows = all_rows(folder)
+    keys = ("wall_s", "cpu_s", *EVENTS.values())
 
     def total(rs):
-        out = {k: round(sum(r[k] for r in rs), 1) for k in keys}
-        out["programs"] = sum(r["programs"] for r in rs)
+        out = {k: round(sum(r.get(k, 0.0) for r in rs), 1) for k in keys}
+        for k in ("programs", "cache_hits"):
+            out[k] = sum(r.get(k, 0) for r in rs)
         return out
 
     files = defaultdict(list)

@@ -31,19 +31,21 @@ def area_centroids(polygons: np.ndarray) -> np.ndarray:
 
 
 def points_inside(x: np.ndarray, y: np.ndarray, polygon: np.ndarray) -> np.ndarray:
-    """Even-odd point-in-polygon test of points (x, y) (broadcastable arrays) against one
-    polygon [nv, 2] -> bool of the broadcast shape (a point exactly on an edge may go either
-    way). Grid use: `points_inside(cols[None, :], rows[:, None], polygon)` -> [n_rows, n_cols]."""
+    """Even-odd point-in-polygon test of points (x, y) (broadcastable arrays) against polygons
+    [..., nv, 2] whose leading shape broadcasts with them -> bool of the broadcast shape (a point
+    exactly on an edge may go either way). Grid use, one polygon [nv, 2]:
+    `points_inside(cols[None, :], rows[:, None], polygon)` -> [n_rows, n_cols]; one point per
+    polygon [n, nv, 2]: x, y [n]."""
     x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
-    inside = np.zeros(np.broadcast_shapes(x.shape, y.shape), dtype=bool)
-    nv = polygon.shape[0]
+    poly = np.asarray(polygon, dtype=np.float64)
+    inside = np.zeros(np.broadcast_shapes(x.shape, y.shape, poly.shape[:-2]), dtype=bool)
+    nv = poly.shape[-2]
     for a in range(nv):
-        x1, y1 = polygon[a]
-        x2, y2 = polygon[(a + 1) % nv]
-        if y1 == y2:
-            continue
-        spans = (y > y1) != (y > y2)
-        inside ^= spans & (x < x1 + (y - y1) * (x2 - x1) / (y2 - y1))
+        x1, y1 = poly[..., a, 0], poly[..., a, 1]
+        x2, y2 = poly[..., (a + 1) % nv, 0], poly[..., (a + 1) % nv, 1]
+        spans = (y > y1) != (y > y2)  # never for a horizontal edge
+        dy = np.where(y1 == y2, 1.0, y2 - y1)
+        inside ^= spans & (x < x1 + (y - y1) * (x2 - x1) / dy)
     return inside
 
 
@@ -60,19 +62,34 @@ def edges_cross(a1, a2, b1, b2) -> np.ndarray:
         (_orient(a1, a2, b1) * _orient(a1, a2, b2) < 0)
 
 
+def _nonadjacent_edge_pairs(nv: int) -> tuple[np.ndarray, np.ndarray]:
+    """Edge index pairs (k, m), k < m, of a closed polygon of nv vertices that share no vertex,
+    in the order k, then m."""
+    k, m = np.triu_indices(nv, 2)
+    keep = ~((k == 0) & (m == nv - 1))
+    return k[keep], m[keep]
+
+
+def self_crossings(polygons: np.ndarray) -> np.ndarray:
+    """[n, 2] for closed polygons [n, nv, 2]: the first pair of non-adjacent edges (k, m),
+    k < m, of each that cross, or (-1, -1) (edge k runs from vertex k to vertex k + 1). All
+    pairs of all polygons at once."""
+    p = np.asarray(polygons, dtype=np.float64)
+    q = np.roll(p, -1, axis=1)
+    k, m = _nonadjacent_edge_pairs(p.shape[1])
+    if k.size == 0:  # a triangle
+        return np.full((p.shape[0], 2), -1)
+    cross = edges_cross(p[:, k], q[:, k], p[:, m], q[:, m])  # [n, pairs]
+    first = np.argmax(cross, axis=1)
+    hit = cross[np.arange(p.shape[0]), first]
+    return np.where(hit[:, None], np.stack([k[first], m[first]], axis=1), -1)
+
+
 def self_crossing(polygon: np.ndarray) -> tuple[int, int] | None:
     """The first pair of non-adjacent edges (k, m), k < m, of the closed polygon [nv, 2] that
     cross, or None (edge k runs from vertex k to vertex k + 1)."""
-    p = np.asarray(polygon, dtype=np.float64)
-    nv = p.shape[0]
-    q = np.roll(p, -1, axis=0)
-    for k in range(nv):
-        for m in range(k + 2, nv):
-            if k == 0 and m == nv - 1:
-                continue  # adjacent edges share a vertex
-            if edges_cross(p[k], q[k], p[m], q[m]):
-                return k, m
-    return None
+    k, m = self_crossings(np.asarray(polygon)[None])[0]
+    return None if k < 0 else (int(k), int(m))
 
 
 def self_intersecting(polygon: np.ndarray) -> bool:
@@ -80,24 +97,22 @@ def self_intersecting(polygon: np.ndarray) -> bool:
     return self_crossing(polygon) is not None
 
 
-def polygons_overlap(a: np.ndarray, b: np.ndarray) -> bool:
-    """Do simple polygons a [n, 2] and b [m, 2] share interior points (an edge crossing, or one
-    inside the other)?"""
-    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
-    a2, b2 = np.roll(a, -1, axis=0), np.roll(b, -1, axis=0)
-    if edges_cross(a[:, None], a2[:, None], b[None], b2[None]).any():
-        return True
-    return bool(points_inside(a[0, 0], a[0, 1], b) or points_inside(b[0, 0], b[0, 1], a))
+def _overlapping(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """[n] whether simple polygons a[k] [n, na, 2] and b[k] [n, nb, 2] share interior points (an
+    edge crossing, or one inside the other)."""
+    a2, b2 = np.roll(a, -1, axis=1), np.roll(b, -1, axis=1)
+    crossing = edges_cross(a[:, :, None], a2[:, :, None], b[:, None], b2[:, None]).any(axis=(1, 2))
+    return (crossing | points_inside(a[:, 0, 0], a[:, 0, 1], b)
+            | points_inside(b[:, 0, 0], b[:, 0, 1], a))
 
 
 def first_overlap(polygons: np.ndarray) -> tuple[int, int] | None:
     """The first pair (i, j), i < j, of polygons [n, nv, 2] that overlap, or None. Pairs are
-    screened by their bounding boxes, then tested exactly."""
+    screened by their bounding boxes, then tested exactly, all at once."""
     p = np.asarray(polygons, dtype=np.float64)
     lo, hi = p.min(axis=1), p.max(axis=1)
     i, j = np.triu_indices(p.shape[0], 1)
     near = np.all((lo[i] < hi[j]) & (lo[j] < hi[i]), axis=1)
-    for a, b in zip(i[near], j[near]):
-        if polygons_overlap(p[a], p[b]):
-            return int(a), int(b)
-    return None
+    i, j = i[near], j[near]
+    hit = np.flatnonzero(_overlapping(p[i], p[j]))
+    return (int(i[hit[0]]), int(j[hit[0]])) if hit.size else None

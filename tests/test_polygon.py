@@ -2,7 +2,8 @@
 
 import numpy as np
 
-from metarig.polygon import area_centroids, points_inside, self_intersecting, signed_areas
+from metarig.polygon import (area_centroids, first_overlap, points_inside, self_crossing,
+                             self_crossings, self_intersecting, signed_areas)
 
 SQUARE = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])  # CCW, area 1
 TRIANGLE = np.array([[0.0, 0.0], [3.0, 0.0], [0.0, 6.0]])  # CCW, area 9, centroid (1, 2)
@@ -49,3 +50,61 @@ def test_self_intersecting():
     bowtie = np.array([[0.0, 0.0], [1.0, 1.0], [1.0, 0.0], [0.0, 1.0]])
     assert self_intersecting(bowtie) and not self_intersecting(SQUARE)
     assert not self_intersecting(TRIANGLE)
+
+
+def test_self_crossings_of_many_polygons_are_those_found_one_pair_at_a_time():
+    """The batched check names, per polygon, the first crossing pair that a loop over the pairs
+    (k, then m) finds, on random polygons of 4-8 vertices (many of them self-crossing)."""
+    def first_pair(p):
+        nv = len(p)
+        for k in range(nv):
+            for m in range(k + 2, nv):
+                if (k, m) == (0, nv - 1):
+                    continue
+                a1, a2, b1, b2 = p[k], p[(k + 1) % nv], p[m], p[(m + 1) % nv]
+
+                def orient(o, u, v):
+                    return (u[0] - o[0]) * (v[1] - o[1]) - (u[1] - o[1]) * (v[0] - o[0])
+
+                if (orient(b1, b2, a1) * orient(b1, b2, a2) < 0
+                        and orient(a1, a2, b1) * orient(a1, a2, b2) < 0):
+                    return (k, m)
+        return None
+
+    rng = np.random.default_rng(4)
+    for nv in range(4, 9):
+        polys = rng.uniform(-1.0, 1.0, size=(40, nv, 2))
+        polys[0] = np.column_stack([np.cos(np.linspace(0, 2 * np.pi, nv, endpoint=False)),
+                                    np.sin(np.linspace(0, 2 * np.pi, nv, endpoint=False))])
+        expected = [first_pair(p) for p in polys]
+        assert expected[0] is None and sum(e is not None for e in expected) >= 10
+        got = self_crossings(polys)
+        assert [None if k < 0 else (k, m) for k, m in got.tolist()] == expected
+        assert [self_crossing(p) for p in polys] == expected
+
+
+def test_points_inside_one_point_per_polygon_is_each_polygon_tested_alone():
+    rng = np.random.default_rng(5)
+    polys = rng.uniform(-1.0, 1.0, size=(50, 5, 2))
+    polys[:, 2, 1] = polys[:, 1, 1]  # a horizontal edge in each
+    pts = rng.uniform(-1.0, 1.0, size=(50, 2))
+    alone = [bool(points_inside(x, y, poly)) for (x, y), poly in zip(pts, polys)]
+    assert points_inside(pts[:, 0], pts[:, 1], polys).tolist() == alone
+    assert 5 < sum(alone) < 45
+
+
+def test_first_overlap_is_the_first_pair_a_loop_over_the_pairs_finds():
+    """Squares of side 1 on a grid of pitch 1.5, one moved at a time: into its right
+    neighbour (edges cross), wholly inside a neighbour's spot (containment, no crossing), or
+    not at all."""
+    grid = np.array([[i * 1.5, j * 1.5] for j in range(3) for i in range(3)])
+    squares = grid[:, None, :] + SQUARE[None]
+    assert first_overlap(squares) is None
+    moved = squares.copy()
+    moved[4] += [0.8, 0.3]  # unit 4 into unit 5
+    assert first_overlap(moved) == (4, 5)
+    moved = squares.copy()
+    moved[7] = 0.5 * (SQUARE - 0.5) + grid[1] + 0.5
+    assert first_overlap(moved) == (1, 7)
+    moved[3] += [0.0, -1.2]  # unit 3 down into unit 0
+    assert first_overlap(moved) == (0, 3)

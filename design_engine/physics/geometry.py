@@ -11,7 +11,7 @@ import numpy as np
 
 from design_engine._types import Array, DesignVector, Float, Points, Vertices
 from design_engine.physics.lattice import Lattice, vertex_offsets
-from metarig.polygon import first_overlap, self_crossing, signed_areas
+from metarig.polygon import first_overlap, self_crossings, signed_areas
 
 
 class BlockGeometry(eqx.Module):
@@ -84,16 +84,18 @@ def check_design(lattice: Lattice, x) -> np.ndarray:
         raise InvalidDesignError(f"design vector holds {np.sum(~np.isfinite(x))} non-finite values")
     r = np.asarray(vertex_offsets(lattice, x))
     areas = signed_areas(r)
-    for b in range(lattice.n_blocks):
+    crossings = (self_crossings(r) if lattice.n_vertices > 3
+                 else np.full((lattice.n_blocks, 2), -1))
+    bad = (areas <= 0.0) | (crossings[:, 0] >= 0)
+    if bad.any():  # the first offending block, inversion before self-intersection
+        b = int(np.argmax(bad))
         if areas[b] <= 0.0:
             raise InvalidDesignError(
                 f"block {b} is inverted or degenerate (signed area {areas[b]:.4g} mm^2; vertices "
                 "must stay counter-clockwise)"
             )
-        crossing = self_crossing(r[b]) if lattice.n_vertices > 3 else None
-        if crossing is not None:
-            raise InvalidDesignError(
-                f"block {b} is self-intersecting (edges {crossing[0]} and {crossing[1]})")
+        raise InvalidDesignError(
+            f"block {b} is self-intersecting (edges {crossings[b, 0]} and {crossings[b, 1]})")
     pair = first_overlap(np.asarray(lattice.grid_points, np.float64)[:, None, :] + r)
     if pair is not None:
         raise InvalidDesignError(

@@ -241,11 +241,27 @@ def choose_config(scene: Scene, *, full_model: bool = False,
     return Choice(config, reasons, omega)
 
 
+# jitted smallest followed void angle per lattice (`static_void_margin`), the lattice kept
+# beside its program so that an id reused by a new lattice is not taken for it
+_SMALLEST_VOIDS: dict[int, tuple] = {}
+
+
 def static_void_margin(scene: Scene, state) -> float:
-    """Smallest void angle of `state` [n_blocks, 3] (mm, rad) above the contact asymptote, rad."""
-    bonds = bond_geometry(scene.lattice, block_geometry(scene.lattice, jnp.asarray(scene.design)))
-    voids = followed_voids(bonds.void_ref, jnp.asarray(state), scene.lattice.bond_blocks)
-    return float(jnp.min(voids) - scene.material.contact_min)
+    """Smallest void angle of `state` [n_blocks, 3] (mm, rad) above the contact asymptote, rad.
+    One compiled program per lattice (op by op it took 20-45 ms a call; the design loop asks
+    for it on every solve of a scene without contact terms)."""
+    lat = scene.lattice
+    entry = _SMALLEST_VOIDS.get(id(lat))
+    if entry is None or entry[0] is not lat:
+        def smallest(design, q):
+            bonds = bond_geometry(lat, block_geometry(lat, design))
+            return jnp.min(followed_voids(bonds.void_ref, q, lat.bond_blocks))
+
+        while len(_SMALLEST_VOIDS) >= 8:
+            del _SMALLEST_VOIDS[next(iter(_SMALLEST_VOIDS))]  # the oldest
+        entry = _SMALLEST_VOIDS[id(lat)] = (lat, jax.jit(smallest))
+    smallest_void = entry[1](np.asarray(scene.design, np.float64), np.asarray(state, np.float64))
+    return float(smallest_void) - float(scene.material.contact_min)
 
 
 def contact_frequency(min_void_margin: float, material, min_inertia: float,

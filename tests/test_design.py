@@ -694,6 +694,15 @@ def test_two_threads_evaluate_as_one_does(tmp_path, monkeypatch):
         assert a.solver == b.solver and a.events == b.events
     assert set(a.terms) == {"protect", "protect_b"}
     assert threads == {"metarig-scene", "metarig-ahead"}
+    # closed, the evaluator's threads end (none is under way here) and it evaluates no more
+    pool_threads = [t for t in threading.enumerate() if t.name.startswith("metarig-")]
+    assert pool_threads
+    two.close()
+    for t in pool_threads:
+        t.join(timeout=10)
+    assert not any(t.is_alive() for t in pool_threads)
+    with pytest.raises(RuntimeError):
+        two.evaluate(x0)
     with pytest.raises(ValueError, match="threads"):
         TaskEvaluator(task, threads=0)
 

@@ -125,6 +125,19 @@ class SceneState:
     last_health: dict | None = None
 
 
+@dataclass(frozen=True)
+class _SceneOutcome:
+    """One scene's share of an evaluation (`TaskEvaluator._solve_scene`)."""
+
+    value: float
+    grad: np.ndarray
+    terms: dict[str, float]
+    record: dict  # the configuration that counted, and why
+    events: list[str]
+    state: SceneState  # the scene's state for the next evaluation
+    ahead_unused: int  # half-step solves started ahead that went unused
+
+
 class TaskEvaluator:
     """Evaluates a task's scalarised objective and its gradient (see module docstring)."""
 
@@ -327,9 +340,9 @@ class TaskEvaluator:
             f"{new_dt * 1e3:.1f} us")
 
     def _solve_scene(self, name: str, st: SceneState, x: np.ndarray):
-        """One scene's value, gradient and terms at `x` under the policy: returns them with the
-        record of the configuration that counted, the events, the scene's next state and how
-        many solves started ahead went unused.
+        """One scene's value, gradient and terms at `x` under the policy, with the record of
+        the configuration that counted, the events, the scene's next state and how many solves
+        started ahead went unused.
         Raises `EvaluationFailed` (with the state to keep) when every configuration failed."""
         scene = self.task.scenes[name]
         if self.forced is not None:
@@ -338,7 +351,8 @@ class TaskEvaluator:
                 grad = self._gradient(pending)
             except SimulationError as exc:
                 raise EvaluationFailed(f"{name}: {exc}") from None
-            return value, grad, terms, self._record(st.config, list(st.reasons), name), [], st, 0
+            return _SceneOutcome(value, grad, terms, self._record(st.config, list(st.reasons), name),
+                                 [], st, 0)
 
         events: list[str] = []
         checked = [st]  # the state after the step check (kept even when the design fails)
@@ -378,7 +392,7 @@ class TaskEvaluator:
         record = self._record(out.config, why, name)
         if "step_error" in out.health:  # the half-step check judged the solve that counted
             record["step_error"] = float(out.health["step_error"])
-        return value, grad, terms, record, events, st, out.unused_ahead
+        return _SceneOutcome(value, grad, terms, record, events, st, out.unused_ahead)
 
     def evaluate(self, x: np.ndarray) -> Evaluation:
         """Value and gradient of the scalarised objective at design `x` [n_design] (mm).
@@ -408,15 +422,29 @@ class TaskEvaluator:
                 if out.state is not None:
                     self._state[name] = out.state
                 raise out
-            v, g, tm, s, ev, self._state[name], lost = out
-            unused += lost
-            events += ev
-            value, grad = value + v, grad + g
-            terms.update(tm)
-            solver[name] = s
+            self._state[name] = out.state
+            unused += out.ahead_unused
+            events += out.events
+            value, grad = value + out.value, grad + out.grad
+            terms.update(out.terms)
+            solver[name] = out.record
         return Evaluation(value=value, grad=grad, terms=terms, solver=solver,
                           events=tuple(events), sim_s=time.perf_counter() - start,
                           ahead_unused=unused)
+
+    def close(self) -> None:
+        """Let the evaluator's threads go (`threads` > 1): queued solves are dropped, one under
+        way (a half-step solve started ahead) ends on its own; it evaluates no more. Also
+        `with TaskEvaluator(...) as ev:`."""
+        for pool in (self._scenes, self._ahead):
+            if pool is not None:
+                pool.shutdown(wait=False, cancel_futures=True)
+
+    def __enter__(self) -> "TaskEvaluator":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
     def configurations(self) -> dict[str, dict]:
         """Scene name -> the configuration currently chosen for it and why."""

@@ -206,7 +206,7 @@ def run_design(task: Task, out: Path, *, resume: bool = False, progress: bool = 
         resume: continue the run recorded in `out`.
         progress: show a progress bar on stderr.
         evaluator: objective evaluator (default a new `TaskEvaluator(task, threads=threads)`,
-            made once the run folder has been checked).
+            made once the run folder has been checked and closed when the run ends).
         threads: solves that may run at once (`TaskEvaluator`; default the usable cores).
 
     Raises:
@@ -222,6 +222,7 @@ def run_design(task: Task, out: Path, *, resume: bool = False, progress: bool = 
     elif (out / "checkpoint.npz").exists():
         raise ResumeError(f"{out} already holds a design run; pass --resume to continue it or "
                           "choose another --out folder")
+    own_evaluator = evaluator is None
     evaluator = evaluator or TaskEvaluator(task, threads=threads)
     free, x_base = task.free, task.initial_design
     constraints = make_sparse_constraints(task.lattice, task.limits, x_base, free)
@@ -316,6 +317,8 @@ def run_design(task: Task, out: Path, *, resume: bool = False, progress: bool = 
     finally:
         if bar is not None:
             bar.close()
+        if own_evaluator:
+            evaluator.close()
     record.save(status, elapsed(), {"compilations": evaluator.compilations,
                                     "stop_reason": reason})
     evals = record.evaluations

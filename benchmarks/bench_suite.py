@@ -1,12 +1,12 @@
 """The fast test suite as `make test` runs it: wall time, counts and the slowest tests, with the
 machine and its load. Writes benchmarks/results/bench_suite.json (the README's "Tests" figures).
 
-    .venv/bin/python benchmarks/bench_suite.py [--cold] [--compile-profile]
+    .venv/bin/python benchmarks/bench_suite.py [--cold] [--compile-profile] [--env KEY=VALUE ...]
         [--out benchmarks/results/bench_suite.json] [-- extra pytest arguments]
 
 `--cold` empties the suite's compilation cache (`.pytest_cache/jax`) first, as on a fresh clone
-(CI); without it the cache of an earlier run is reused. A cold run that passes also writes each
-test file's seconds (set-up, call and tear-down of its tests) to tests/file_seconds.json, from
+(CI); without it the cache of an earlier run is reused. A cold run of the whole suite (no extra
+pytest arguments) that passes also writes each test file's seconds (set-up, call and tear-down of its tests) to tests/file_seconds.json, from
 which tests/conftest.py hands out the longest files first. The load average is read before and
 after the run: a figure taken beside other work says so. The pytest arguments are those of the
 Makefile's `test` target (`PYTEST_ARGS` there), so the figure is what a user gets. `cpu_s` is
@@ -16,7 +16,8 @@ the CPU time (user + system) of the run's processes, tests' subprocesses include
 processes themselves tracing, lowering and compiling programs, how many it compiled and how many
 it read from the compilation cache, and each test's CPU seconds (`suite_compile_profile.py`, a
 pytest plugin; key `compile_profile`); every test's row goes to `<out>_tests.json` beside
-`--out`, longest first.
+`--out`, longest first. `--env KEY=VALUE` runs the suite with that variable set (recorded under
+`env`), for trials such as `JAX_DISABLE_MOST_OPTIMIZATIONS=1`.
 """
 
 import argparse
@@ -53,6 +54,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="empty .pytest_cache/jax first (a fresh clone's first run)")
     parser.add_argument("--compile-profile", action="store_true",
                         help="also time JAX's tracing, lowering and compiling per test")
+    parser.add_argument("--env", action="append", default=[], metavar="KEY=VALUE",
+                        help="set this variable for the run (repeatable)")
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks/results/bench_suite.json")
     parser.add_argument("pytest_args", nargs="*", help="extra pytest arguments (after --)")
     args = parser.parse_args(argv)
@@ -62,6 +65,13 @@ def main(argv: list[str] | None = None) -> int:
     cmd = [sys.executable, "-m", "pytest", *MAKE_TEST_ARGS, "-q", "--durations=0",
            "--durations-min=0", *args.pytest_args]
     env = dict(os.environ)
+    extra_env = {}
+    for item in args.env:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            parser.error(f"--env takes KEY=VALUE, got {item!r}")
+        extra_env[key] = value
+    env.update(extra_env)
     profile_dir = None
     if args.compile_profile:
         profile_dir = Path(tempfile.mkdtemp(prefix="metarig-suite-profile-"))
@@ -92,6 +102,7 @@ def main(argv: list[str] | None = None) -> int:
     result = {
         "command": " ".join(["python -m pytest", *MAKE_TEST_ARGS, *args.pytest_args]),
         "cold_cache": args.cold,
+        **({"env": extra_env} if extra_env else {}),
         "exit_code": rc,
         "wall_s": round(wall, 1),
         "pytest_s": float(summary[2]) if summary else None,
@@ -113,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
         rows_out.write_text(json.dumps(all_rows(profile_dir), indent=0) + "\n")
         shutil.rmtree(profile_dir, ignore_errors=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
-    if args.cold and rc == 0 and durations:
+    if args.cold and rc == 0 and durations and not args.pytest_args:
         per_file: dict[str, float] = {}
         for row in durations:
             name = row["test"].split("::")[0]

@@ -328,8 +328,8 @@ def part_cholesky(strains: list[float]) -> dict:
     """Banded block Cholesky (the default) against the dense one, side by side per strain."""
     from design_engine.physics import linalg
 
-    def dense(n, rows, cols):
-        return linalg.make_sparse_spd_solve(n, rows, cols, min_blocks=10**9)
+    def dense(n, rows, cols, **kw):
+        return linalg.make_sparse_spd_solve(n, rows, cols, min_blocks=10**9, **kw)
 
     out = {}
     for strain in strains:

@@ -1,6 +1,7 @@
 """`linalg.make_sparse_spd_solve`: the block Cholesky in a lattice Hessian's banded order (the
-static solver's Newton steps) equals a dense solve, differentiates like one, and fails like the
-dense Cholesky on a matrix that is not positive definite. `linalg.implicit_point`: an
+static solver's Newton steps) equals a dense solve, differentiates like one, takes the matrix as
+a coloured Hessian's products and a shift of its diagonal, and fails like the dense Cholesky on
+a matrix that is not positive definite. `linalg.implicit_point`: an
 equilibrium's implicit-function derivative, whose solve only a differentiated program holds."""
 
 import re
@@ -14,9 +15,10 @@ from design_engine.physics.lattice import quads
 from design_engine.physics.linalg import implicit_point, make_sparse_spd_solve, spd_solve
 
 
-def _lattice_matrix(nx: int, ny: int, seed: int = 0):
+def _lattice_matrix(nx: int, ny: int, seed: int = 0, seeds: bool = False):
     """An SPD matrix with a lattice Hessian's pattern (3 DOFs a unit, a unit coupled to itself
-    and to its bonded neighbours), its unknowns in a shuffled order: (A, rows, cols)."""
+    and to its bonded neighbours), its unknowns in a shuffled order: (A, rows, cols), and with
+    `seeds` the seed of each column by the statics' distance-2 colouring of the units."""
     bonds = np.asarray(quads(nx, ny).bond_blocks)
     n_blocks = nx * ny
     pairs = np.concatenate([np.stack([np.arange(n_blocks)] * 2, 1), bonds, bonds[:, ::-1]])
@@ -29,7 +31,14 @@ def _lattice_matrix(nx: int, ny: int, seed: int = 0):
     a[rows, cols] = rng.normal(size=rows.size)
     a = a + a.T
     a += (np.abs(a).sum(axis=1).max() + 1.0) * np.eye(a.shape[0])  # diagonally dominant
-    return a, rows, cols
+    if not seeds:
+        return a, rows, cols
+    from design_engine.physics.statics import distance2_colouring
+
+    colour = distance2_colouring(n_blocks, bonds)
+    seed_of = np.empty(3 * n_blocks, np.int64)
+    seed_of[order] = (3 * colour[:, None] + dof[None, :]).ravel()
+    return a, rows, cols, seed_of
 
 
 @pytest.mark.parametrize("size", [(12, 10), (5, 4)])
@@ -44,6 +53,30 @@ def test_the_banded_solve_equals_the_dense_one_and_its_derivative(size):
     w = np.random.default_rng(2).normal(size=n)
     g = jax.grad(lambda v: jnp.dot(solve(jnp.asarray(a), v), w))(jnp.asarray(b))
     np.testing.assert_allclose(np.asarray(g), np.linalg.solve(a.T, w), rtol=1e-10, atol=1e-13)
+
+
+@pytest.mark.parametrize("size", [(12, 10), (3, 2)])
+def test_a_hessian_given_as_coloured_products_solves_as_the_matrix_with_its_shift(size):
+    """The products of A with one seed vector per colour (the static solver's Hessian, which
+    it never assembles) solve as A itself, and `shift` adds to the diagonal: on the banded
+    path (12x10) and the dense one (3x2, two blocks)."""
+    a, rows, cols, seed_of = _lattice_matrix(*size, seeds=True)
+    n = a.shape[0]
+    seeds = np.zeros((seed_of.max() + 1, n))
+    seeds[seed_of, np.arange(n)] = 1.0
+    products = seeds @ a  # A symmetric: row s is A times seed vector s
+    assert products.shape[0] < n / 2 or size == (3, 2)
+    solve = make_sparse_spd_solve(n, rows, cols, seed_of=seed_of)
+    assert (solve.blocks >= 3) == (size == (12, 10))
+    from_matrix = jax.jit(make_sparse_spd_solve(n, rows, cols))
+    b = np.random.default_rng(1).normal(size=n)
+    for shift in (0.0, 2.5):
+        x = np.asarray(jax.jit(solve)(jnp.asarray(products), jnp.asarray(b), shift))
+        np.testing.assert_allclose(x, np.linalg.solve(a + shift * np.eye(n), b), rtol=1e-10,
+                                   atol=1e-13)
+        # the same entries read, the same arithmetic after
+        np.testing.assert_allclose(x, np.asarray(from_matrix(jnp.asarray(a), jnp.asarray(b),
+                                                             shift)), rtol=1e-14, atol=1e-16)
 
 
 def test_a_matrix_that_is_not_positive_definite_gives_non_finite_values():

@@ -17,7 +17,10 @@ would not stop a step there), and lowered threefold after a success, until max |
 GRADIENT_TOL at the full load (LEVEL_TOL at the levels before it). The Hessian is exact and
 sparse: one Hessian-vector product per colour and DOF of a distance-2 colouring of the bond
 graph (21 products for the 1146 free DOFs of 24x18; `make_sparse_hessian`); the solves are block
-Cholesky factorisations in the Hessian's banded order (`linalg.make_sparse_spd_solve`).
+Cholesky factorisations in the Hessian's banded order (`linalg.make_sparse_spd_solve`), which
+read the blocks they need from the products and add mu on the diagonal themselves: the Hessian
+is never a dense matrix (warm equilibria of the focus-vs-protect scenes, 24x18 at 1 % and 8 %,
+then took 1.3-2.1x less time, to the same bits: `benchmarks/bench_static_solve.py`).
 
 The step bound is a margin for the branch a slow loading follows. A pre-compressed lattice has
 several equilibria under the same stage closing, and a coarse continuation may land on another
@@ -127,13 +130,21 @@ def make_sparse_hessian(lattice: Lattice, free: np.ndarray, grad_fn):
     ii, jj = np.asarray(ii), np.asarray(jj)
     ss = seed_of[jj]
 
-    def hessian(q, *args):
+    def products(q, *args):
+        """[n_seeds, n_free] the Hessian-vector products: column j of the Hessian is product
+        `seed_of[j]` on the rows of the pattern (what `linalg.make_sparse_spd_solve(...,
+        seed_of=)` solves with, no dense matrix built)."""
         def hvp(v):
             return jax.jvp(lambda z: grad_fn(z, *args), (q,), (v,))[1]
 
-        prods = jax.vmap(hvp)(jnp.asarray(seeds, q.dtype))  # [n_seeds, n_free]
+        return jax.vmap(hvp)(jnp.asarray(seeds, q.dtype))
+
+    def hessian(q, *args):
+        prods = products(q, *args)
         return jnp.zeros((free.size, free.size), q.dtype).at[ii, jj].set(prods[ss, ii])
 
+    hessian.products = products
+    hessian.seed_of = seed_of
     hessian.n_seeds = n_seeds
     hessian.pattern = (ii, jj)  # where its nonzeros lie
     return hessian
@@ -205,9 +216,11 @@ def make_static_solver(lattice: Lattice, supports: Supports, *, use_contact: boo
         return jnp.min(voids) > material.contact_min
 
     grad = jax.grad(total)
-    hess = make_sparse_hessian(lattice, np.asarray(supports.free), grad)
+    hessian = make_sparse_hessian(lattice, np.asarray(supports.free), grad)
+    hess = hessian.products  # the Hessian as its products; `_solve` reads what it needs of them
     # Cholesky in the Hessian's banded order (6x less than the dense one on 24x18)
-    _solve = make_sparse_spd_solve(n_free, *hess.pattern)
+    _solve = make_sparse_spd_solve(n_free, *hessian.pattern, seed_of=hessian.seed_of)
+    diagonal = (np.asarray(hessian.seed_of), np.arange(n_free))  # its entries in the products
 
     def newton(q, mu, qc, bonds, material, tol=GRADIENT_TOL):
         """Damped Newton at fixed prescribed values qc, until max |g| <= tol or
@@ -217,13 +230,12 @@ def make_static_solver(lattice: Lattice, supports: Supports, *, use_contact: boo
             e0 = total(q, qc, bonds, material)
             g = grad(q, qc, bonds, material)
             h = hess(q, qc, bonds, material)
-            scale = jnp.maximum(jnp.max(jnp.abs(jnp.diag(h))), 1e-30)
-            eye = jnp.eye(n_free, dtype=q.dtype)
+            scale = jnp.maximum(jnp.max(jnp.abs(h[diagonal])), 1e-30)
             slack = 1e-13 * jnp.abs(e0)  # rounding: a converged step may not lower E
 
             def attempt(state):
                 m, _, _, tries = state
-                d = _solve(h + m * scale * eye, -g)
+                d = _solve(h, -g, m * scale)
                 e1 = total(q + d, qc, bonds, material)
                 ok = (jnp.isfinite(e1) & (e1 <= e0 + slack) & jnp.all(jnp.isfinite(d))
                       & admissible(q + d, qc, bonds, material))

@@ -16,23 +16,23 @@ to the bit (`same_bits`, `max_difference`).
 import argparse
 import json
 import os
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from bench_compile import child_json
 from machine import describe
 
 ROOT = Path(__file__).resolve().parent.parent
 CHILD = """
-import json, sys, time
+import json, time
 import numpy as np
 from design_engine.design.task import load_task
 from design_engine.physics import statics
 from design_engine.solve.run import prestressed_state
-designs, repeats, out = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3]
+designs, repeats, out = %(designs)d, %(repeats)d, %(out)r
 task = load_task("focus-vs-protect")
 rng = np.random.default_rng(0)
 x0 = np.asarray(task.initial_design)
@@ -54,12 +54,8 @@ print(json.dumps(rows))
 
 
 def side(src: Path, designs: int, repeats: int, states: Path) -> list[dict]:
-    env = dict(os.environ, METARIG_JAX_CACHE="", PYTHONPATH=str(src))
-    run = subprocess.run([sys.executable, "-c", CHILD, str(designs), str(repeats), str(states)],
-                         env=env, cwd=src, capture_output=True, text=True)
-    if run.returncode != 0:
-        raise SystemExit(f"{src}: {run.stderr[-2000:]}")
-    return json.loads(run.stdout.strip().splitlines()[-1])
+    """One side's rows, its equilibria saved to `states`."""
+    return child_json(CHILD % {"designs": designs, "repeats": repeats, "out": str(states)}, src)
 
 
 def main(argv=None) -> int:

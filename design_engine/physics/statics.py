@@ -106,7 +106,9 @@ def make_sparse_hessian(lattice: Lattice, free: np.ndarray, grad_fn):
     """Factory: `hessian(q_f, *args) -> [n_free, n_free]` of the energy whose gradient is
     `grad_fn(q_f, *args)`, from one Hessian-vector product per (colour, DOF) seed instead of
     one per DOF: each bond's energy depends on its two blocks only, so columns of blocks of
-    one distance-2 colour touch disjoint rows (`distance2_colouring`)."""
+    one distance-2 colour touch disjoint rows (`distance2_colouring`). The static solver uses
+    the products themselves, `hessian.products(q_f, *args) -> [n_seeds, n_free]` (column j on
+    the pattern's rows is product `hessian.seed_of[j]`), and never the dense matrix."""
     free = np.asarray(free)
     block, dof = free // 3, free % 3
     colour = distance2_colouring(lattice.n_blocks, lattice.bond_blocks)

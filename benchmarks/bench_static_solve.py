@@ -10,7 +10,7 @@ Each side runs in a fresh process (compilation cache off), one after the other: 
 task's start design and `--designs - 1` seeded perturbations of it (0.03 mm per coordinate),
 each solved once to compile and then `--repeats` times with the kept equilibria forgotten
 (`statics.forget_equilibria`): the best wall time. The equilibria of the two sides are compared
-to the bit (`same_bits`, `max_difference`).
+to the bit (`same_bits`, `max_difference`); the exit code is 1 when any differs.
 """
 
 import argparse
@@ -93,8 +93,9 @@ def main(argv=None) -> int:
               "designs": args.designs, "repeats": args.repeats, "rows": rows}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1) + "\n")
-    print(f"-> {args.out}")
-    return 0
+    same = sum(r["same_bits"] for r in rows)
+    print(f"-> {args.out}: {same} of {len(rows)} equilibria the same to the bit")
+    return 0 if same == len(rows) else 1  # a change of the equilibria fails the comparison
 
 
 if __name__ == "__main__":

@@ -43,6 +43,8 @@ def points_inside(x: np.ndarray, y: np.ndarray, polygon: np.ndarray) -> np.ndarr
     for a in range(nv):
         x1, y1 = poly[..., a, 0], poly[..., a, 1]
         x2, y2 = poly[..., (a + 1) % nv, 0], poly[..., (a + 1) % nv, 1]
+        if poly.ndim == 2 and y1 == y2:  # one polygon's horizontal edge: no work on the points
+            continue
         spans = (y > y1) != (y > y2)  # never for a horizontal edge
         dy = np.where(y1 == y2, 1.0, y2 - y1)
         inside ^= spans & (x < x1 + (y - y1) * (x2 - x1) / dy)

@@ -110,11 +110,24 @@ def _overlapping(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def first_overlap(polygons: np.ndarray) -> tuple[int, int] | None:
     """The first pair (i, j), i < j, of polygons [n, nv, 2] that overlap, or None. Pairs are
-    screened by their bounding boxes, then tested exactly, all at once."""
+    screened by their bounding boxes (sweeping them in order of their left edges, so that only
+    boxes that meet in x are paired), then tested exactly, all at once."""
     p = np.asarray(polygons, dtype=np.float64)
+    n = p.shape[0]
     lo, hi = p.min(axis=1), p.max(axis=1)
-    i, j = np.triu_indices(p.shape[0], 1)
+    order = np.argsort(lo[:, 0], kind="stable")
+    # in that order, polygon k meets in x the next ones up to the first whose left edge is
+    # at or past its right edge
+    reach = np.searchsorted(lo[order, 0], hi[order, 0], side="left")
+    count = np.maximum(reach - np.arange(n) - 1, 0)
+    first = np.repeat(np.arange(n), count)
+    offset = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+    a, b = order[first], order[first + 1 + offset]
+    i, j = np.minimum(a, b), np.maximum(a, b)
     near = np.all((lo[i] < hi[j]) & (lo[j] < hi[i]), axis=1)
     i, j = i[near], j[near]
     hit = np.flatnonzero(_overlapping(p[i], p[j]))
-    return (int(i[hit[0]]), int(j[hit[0]])) if hit.size else None
+    if not hit.size:
+        return None
+    k = hit[np.lexsort((j[hit], i[hit]))[0]]  # the first in (i, j) order
+    return int(i[k]), int(j[k])

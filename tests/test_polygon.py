@@ -108,3 +108,24 @@ def test_first_overlap_is_the_first_pair_a_loop_over_the_pairs_finds():
     assert first_overlap(moved) == (1, 7)
     moved[3] += [0.0, -1.2]  # unit 3 down into unit 0
     assert first_overlap(moved) == (0, 3)
+
+
+def test_first_overlap_equals_every_pair_tested_on_random_polygons():
+    """Random quadrilaterals (some far apart, some piled up): the swept screening finds the
+    first overlapping pair that testing every pair in order finds, or none when none does."""
+    from metarig.polygon import _overlapping
+
+    rng = np.random.default_rng(6)
+    found = 0
+    for trial in range(30):
+        n = int(rng.integers(2, 25))
+        centres = rng.uniform(0.0, 3.0 + trial, size=(n, 1, 2))
+        polys = centres + 0.5 * np.column_stack([np.cos(np.arange(4) * np.pi / 2),
+                                                 np.sin(np.arange(4) * np.pi / 2)])[None]
+        polys += rng.uniform(-0.1, 0.1, size=polys.shape)
+        i, j = np.triu_indices(n, 1)
+        every = np.flatnonzero(_overlapping(polys[i], polys[j]))
+        expected = (int(i[every[0]]), int(j[every[0]])) if every.size else None
+        assert first_overlap(polys) == expected
+        found += expected is not None
+    assert 5 < found < 30

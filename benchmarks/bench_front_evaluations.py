@@ -65,7 +65,7 @@ def summarise(out: Path) -> dict:
                 dopri8[scene] += 1
                 w = why.setdefault(scene, {"after_drift": 0, "drifts": [],
                                            "after_half_step_check": 0, "other": 0})
-                drifts = re.findall(rf"{scene}: the work-energy balance drifted by ([0-9.e+-]+)",
+                drifts = re.findall(rf"{re.escape(scene)}: the work-energy balance drifted by ([0-9.e+-]+)",
                                     event)
                 if drifts:
                     w["after_drift"] += 1

@@ -6,10 +6,10 @@ machine and its load. Writes benchmarks/results/bench_suite.json (the README's "
 
 `--cold` empties the suite's compilation cache (`.pytest_cache/jax`) first, as on a fresh clone
 (CI); without it the cache of an earlier run is reused. A cold run of the whole suite (no extra
-pytest arguments) that passes also writes each test file's seconds (set-up, call and tear-down of its tests) to tests/file_seconds.json, from
-which tests/conftest.py hands out the longest files first. The load average is read before and
-after the run: a figure taken beside other work says so. The pytest arguments are those of the
-Makefile's `test` target (`PYTEST_ARGS` there), so the figure is what a user gets. `cpu_s` is
+pytest arguments) that passes also writes each test file's seconds (set-up, call and tear-down
+of its tests) to tests/file_seconds.json, from which tests/conftest.py hands out the longest
+files first. The load average is read before and after the run: a figure taken beside other
+work says so. The pytest arguments are those of the Makefile's `test` target (`PYTEST_ARGS` there), so the figure is what a user gets. `cpu_s` is
 the CPU time (user + system) of the run's processes, tests' subprocesses included.
 
 `--compile-profile` also records, per test and test file, the seconds JAX spent in the test

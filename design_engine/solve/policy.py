@@ -241,9 +241,9 @@ def choose_config(scene: Scene, *, full_model: bool = False,
     return Choice(config, reasons, omega)
 
 
-# jitted smallest followed void angle per lattice (`static_void_margin`), the lattice kept
-# beside its program so that an id reused by a new lattice is not taken for it
-_SMALLEST_VOIDS: dict[int, tuple] = {}
+# jitted smallest followed void angle per lattice (`static_void_margin`), keyed by what a
+# lattice is built from (as `run.compile_key` keys a topology)
+_SMALLEST_VOIDS: dict[tuple, object] = {}
 
 
 def static_void_margin(scene: Scene, state) -> float:
@@ -251,16 +251,15 @@ def static_void_margin(scene: Scene, state) -> float:
     One compiled program per lattice (op by op it took 20-45 ms a call; the design loop asks
     for it on every solve of a scene without contact terms)."""
     lat = scene.lattice
-    entry = _SMALLEST_VOIDS.get(id(lat))
-    if entry is None or entry[0] is not lat:
+    key = (lat.kind, lat.shape, lat.spacing, lat.ligament_length)
+    if key not in _SMALLEST_VOIDS:
         def smallest(design, q):
             bonds = bond_geometry(lat, block_geometry(lat, design))
             return jnp.min(followed_voids(bonds.void_ref, q, lat.bond_blocks))
 
-        while len(_SMALLEST_VOIDS) >= 8:
-            del _SMALLEST_VOIDS[next(iter(_SMALLEST_VOIDS))]  # the oldest
-        entry = _SMALLEST_VOIDS[id(lat)] = (lat, jax.jit(smallest))
-    smallest_void = entry[1](np.asarray(scene.design, np.float64), np.asarray(state, np.float64))
+        _SMALLEST_VOIDS[key] = jax.jit(smallest)
+    smallest_void = _SMALLEST_VOIDS[key](np.asarray(scene.design, np.float64),
+                                         np.asarray(state, np.float64))
     return float(smallest_void) - float(scene.material.contact_min)
 
 

@@ -1,5 +1,6 @@
 """The fixed-step Verlet schemes on a system whose motion is known independently."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -18,7 +19,9 @@ def _forcing(t):
     return np.array([1.0, 0.0]) * np.sin(t)  # time-dependent, as a prescribed motion's
 
 
-def _fixed_step(max_dt, order, dtype=jnp.float64):  # importing design_engine enables float64
+def _fixed_step(max_dt, order, dtype=jnp.float64, ts=TS, hlo=None):
+    """The scheme's (q, v) at `ts` (from t0 = 0); `hlo`: a list that gets the program's text.
+    Importing design_engine enables float64."""
     stiffness, forcing = jnp.asarray(STIFFNESS, dtype), jnp.asarray([1.0, 0.0], dtype)
 
     def force(q, t):
@@ -26,20 +29,22 @@ def _fixed_step(max_dt, order, dtype=jnp.float64):  # importing design_engine en
                 (0.5 * jnp.sum(stiffness * q * q), jnp.zeros((), dtype)))
 
     method = FixedStepVerlet(max_dt=max_dt, order=order)
-    integrate = method.make_integrator(step_grid(TS, max_dt), None, None, 2)
-    qs, vs, converged, _ = integrate(
-        force, jnp.asarray(1.0 / MASS, dtype), jnp.asarray(DAMPING, dtype),
-        (jnp.asarray(Q0, dtype), jnp.asarray(V0, dtype)), jnp.asarray(TS, dtype))
+    integrate = method.make_integrator(step_grid(ts, max_dt), None, None, 2)
+    args = (jnp.asarray(1.0 / MASS, dtype), jnp.asarray(DAMPING, dtype),
+            (jnp.asarray(Q0, dtype), jnp.asarray(V0, dtype)), jnp.asarray(ts, dtype))
+    if hlo is not None:
+        hlo.append(jax.jit(lambda *a: integrate(force, *a)).lower(*args).as_text())
+    qs, vs, converged, _ = integrate(force, *args)
     assert bool(converged) and qs.dtype == dtype
     return np.asarray(qs), np.asarray(vs)
 
 
-def _reference():
+def _reference(ts=TS):
     def rhs(t, y):
         q, v = y[:2], y[2:]
         return np.concatenate([v, (-STIFFNESS * q - DAMPING * v + _forcing(t)) / MASS])
 
-    sol = solve_ivp(rhs, (TS[0], TS[-1]), np.concatenate([Q0, V0]), method="DOP853", t_eval=TS,
+    sol = solve_ivp(rhs, (0.0, ts[-1]), np.concatenate([Q0, V0]), method="DOP853", t_eval=ts,
                     rtol=1e-13, atol=1e-13)
     return sol.y[:2].T, sol.y[2:].T
 
@@ -56,6 +61,25 @@ def test_each_halving_of_the_step_divides_the_error_by_two_to_the_order(order):
     ratios = np.array(errors[:-1]) / np.array(errors[1:])
     assert ratios == pytest.approx(2.0 ** order, rel=0.1), errors
     assert errors[-1] < (1e-6 if order == 4 else 2e-3)
+
+
+def test_samples_that_start_late_are_reached_in_one_loop_of_whole_intervals():
+    # the pulse scenes sample from the window's start on: the steps before the first sample are
+    # whole intervals of the samples' step count, taken by the same loop as the rest, so the
+    # step is in the program once (a loop of their own was a second copy XLA compiled again)
+    ts = np.linspace(2.3, 10.0, 12)
+    grid = step_grid(ts, 0.1)
+    assert grid.n_sub == 7 and grid.n_pre == 28  # 23 steps of at most 0.1, rounded up to 4 x 7
+    assert grid.n_steps == grid.n_pre + 11 * grid.n_sub
+    q_ref, v_ref = _reference(ts)
+    hlo, errors = [], []
+    for dt in (0.1, 0.05):
+        qs, vs = _fixed_step(dt, 2, ts=ts, hlo=hlo)
+        errors.append(max(np.max(np.abs(qs - q_ref)), np.max(np.abs(vs - v_ref))))
+    assert errors[0] / errors[1] == pytest.approx(4.0, rel=0.1), errors  # second order
+    # two loops (the intervals, the steps within one); the sine of the force is in the step,
+    # and once more in the force at the start
+    assert hlo[0].count("stablehlo.while") == 2 and hlo[0].count("stablehlo.sine") == 2
 
 
 def test_the_fourth_order_step_is_five_verlet_steps_that_span_it():

@@ -48,10 +48,14 @@ class StepGrid:
 
 
 def step_grid(time_grid, max_dt: float) -> StepGrid:
-    """Step counts for [n_t] sample times `time_grid` (ms, from t0 = 0) and steps <= `max_dt`."""
+    """Step counts for [n_t] sample times `time_grid` (ms, from t0 = 0) and steps <= `max_dt`.
+
+    The steps before the first sample are a whole number of intervals of `n_sub` steps, so that
+    `march` takes every step in one loop (one copy of the step in a compiled program): at most
+    `n_sub - 1` steps more than the fewest of at most `max_dt`."""
     grid = np.asarray(time_grid, np.float64)
-    n_pre = substeps(grid[0], max_dt) if grid[0] > 0 else 0
     n_sub = substeps(float(np.max(np.diff(grid))), max_dt)
+    n_pre = n_sub * math.ceil(substeps(grid[0], max_dt) / n_sub) if grid[0] > 0 else 0
     dt_nominal = max(float(np.max(np.diff(grid))) / n_sub, float(grid[0]) / n_pre if n_pre else 0.0)
     return StepGrid(n_pre, n_sub, n_pre + n_sub * (grid.size - 1), dt_nominal)
 
@@ -244,7 +248,8 @@ def march(step, carry, ts, t0: float, n_pre: int, n_sub: int, remat: bool = Fals
         step: `step(carry, t, dt) -> carry`; `carry[0], carry[1]` are the sampled q and v.
         carry: state at t0.
         ts: [n_t] sample times (the first may equal t0).
-        n_pre: steps from t0 to ts[0] (static; 0 when ts[0] == t0).
+        n_pre: steps from t0 to ts[0] (static; 0 when ts[0] == t0; a multiple of n_sub,
+            `step_grid`).
         n_sub: equal steps between consecutive samples (static).
         remat: store each step's start state (the carry) only, and recompute the step from it
             in the backward pass, right before its own reverse step.
@@ -252,30 +257,36 @@ def march(step, carry, ts, t0: float, n_pre: int, n_sub: int, remat: bool = Fals
     Returns:
         (carry at ts[-1], q [n_t, ...], v [n_t, ...]).
     """
-
+    if n_pre % n_sub:
+        raise ValueError(f"the steps before the first sample ({n_pre}) must be a whole number "
+                         f"of intervals of {n_sub} steps")
     # remat step by step, not a sample interval at a time (which stored the intermediates of
     # all the interval's steps when it recomputed them): the reverse pass ran 24-34 % faster
     # in no more memory (benchmarks/bench_programs.py, bench_programs_step_remat.json)
     step_fn = jax.checkpoint(step) if remat else step
 
-    def advance(carry, t_start, t_end, n):
-        dt = (t_end - t_start) / n
+    def interval(c, pair):
+        t_start, t_end = pair[0], pair[1]
+        dt = (t_end - t_start) / n_sub
 
         def body(c, k):
             return step_fn(c, t_start + k * dt, dt), None
 
-        return jax.lax.scan(body, carry, jnp.arange(n, dtype=ts.dtype))[0]
-
-    if n_pre > 0:
-        carry = advance(carry, jnp.asarray(t0, ts.dtype), ts[0], n_pre)
-    first = carry
-
-    def interval(c, pair):
-        c = advance(c, pair[0], pair[1], n_sub)
+        c = jax.lax.scan(body, c, jnp.arange(n_sub, dtype=ts.dtype))[0]
         return c, (c[0], c[1])
 
-    last, (qs, vs) = jax.lax.scan(interval, carry, jnp.stack([ts[:-1], ts[1:]], axis=1))
-    return last, jnp.concatenate([first[0][None], qs]), jnp.concatenate([first[1][None], vs])
+    # one loop over intervals of n_sub steps: the n_pre / n_sub equal ones from t0 to the first
+    # sample, then one per pair of samples. A second loop for the steps before the first sample
+    # put a second copy of the step (and of its reverse) into every program, which XLA
+    # compiled again (benchmarks/bench_programs.py)
+    n_lead = n_pre // n_sub
+    lead = t0 + (ts[0] - t0) * jnp.arange(n_lead, dtype=ts.dtype) / max(n_lead, 1)
+    starts = jnp.concatenate([lead, ts[:-1]])
+    ends = jnp.concatenate([lead[1:], ts[:1], ts[1:]]) if n_lead else ts[1:]
+    last, (qs, vs) = jax.lax.scan(interval, carry, jnp.stack([starts, ends], axis=1))
+    if n_lead:  # the state at the first sample is the last lead interval's
+        return last, qs[n_lead - 1:], vs[n_lead - 1:]
+    return last, jnp.concatenate([carry[0][None], qs]), jnp.concatenate([carry[1][None], vs])
 
 
 def integrate(method: FixedStepVerlet, force, inv_mass, damping, y0, ts, t0: float, n_pre: int,

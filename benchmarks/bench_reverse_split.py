@@ -55,7 +55,7 @@ def main(argv=None) -> int:
     chosen = (contact_config() if args.solver == "dopri8"
               else choose_config(scene.with_design(x)).config)
     config = evaluator._budgeted(chosen, args.scene)
-    forward, reverse, objective = evaluator._function(args.scene, config)
+    forward, reverse, objective = evaluator._function(args.scene, config)[:3]
     # the reverse pass with diffrax's default checkpointing (adaptive solves only)
     default = (evaluator._function(args.scene, dataclasses.replace(
         config, adjoint=type(config.adjoint)())) if args.solver == "dopri8" else None)

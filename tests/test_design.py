@@ -673,6 +673,43 @@ def test_a_design_in_static_contact_is_step_checked_at_its_own_equilibrium(tmp_p
     assert "\n" not in str(err.value)
 
 
+def test_a_static_start_taken_as_an_input_is_differentiated_through_the_equilibrium(tmp_path):
+    """The evaluator solves a scene in static contact from its equilibrium taken as an input of
+    the configuration's programs, and pulls the cotangent on it back to the design by a program
+    of the scene's own (`run.static_start`): the gradient equals the central difference of the
+    evaluator's own value along a random direction (each side from its own equilibrium), and
+    the in-program implicit derivative (`simulate(..., equilibrium=)`) it replaces."""
+    from gradcheck import central_difference
+
+    from design_engine.solve.run import static_equilibrium
+
+    task = _protect_task(tmp_path)
+    evaluator = TaskEvaluator(task, threads=1)
+    name, scene = "strain_8pct", task.scenes["strain_8pct"]
+    config = evaluator._budgeted(evaluator._state[name].config, name)
+    assert config.use_contact and config.dtype == "float64"  # the jammed 8 % start
+
+    def value(x):
+        return evaluator._solve(name, config, x, static_equilibrium(scene, config, x))
+
+    x = np.asarray(task.initial_design, np.float64)
+    j, pending, _, _ = value(x)
+    grad = evaluator._gradient(pending)
+    assert pending[4] is not None  # it went through the static start's pullback
+    # h = 1e-4 mm: the difference's truncation (h^2) and the equilibria's residuals (1e-10)
+    # leave it within 1e-6 here (measured 3e-8)
+    d, fd = central_difference(value, x, h=1e-4, seed=5)
+    assert float(np.dot(grad, d)) == pytest.approx(fd, rel=1e-5)
+    programs = evaluator._function(name, config)
+    rest = (scene.material, scene.loading, jnp.asarray(scene.sample_times),
+            evaluator._weights(name))
+    j_in, _, back = programs.forward(jnp.asarray(x), *rest, None,
+                                     static_equilibrium(scene, config, x))
+    assert float(j_in) == j
+    np.testing.assert_allclose(grad, np.asarray(programs.reverse(back, jnp.ones_like(j_in))),
+                               rtol=1e-9, atol=1e-12 * np.abs(grad).max())
+
+
 def test_two_threads_evaluate_as_one_does(tmp_path, monkeypatch):
     """`TaskEvaluator(threads=2)`: the two scenes of a task are solved side by side, and from
     the second design on (whose previous solve started in contact) each scene's half-step

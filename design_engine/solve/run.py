@@ -4,8 +4,10 @@ This is the API the CLI, the simulated rig and the optimiser use. Inputs and out
 SI where they leave the engine (`Trajectory`, summaries); internal units stay inside.
 """
 
+import threading
 import time
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -26,6 +28,7 @@ from design_engine.solve.simulate import (SimulationError, Solution, SolverConfi
 from metarig.trajectory import Trajectory
 
 _COMPILED: dict[tuple, object] = {}
+_STATIC_START_LOCK = threading.Lock()
 
 
 def compile_key(scene: Scene, config: SolverConfig, tag: str, ts_ms) -> tuple:
@@ -142,6 +145,53 @@ def static_equilibrium(scene: Scene, config: SolverConfig, x=None):
     if not config.use_contact and past_cutoff(static_void_margin(scene, state), scene):
         return None
     return jnp.asarray(state.reshape(-1)[np.asarray(scene.supports.free)])
+
+
+class StaticStart(NamedTuple):
+    """Compiled programs for a solve with `config` that takes the design's static equilibrium
+    q_s [n_free] (`static_equilibrium`) as its start state (`initial`) instead of
+    differentiating through the static solver in its own program (`design.evaluator`): one pair
+    per topology and static model (contact terms, linearised strains), where the Hessian, its
+    factorisation and their reverse were otherwise compiled into every configuration's forward
+    and reverse pass.
+
+    Attributes:
+        residual: `(x, material, loading, q_s) -> max |dE/dq_f|` at q_s (N, N mm;
+            `check_equilibrium` judges it: a start that is not this design's equilibrium).
+        pullback: `(x, material, loading, q_s, w) -> w . dq_s/dx` [n_design], the
+            implicit-function derivative of the equilibrium (`statics.make_static_solver`,
+            `start=q_s`) pulled back from a cotangent w on it.
+    """
+
+    residual: object
+    pullback: object
+
+
+def static_start(scene: Scene, config: SolverConfig) -> StaticStart:
+    """The `StaticStart` programs of `scene` for solves with `config` (cached)."""
+    key = compile_key(scene, SolverConfig(use_contact=config.use_contact,
+                                          linearized=config.linearized), "static-start", ())
+    with _STATIC_START_LOCK:  # a scene's solves run on several threads (`design.evaluator`)
+        if key not in _COMPILED:
+            _COMPILED[key] = _static_start_programs(scene, config)
+    return _COMPILED[key]
+
+
+def _static_start_programs(scene: Scene, config: SolverConfig) -> StaticStart:
+    from design_engine.physics.statics import make_static_solver
+
+    solver = make_static_solver(scene.lattice, scene.supports, use_contact=config.use_contact,
+                                linearized=config.linearized, model=scene.model)
+
+    def residual(x, material, loading, q_s):
+        return solver(x, material, loading, 0.0, start=q_s)[1]["gradient_norm"]
+
+    def pullback(x, material, loading, q_s, w):
+        _, back, _ = jax.vjp(lambda z: solver(z, material, loading, 0.0, start=q_s), x,
+                             has_aux=True)
+        return back(w)[0]
+
+    return StaticStart(jax.jit(residual), jax.jit(pullback))
 
 
 def _simulate(scene: Scene, config: SolverConfig, ts_ms=None, loading=None, initial=None):
@@ -451,4 +501,5 @@ def checked(value_aux, config: SolverConfig | None = None):
 
 
 __all__ = ["SceneRun", "prestressed_state", "simulate_scene", "simulate_rig", "make_objective",
-           "checked", "to_trajectory", "scene_metrics", "scene_objective", "compiled_simulator"]
+           "static_start", "StaticStart", "checked", "to_trajectory", "scene_metrics", "scene_objective",
+           "compiled_simulator"]

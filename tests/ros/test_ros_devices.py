@@ -188,7 +188,11 @@ def test_shaker_compensates_its_drive_and_the_measured_peak_error_drops(ros_node
         values = {kv.key: kv.value for kv in done.values}
         assert values["converged"] == "True"
         first = float(values["peak_errors"].strip("[]").split(",")[0])
-        assert first == pytest.approx(before, abs=0.002)  # the first drive is the request
+        # the first drive is the request: the same overshoot, measured again. Each measured peak
+        # is the largest of 1 kHz readings, which may fall up to (2 pi 30 Hz x 0.5 ms)^2 / 2 =
+        # 0.44 % of the amplitude below the true peak (0.06145 then 0.06360 was seen under
+        # load); a compensated first drive would be near 0, far outside this band
+        assert first == pytest.approx(before, abs=0.005)
         r = call(fire, req, ex, resend_s=45.0)
         assert r.accepted and "compensated drive" in r.message, r.message
         after = peak_error(r)

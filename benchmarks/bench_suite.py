@@ -9,12 +9,14 @@ machine and its load. Writes benchmarks/results/bench_suite.json (the README's "
 pytest arguments) that passes also writes each test file's seconds (set-up, call and tear-down
 of its tests) to tests/file_seconds.json, from which tests/conftest.py hands out the longest
 files first. The load average is read before and after the run: a figure taken beside other
-work says so. The pytest arguments are those of the Makefile's `test` target (`PYTEST_ARGS` there), so the figure is what a user gets. `cpu_s` is
-the CPU time (user + system) of the run's processes, tests' subprocesses included.
+work says so. The pytest arguments are those of the Makefile's `test` target (`PYTEST_ARGS`
+there), so the figure is what a user gets. `cpu_s` is the CPU time (user + system) of the run's
+processes, tests' subprocesses included.
 
 `--compile-profile` also records, per test and test file, the seconds JAX spent in the test
 processes themselves tracing, lowering and compiling programs, how many it compiled and how many
-it read from the compilation cache, and each test's CPU seconds (`suite_compile_profile.py`, a
+it read from the compilation cache, each compilation of 0.2 s or more by program (key
+`programs`), and each test's CPU seconds (`suite_compile_profile.py`, a
 pytest plugin; key `compile_profile`); every test's row goes to `<out>_tests.json` beside
 `--out`, longest first. `--env KEY=VALUE` runs the suite with that variable set (recorded under
 `env`), for trials such as `JAX_DISABLE_MOST_OPTIMIZATIONS=1`.

@@ -47,7 +47,6 @@ import numpy as np
 
 from design_engine.design.task import OPTIMISER_SCALE, Task
 from design_engine.design.task_schema import Term
-from design_engine.physics.statics import EquilibriumError, check_equilibrium
 from design_engine.solve.driver import PolicyFailed, solve_with_policy
 from design_engine.solve.fixed_step import is_fixed_step
 from design_engine.solve.objectives import objective_term
@@ -278,9 +277,10 @@ class TaskEvaluator:
         failure (`StepBudgetError` when an adaptive solve used up the task's step budget).
 
         `equilibrium`: the design's static equilibrium in the free DOFs, solved already
-        (`run.static_equilibrium`). Its residual is checked first (a start that is not this
-        design's equilibrium is refused in one line); the solve starts from it at rest, taking
-        it as an input of its programs, and `_gradient` pulls the cotangent on it back to the
+        (`run.static_equilibrium`). The solve starts from it at rest, taking it as an input of
+        its programs; its residual goes into the solve's health (a start that is not this
+        design's equilibrium is refused in one line), and `_gradient` pulls the cotangent on it
+        back to the
         design (`run.static_start`, one pair of programs per scene): the configuration's own
         programs then hold no Hessian of the equilibrium (README, "Static pre-compression")."""
         scene = self.task.scenes[name]
@@ -295,14 +295,13 @@ class TaskEvaluator:
             reverse, start = programs.reverse, None
         else:
             q_s = jnp.asarray(equilibrium)
-            try:
-                check_equilibrium({"gradient_norm": static_start(scene, config).residual(
-                    x, scene.material, scene.loading, q_s)})
-            except EquilibriumError as exc:
-                raise SimulationError(str(exc)) from None
             value, aux, pullback = jax.block_until_ready(
                 programs.forward_from_start((x, q_s), *rest))
-            reverse, start = programs.reverse_from_start, (name, config, x, q_s)
+            # the start's residual in the solve's health, judged by `checked` as a start solved
+            # inside the program is
+            aux = dict(aux, static_residual=static_start(scene, config).residual(
+                x, scene.material, scene.loading, q_s))
+            reverse, start = programs.reverse_from_start, (name, x, q_s)
         checked((value, aux), config)
         values = {t.name: float(v) for t, v in zip(terms, np.asarray(aux["terms"]))}
         return float(value), (config, reverse, pullback, jnp.ones_like(value), start), values, aux
@@ -311,10 +310,10 @@ class TaskEvaluator:
         """[n_design] the gradient of a forward pass `_solve` returned (its reverse pass, and
         for a solve from a static equilibrium the pullback through it); raises
         `SimulationError` when it is not finite."""
-        _, reverse, pullback, seed, start = pending
+        config, reverse, pullback, seed, start = pending
         grad = reverse(pullback, seed)
         if start is not None:
-            name, config, x, q_s = start
+            name, x, q_s = start
             scene = self.task.scenes[name]
             grad = grad[0] + static_start(scene, config).pullback(
                 x, scene.material, scene.loading, q_s, grad[1])

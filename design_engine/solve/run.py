@@ -156,8 +156,9 @@ class StaticStart(NamedTuple):
     and reverse pass.
 
     Attributes:
-        residual: `(x, material, loading, q_s) -> max |dE/dq_f|` at q_s (N, N mm;
-            `check_equilibrium` judges it: a start that is not this design's equilibrium).
+        residual: `(x, material, loading, q_s) -> max |dE/dq_f|` at q_s (N, N mm; the
+            solve's `static_residual`, which `checked` judges: a start that is not this design's
+            equilibrium).
         pullback: `(x, material, loading, q_s, w) -> w . dq_s/dx` [n_design], the
             implicit-function derivative of the equilibrium (`statics.make_static_solver`,
             `start=q_s`) pulled back from a cotangent w on it.
@@ -501,5 +502,5 @@ def checked(value_aux, config: SolverConfig | None = None):
 
 
 __all__ = ["SceneRun", "prestressed_state", "simulate_scene", "simulate_rig", "make_objective",
-           "static_start", "StaticStart", "checked", "to_trajectory", "scene_metrics", "scene_objective",
-           "compiled_simulator"]
+           "static_start", "StaticStart", "checked", "to_trajectory", "scene_metrics",
+           "scene_objective", "compiled_simulator"]

@@ -8,8 +8,13 @@ once per round, so that a change of load falls on all of them alike):
 - the contact energy and its gradient: from the state [n_blocks, 3] through the bond map
   (`make_energy`, contact term only) against `make_contact_energy` (rotations alone);
 - the force evaluation (energy and gradient) of the whole model without and with contact, the
-  slow and fast forces of a split step (`FixedStepVerlet.contact_substeps`).
-Writes OUT/bench_force_pieces.json (per piece: median and min us per iteration, machine, load).
+  slow and fast forces of a split step (`FixedStepVerlet.contact_substeps`);
+- the reverse of those force evaluations (the product of the Hessian with a vector, as a fixed
+  step's reverse pass takes it: `jax.vjp` of the force).
+Writes OUT/NAME.json (default bench_force_pieces.json; per piece: median and min us per
+iteration, machine, load). Run from another checkout's source to time its code with this
+script (`git worktree add DIR REF`, then `PYTHONPATH=DIR python benchmarks/...`: the file
+records which `design_engine` it timed, `source`).
 
     .venv/bin/python benchmarks/bench_force_pieces.py --out benchmarks/results
 """
@@ -32,6 +37,7 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, default=Path("runs/bench-force-pieces"))
     p.add_argument("--iterations", type=int, default=2000)
     p.add_argument("--repeats", type=int, default=7)
+    p.add_argument("--name", default="bench_force_pieces", help="output file name, no suffix")
     args = p.parse_args(argv)
 
     import jax
@@ -57,6 +63,14 @@ def main(argv=None) -> int:
     def energy_force(fn):
         return lambda q: q + 1e-9 * jax.grad(lambda z: fn(z, bonds, mat))(q)
 
+    direction = jnp.asarray(rng.normal(scale=1e-3, size=(nb, 3)))
+
+    def hessian_product(fn):
+        def force(z):
+            return jax.grad(lambda y: fn(y, bonds, mat))(z)
+
+        return lambda q: q + 1e-9 * jax.vjp(force, q)[1](direction)[0]
+
     contact_of_state = E.make_energy(
         lattice, model=E.Model(ligament=lambda m, _: {}, contact=E.contact_law))
     contact_of_rotations = E.make_contact_energy(lattice)
@@ -73,6 +87,10 @@ def main(argv=None) -> int:
         "force, no contact (slow force)": (
             energy_force(E.make_energy(lattice, use_contact=False)), q0),
         "force, with contact": (energy_force(E.make_energy(lattice)), q0),
+        "force reverse (Hessian product), no contact": (
+            hessian_product(E.make_energy(lattice, use_contact=False)), q0),
+        "force reverse (Hessian product), with contact": (
+            hessian_product(E.make_energy(lattice)), q0),
     }
 
     def program(body, init):
@@ -98,10 +116,11 @@ def main(argv=None) -> int:
     for name, r in rows.items():
         print(f"{name:<62} {r['median_us']:8.1f} us (min {r['min_us']:.1f})")
     args.out.mkdir(parents=True, exist_ok=True)
-    report = {"machine": describe(), "load_average_start": load0,
+    report = {"machine": describe(), "source": str(Path(E.__file__).resolve().parents[2]),
+              "load_average_start": load0,
               "load_average_end": os.getloadavg(), "units": nb, "bonds": n_bonds,
               "iterations": args.iterations, "repeats": args.repeats, "pieces": rows}
-    (args.out / "bench_force_pieces.json").write_text(json.dumps(report, indent=1))
+    (args.out / f"{args.name}.json").write_text(json.dumps(report, indent=1))
     return 0
 
 

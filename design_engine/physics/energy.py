@@ -113,48 +113,54 @@ def followed_voids(void_ref, q, bond_blocks):
     return void_angles(ref, q[..., bb[:, 1], 2] - q[..., bb[:, 0], 2])
 
 
-def _rotate_minus_identity(half_cos, half_sin, d):
-    """(R(theta) - I) d for [n, 2] vectors d, from cos and sin of theta / 2 ([n] each):
-    cos theta - 1 = -2 sin^2(theta / 2), sin theta = 2 sin(theta / 2) cos(theta / 2)."""
+def _node(u, v, half_cos, half_sin, arm_x, arm_y):
+    """The x and y of a bond's node, mm: the unit's displacement (u, v) plus (R(theta) - I) arm,
+    from cos and sin of theta / 2 (cos theta - 1 = -2 sin^2(theta / 2), sin theta =
+    2 sin(theta / 2) cos(theta / 2)); every argument [n_bonds]."""
     c1, s = -2.0 * half_sin**2, 2.0 * half_sin * half_cos
-    return jnp.stack([c1 * d[:, 0] - s * d[:, 1], s * d[:, 0] + c1 * d[:, 1]], axis=-1)
+    return u + c1 * arm_x - s * arm_y, v + s * arm_x + c1 * arm_y
 
 
 def make_bond_measures(lattice: Lattice, *, linearized: bool = False):
     """Factory: `measures(q [n_blocks, 3], bonds) -> BondMeasures` (u mm, v mm, theta rad).
 
     `linearized` uses the small-rotation strain and shear of spec 5.2.
+
+    Written on one [n_bonds] vector per component, gathered one component at a time (a
+    structure of arrays): on the 24x16 lattice a force evaluation with contact took 67 us
+    against 86-88 us with [n_bonds, 2] vectors and [n_bonds, 3] rows, and its reverse (the
+    Hessian product a fixed step's reverse pass takes) 141-145 us against 169-171 us
+    (`benchmarks/bench_force_pieces.py`, bench_force_pieces_soa_{before,after}_{1,2}.json).
     """
     b1 = np.asarray(lattice.bond_blocks[:, 0])
     b2 = np.asarray(lattice.bond_blocks[:, 1])
     l0 = lattice.ligament_length
 
     def measures(q: BlockState, bonds: BondGeometry) -> BondMeasures:
-        r0 = jnp.asarray(lattice.bond_r0, q.dtype)
-        q1, q2 = q[b1], q[b2]
-        th1, th2 = q1[:, 2], q2[:, 2]
+        r0x = jnp.asarray(lattice.bond_r0[:, 0], q.dtype)
+        r0y = jnp.asarray(lattice.bond_r0[:, 1], q.dtype)
+        u, v, th = q[:, 0], q[:, 1], q[:, 2]
         # the sines and cosines once per unit, of half its rotation: both ends' rotations and
         # the bond's mean rotation follow from them by products (per bond, XLA recomputed the
         # rotations in several fusions: 26 of a force evaluation's 27 transcendentals per bond,
         # benchmarks/bench_contact_step.py --profile)
-        half_cos, half_sin = jnp.cos(0.5 * q[:, 2]), jnp.sin(0.5 * q[:, 2])
+        half_cos, half_sin = jnp.cos(0.5 * th), jnp.sin(0.5 * th)
         hc1, hs1, hc2, hs2 = half_cos[b1], half_sin[b1], half_cos[b2], half_sin[b2]
-        w1 = q1[:, :2] + _rotate_minus_identity(hc1, hs1, bonds.arm1)
-        w2 = q2[:, :2] + _rotate_minus_identity(hc2, hs2, bonds.arm2)
-        dw = w2 - w1
+        th1, th2 = th[b1], th[b2]
+        w1x, w1y = _node(u[b1], v[b1], hc1, hs1, bonds.arm1[:, 0], bonds.arm1[:, 1])
+        w2x, w2y = _node(u[b2], v[b2], hc2, hs2, bonds.arm2[:, 0], bonds.arm2[:, 1])
+        dwx, dwy = w2x - w1x, w2y - w1y
         bend = th2 - th1
-        mean_th = 0.5 * (th1 + th2)
         if linearized:
-            strain = (dw[:, 0] * r0[:, 0] + dw[:, 1] * r0[:, 1]) / l0**2
-            shear = (r0[:, 0] * dw[:, 1] - r0[:, 1] * dw[:, 0]) / l0**2 - mean_th
+            strain = (dwx * r0x + dwy * r0y) / l0**2
+            shear = (r0x * dwy - r0y * dwx) / l0**2 - 0.5 * (th1 + th2)
         else:
-            ell = r0 + dw
-            strain = jnp.sqrt(ell[:, 0] ** 2 + ell[:, 1] ** 2) / l0 - 1.0
+            ex, ey = r0x + dwx, r0y + dwy
+            strain = jnp.sqrt(ex**2 + ey**2) / l0 - 1.0
             # shear angle: from the reference ligament carried by the mean rotation to the current one
             c, s = hc1 * hc2 - hs1 * hs2, hs1 * hc2 + hc1 * hs2  # cos, sin of the mean rotation
-            carried = jnp.stack([c * r0[:, 0] - s * r0[:, 1], s * r0[:, 0] + c * r0[:, 1]], axis=-1)
-            shear = atan2(carried[:, 0] * ell[:, 1] - carried[:, 1] * ell[:, 0],
-                          carried[:, 0] * ell[:, 0] + carried[:, 1] * ell[:, 1])
+            cx, cy = c * r0x - s * r0y, s * r0x + c * r0y
+            shear = atan2(cx * ey - cy * ex, cx * ex + cy * ey)
         return BondMeasures(strain=strain, shear=shear, bend=bend,
                             voids=wrap(void_angles(bonds.void_ref, bend)), rest_length=l0)
 

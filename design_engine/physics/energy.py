@@ -314,10 +314,15 @@ def make_energy(lattice: Lattice, *, linearized: bool = False, use_contact: bool
     return energy
 
 
-def make_contact_energy(lattice: Lattice, model: Model = DEFAULT_MODEL):
+def make_contact_energy(lattice: Lattice, model: Model = DEFAULT_MODEL, order=None):
     """Factory: `energy(theta [n_blocks], bonds, material) -> contact energy (mJ)` from the
     units' rotations alone (rad), for a solver that steps the contact terms apart from the rest
-    (`fixed_step.FixedStepVerlet.contact_substeps`).
+    (`fixed_step.FixedStepVerlet.contact_substeps`). `order`: [n_blocks] where unit k's
+    rotation sits in `theta` (default: unit k's at k), so that a caller holding the rotations
+    in another order (the solver: free ones, then prescribed ones) hands them over as they are:
+    each bond reads its units' rotations by one gather, and the gradient sums them back by one
+    scatter-add per end, where reordering first cost a third of each (a serial loop on XLA's
+    CPU backend, run four times a step by the contact substeps).
 
     The units are rigid, so a void angle turns with the relative rotation of its two units only
     (`void_angles`): no translation and no transcendental per bond is needed, and 1-D gathers
@@ -327,6 +332,8 @@ def make_contact_energy(lattice: Lattice, model: Model = DEFAULT_MODEL):
     """
     b1 = np.asarray(lattice.bond_blocks[:, 0])
     b2 = np.asarray(lattice.bond_blocks[:, 1])
+    if order is not None:
+        b1, b2 = np.asarray(order)[b1], np.asarray(order)[b2]
 
     def energy(theta, bonds: BondGeometry, mat: Material) -> Scalar:
         bend = theta[b2] - theta[b1]

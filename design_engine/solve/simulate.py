@@ -146,7 +146,6 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
              and getattr(config.solver, "splits_contact", False))
     energy_fn = make_energy(lattice, linearized=config.linearized,
                             use_contact=config.use_contact and not split, model=model)
-    contact_fn = make_contact_energy(lattice, model) if split else None
     rhs = make_rhs(supports, energy_fn, VELOCITY_SCALE)
     full = make_full_state(supports)
     _, prescribed = make_prescribed(supports)
@@ -157,6 +156,8 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
     fixed_theta = np.flatnonzero(constrained % 3 == 2)  # where the prescribed ones sit in q_c
     # unit k's rotation is entry theta_order[k] of [free rotations, prescribed rotations]
     theta_order = np.argsort(np.concatenate([free[free_rotations], constrained[fixed_theta]]))
+    # the contact energy of the rotations in the order the fast force holds them
+    contact_fn = make_contact_energy(lattice, model, order=theta_order) if split else None
     bb = np.asarray(lattice.bond_blocks)
     fixed = is_fixed_step(config.solver)
     if fixed:
@@ -195,12 +196,9 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
             # give the power their motion puts in
             qc, qc_dot = prescribed(t, args.loading)
 
-            def contact(th_f, th_c):  # every unit's rotation by a gather (no scatter)
-                return contact_fn(jnp.concatenate([th_f, th_c])[theta_order], args.bonds,
-                                  args.material)
-
-            potential, (g_f, g_c) = jax.value_and_grad(contact, argnums=(0, 1))(
-                theta_f, qc[fixed_theta])
+            potential, g = jax.value_and_grad(contact_fn)(
+                jnp.concatenate([theta_f, qc[fixed_theta]]), args.bonds, args.material)
+            g_f, g_c = g[:free_rotations.size], g[free_rotations.size:]
             return -g_f, (potential, jnp.dot(g_c, qc_dot[fixed_theta]))
 
         q0, v0 = y0[:n_free], y0[n_free:] / VELOCITY_SCALE

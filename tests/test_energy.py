@@ -133,3 +133,36 @@ def test_linearised_strains_agree_at_small_motion():
         a, b = float(e_nl(h * q, bonds, mat)), float(e_lin(h * q, bonds, mat))
         rel.append(abs(a - b) / a)
     assert rel[2] < 1e-3 and rel[1] < rel[0] / 5 and rel[2] < rel[1] / 5
+
+
+def test_contact_energy_reads_rotations_in_the_callers_order():
+    """`make_contact_energy(order=)` takes unit k's rotation from entry order[k] (the fixed
+    step's fast force holds them as [free rotations, prescribed rotations]): the energy and its
+    gradient, entry by entry, are those of the rotations in unit order, and of the full model's
+    contact term (voids pressed into the barrier, so the law is active)."""
+    from design_engine.physics.energy import Model, contact_law, make_contact_energy
+
+    lat = _lattice("quads", 4, 3)[0]
+    _, bonds, mat, _ = _setup(("quads", 4, 3), periodic_design(lat, 0.35))
+    rng = np.random.default_rng(5)
+    # neighbours counter-rotating by about 0.55 rad each close the 50 deg voids on one side of
+    # every bond to about -12.5 deg, inside the barrier (-15 to -10 deg)
+    sign = np.zeros(lat.n_blocks)
+    sign[0] = 1.0
+    for _ in range(lat.n_blocks):  # two colours, neighbours apart
+        for a, b in np.asarray(lat.bond_blocks):
+            sign[b] = sign[b] or -sign[a]
+            sign[a] = sign[a] or -sign[b]
+    theta = jnp.asarray(-0.545 * sign + rng.uniform(-0.01, 0.01, lat.n_blocks))
+    order = rng.permutation(lat.n_blocks)
+    held = jnp.zeros(lat.n_blocks).at[order].set(theta)  # unit k's rotation at order[k]
+    e_unit, g_unit = jax.value_and_grad(make_contact_energy(lat))(theta, bonds, mat)
+    e_held, g_held = jax.value_and_grad(make_contact_energy(lat, order=order))(held, bonds, mat)
+    assert float(e_unit) > 0.0  # some void is in the barrier
+    assert float(e_held) == pytest.approx(float(e_unit), rel=1e-14)
+    np.testing.assert_allclose(np.asarray(g_held)[order], np.asarray(g_unit), rtol=1e-13,
+                               atol=1e-13 * float(jnp.max(jnp.abs(g_unit))))
+    # the same term as the whole model's, whose rotations are the state's third column
+    q = jnp.zeros((lat.n_blocks, 3)).at[:, 2].set(theta)
+    only_contact = make_energy(lat, model=Model(ligament=lambda m, _: {}, contact=contact_law))
+    assert float(only_contact(q, bonds, mat)) == pytest.approx(float(e_unit), rel=1e-12)

@@ -35,7 +35,6 @@ the cores, evaluates on one (`threads=1`).
 
 import dataclasses
 import os
-import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -52,7 +51,7 @@ from design_engine.solve.fixed_step import is_fixed_step
 from design_engine.solve.objectives import objective_term
 from design_engine.solve.policy import (STABILITY_SAFETY, choose_config, contact_config,
                                         for_gradient, initial_vector, make_frequency_estimator)
-from design_engine.solve.run import (checked, compile_key, config_summary,
+from design_engine.solve.run import (cached_program, checked, compile_key, config_summary,
                                      prestressed_state, split_gradient, static_equilibrium,
                                      static_start)
 from design_engine.solve.simulate import (SimulationError, Solution, SolverConfig, make_simulator,
@@ -73,12 +72,6 @@ def task_terms(task: Task, solutions: dict[str, Solution]) -> dict[str, float]:
     """Term name -> internal value, from one solution per scene (scene name -> Solution)."""
     return {t.name: float(term_value(t, solutions[t.scene], task.targets[t.target],
                                      task.spin_point)) for t in task.terms}
-
-
-# compiled value-and-gradient programs of this process, shared by every evaluator: the weights
-# are arguments, so the runs of a sweep (other weights, other starts) reuse them
-_PROGRAMS: dict[tuple, object] = {}
-_PROGRAMS_LOCK = threading.Lock()  # scenes and half-step solves run on several threads
 
 
 class EvaluationFailed(RuntimeError):
@@ -227,11 +220,13 @@ class TaskEvaluator:
         key = compile_key(scene, config, "task", scene.sample_times) + tuple(
             (t.quantity, tuple(self.task.targets[t.target])) for t in terms) + (
             None if self.task.spin_point is None else tuple(self.task.spin_point),)
-        with _PROGRAMS_LOCK:  # building one is quick (jax.jit compiles at its first call)
-            if key not in _PROGRAMS:
-                _PROGRAMS[key] = self._program(name, config)
-                self.compilations += 1
-            return _PROGRAMS[key]
+        # kept for the process, shared by every evaluator: the weights are arguments, so the
+        # runs of a sweep (other weights, other starts) reuse them
+        def build():  # under the cache's lock, so the count is exact with several threads
+            self.compilations += 1
+            return self._program(name, config)
+
+        return cached_program(key, build)[0]
 
     def _program(self, name: str, config: SolverConfig):
         """`_function`'s programs, built."""

@@ -28,7 +28,18 @@ from design_engine.solve.simulate import (SimulationError, Solution, SolverConfi
 from metarig.trajectory import Trajectory
 
 _COMPILED: dict[tuple, object] = {}
-_STATIC_START_LOCK = threading.Lock()
+_COMPILED_LOCK = threading.RLock()  # solves run on several threads (`design.evaluator`)
+
+
+def cached_program(key: tuple, build) -> tuple[object, bool]:
+    """The programs this process keeps under `key` (`compile_key` plus what else tells them
+    apart), built by `build()` the first time: `(programs, built now)`. Building is quick
+    (`jax.jit` compiles at the first call), so one lock serves every caller."""
+    with _COMPILED_LOCK:
+        if key in _COMPILED:
+            return _COMPILED[key], False
+        _COMPILED[key] = build()
+        return _COMPILED[key], True
 
 
 def compile_key(scene: Scene, config: SolverConfig, tag: str, ts_ms) -> tuple:
@@ -47,11 +58,8 @@ def compiled_simulator(scene: Scene, config: SolverConfig, ts_ms=None):
     the compiled function must then be called with those sample times.
     """
     ts_ms = scene.sample_times if ts_ms is None else np.asarray(ts_ms)
-    key = compile_key(scene, config, "sim", ts_ms)
-    if key not in _COMPILED:
-        _COMPILED[key] = jax.jit(make_simulator(scene.lattice, scene.supports, config, ts_ms,
-                                                model=scene.model))
-    return _COMPILED[key]
+    return cached_program(compile_key(scene, config, "sim", ts_ms), lambda: jax.jit(
+        make_simulator(scene.lattice, scene.supports, config, ts_ms, model=scene.model)))[0]
 
 
 @dataclass(frozen=True)
@@ -172,10 +180,7 @@ def static_start(scene: Scene, config: SolverConfig) -> StaticStart:
     """The `StaticStart` programs of `scene` for solves with `config` (cached)."""
     key = compile_key(scene, SolverConfig(use_contact=config.use_contact,
                                           linearized=config.linearized), "static-start", ())
-    with _STATIC_START_LOCK:  # a scene's solves run on several threads (`design.evaluator`)
-        if key not in _COMPILED:
-            _COMPILED[key] = _static_start_programs(scene, config)
-    return _COMPILED[key]
+    return cached_program(key, lambda: _static_start_programs(scene, config))[0]
 
 
 def _static_start_programs(scene: Scene, config: SolverConfig) -> StaticStart:
@@ -501,6 +506,6 @@ def checked(value_aux, config: SolverConfig | None = None):
     return value_aux
 
 
-__all__ = ["SceneRun", "prestressed_state", "simulate_scene", "simulate_rig", "make_objective",
+__all__ = ["SceneRun", "cached_program", "prestressed_state", "simulate_scene", "simulate_rig", "make_objective",
            "static_start", "StaticStart", "checked", "to_trajectory", "scene_metrics",
            "scene_objective", "compiled_simulator"]

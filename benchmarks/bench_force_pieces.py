@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from machine import describe
+from machine import describe, source_checkout
 
 HERE = Path(__file__).resolve().parent
 
@@ -116,7 +116,7 @@ def main(argv=None) -> int:
     for name, r in rows.items():
         print(f"{name:<62} {r['median_us']:8.1f} us (min {r['min_us']:.1f})")
     args.out.mkdir(parents=True, exist_ok=True)
-    report = {"machine": describe(), "source": str(Path(E.__file__).resolve().parents[2]),
+    report = {"machine": describe(), "source": source_checkout(),
               "load_average_start": load0,
               "load_average_end": os.getloadavg(), "units": nb, "bonds": n_bonds,
               "iterations": args.iterations, "repeats": args.repeats, "pieces": rows}

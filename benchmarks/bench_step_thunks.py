@@ -24,7 +24,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from machine import describe
+from machine import describe, source_checkout
 
 # the runtime's own spans, around the thunks
 RUNTIME = re.compile(r"^(ThunkExecutor|\$|PjitFunction|CommonPjRt|end: )")
@@ -70,7 +70,7 @@ def main(argv=None) -> int:
     import jax.numpy as jnp
     import numpy as np
 
-    import design_engine
+    import design_engine  # noqa: F401  (float64)
     from design_engine.physics.scenes import build_scene
     from design_engine.solve.fixed_step import step_grid
     from design_engine.solve.policy import choose_config
@@ -107,7 +107,7 @@ def main(argv=None) -> int:
         micros[kind(e["name"])] += own
         by_name[e["name"]] += own
     report = {
-        "machine": describe(), "source": str(Path(design_engine.__file__).resolve().parents[1]),
+        "machine": describe(), "source": source_checkout(),
         "load_average_start": load0, "load_average_end": os.getloadavg(),
         "scene": "protection-24x18 at 8 %", "config": repr(config), "samples": args.samples,
         "steps": steps, "unprofiled_us_per_step": best / steps * 1e6,

@@ -19,3 +19,11 @@ def cpu_model() -> str:
 def describe() -> str:
     """'<cores> cores (<CPU model>)'."""
     return f"{os.cpu_count()} cores ({cpu_model()})"
+
+
+def source_checkout() -> str:
+    """The checkout whose `design_engine` this process imports (a benchmark run with
+    `PYTHONPATH=DIR` times DIR's code): recorded as a results file's `source`."""
+    import design_engine
+
+    return str(Path(design_engine.__file__).resolve().parents[1])

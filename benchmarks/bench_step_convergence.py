@@ -131,9 +131,10 @@ def policy_config(scene, dtype: str | None = None, order: int = 2,
     return dataclasses.replace(config, solver=dataclasses.replace(config.solver, **solver))
 
 
-def gradient_row(scene, halvings: int, order: int = 2, dtype: str | None = None) -> dict:
+def gradient_row(scene, halvings: int, order: int = 2, dtype: str | None = None,
+                 contact_substeps: int | None = None) -> dict:
     """Value and gradient by the policy's own fixed-step configuration at the design (as
-    `row_for`, in `dtype` where given) at h, h/2, ... against Dopri8 at rtol 1e-10 / atol 1e-8:
+    `row_for`, in `dtype` and with `contact_substeps` where given) at h, h/2, ... against Dopri8 at rtol 1e-10 / atol 1e-8:
     relative error of J, gradient cosine and relative error, wall time (compiled first)."""
     import diffrax
 
@@ -142,7 +143,7 @@ def gradient_row(scene, halvings: int, order: int = 2, dtype: str | None = None)
 
     ref_j, ref_g, ref_s, _ = _value_and_grad(scene, SolverConfig(
         solver=diffrax.Dopri8(), rtol=TIGHT[0], atol=TIGHT[1]))
-    config = policy_config(scene, dtype, order)
+    config = policy_config(scene, dtype, order, contact_substeps)
     steps = []
     for _ in range(halvings + 1):
         try:
@@ -243,7 +244,7 @@ def main(argv=None) -> int:
     # the mode: (key of the results part, row of one scene, its printed line)
     if args.gradients:
         part, make = "gradients", lambda sc: gradient_row(sc, args.halvings, args.order,
-                                                          args.dtype)
+                                                          args.dtype, args.contact_substeps)
 
         def line(row):
             return ", ".join(f"{r['dt_us']:.1f} us J {r.get('J_rel_err', float('nan')):.1e} "
@@ -276,7 +277,7 @@ def main(argv=None) -> int:
     options = (args.dtype, part == "rows" and args.newmark_iterations
                and f"newmark {args.newmark_iterations}",
                part != "adaptive" and args.order != 2 and f"order {args.order}",
-               part == "rows" and args.contact_substeps is not None
+               part != "adaptive" and args.contact_substeps is not None
                and f"substeps {args.contact_substeps}")
     suffix = "".join(f" / {v}" for v in options if v) if part != "adaptive" else ""
     if part == "adaptive" and args.adaptive_atols != [FALLBACK[1]]:

@@ -237,9 +237,10 @@ def test_the_continued_configuration_is_read_after_the_check(scene):
     assert [s.kind for s in out.steps] == [START, CONTINUED]
 
 
-def test_a_solve_that_starts_in_contact_is_judged_at_half_its_step_too(scene):
-    """`needs_step_check`: only a fixed step with contact whose solve started with a void past
-    the cutoff. A whole step whose estimate is over STEP_ERROR_TOLERANCE: `after_half_step`
+def test_a_solve_in_contact_is_judged_at_half_its_step_too(scene):
+    """`needs_step_check`: a fixed step with contact whose voids reached the cutoff, at its
+    start or under the pulse; not one whose voids stayed clear of it (the model without
+    contact terms, which the work-energy balance bounds). A whole step whose estimate is over STEP_ERROR_TOLERANCE: `after_half_step`
     judges its half-step solve at its own half when the quarter is predicted to pass (the
     estimate x 1/16, Verlet being second order, within half the tolerance) and the half passed
     its other checks; `after_quarter_step` then lets the half stand on its own estimate, or the
@@ -255,8 +256,11 @@ def test_a_solve_that_starts_in_contact_is_judged_at_half_its_step_too(scene):
     contact = with_contact(VERLET)
     started = healthy(scene, void_margin=0.5 * span, start_void_margin=0.5 * span)
     assert needs_step_check(contact, started, scene)
-    assert not needs_step_check(contact, healthy(scene, void_margin=0.5 * span,
-                                                 start_void_margin=2.0 * span), scene)
+    # contact entered under the pulse (the ledger alone let solves 2.6e-4 to 9.7e-4 off J stand
+    # on a focus-vs-protect front's 1 % scene: README, "Contact under the pulse")
+    assert needs_step_check(contact, healthy(scene, void_margin=0.5 * span,
+                                             start_void_margin=2.0 * span), scene)
+    assert not needs_step_check(contact, healthy(scene, start_void_margin=2.0 * span), scene)
     assert not needs_step_check(VERLET, started, scene)
     assert not needs_step_check(contact_config(), started, scene)
     assert next_config(contact, dict(started, step_error=0.5 * tol), scene) is None
@@ -288,9 +292,9 @@ def test_a_solve_that_starts_in_contact_is_judged_at_half_its_step_too(scene):
         assert start_config(contact, quarter, dict(started, step_error=error), scene) == half
 
 
-def test_the_driver_judges_a_solve_that_starts_in_contact_at_half_its_step(scene):
-    """`solve_with_policy(objective=...)`: a fixed step with contact that started in contact
-    and passed the other checks is solved again from the same start at half its step, and the
+def test_the_driver_judges_a_solve_in_contact_at_half_its_step(scene):
+    """`solve_with_policy(objective=...)`: a fixed step with contact whose voids reached the
+    cutoff (here at its start) and passed the other checks is solved again from the same start at half its step, and the
     Richardson-scaled change of the caller's objective goes into the health as "step_error".
     Within the tolerance the whole step stands; over it the same start is also solved at a
     quarter of the step, and the half- or the quarter-step solve stands in its place (not
@@ -339,8 +343,12 @@ def test_the_driver_judges_a_solve_that_starts_in_contact_at_half_its_step(scene
     # a half-step solve that fails leaves the result untrusted at its step: inf, then Dopri8
     solve, out = run([], started, SimulationError("the half-step solve diverged"), started)
     assert out.config == contact_config() and "inf" in out.resolves[0]
-    # a solve that did not start in contact, or drifted, is not judged so
-    solve, _ = run([0.0], healthy(scene, void_margin=0.5 * span, start_void_margin=2 * span))
+    # one that entered contact under the pulse is judged so too; one whose voids stayed clear
+    # of the cutoff, or that drifted, is not
+    solve, out = run([0.5], *[healthy(scene, void_margin=0.5 * span,
+                                      start_void_margin=2 * span)] * 2)
+    assert solve.calls == [contact, half] and out.health["step_error"] == pytest.approx(0.5 * tol)
+    solve, _ = run([0.0], healthy(scene))
     assert solve.calls == [contact]
     solve, _ = run([0.0], dict(started, energy_error=1.0), started)
     assert solve.calls == [contact, contact_config()]

@@ -9,8 +9,9 @@ through `decide` (what to do after a solve) and, for one solve at a time, `solve
 1. start with the caller's configuration, or with the one the previous evaluation ended with
    while that was in contact (`policy.start_config`, optimisers only);
 2. after a solve that did not fail, `policy.next_config` says whether the result stands or which
-   configuration solves again (contact, half the step, Dopri8); a fixed step with contact that
-   started in contact and passed the other checks is first also judged on the caller's
+   configuration solves again (contact, half the step, Dopri8); a fixed step with contact whose
+   voids reached the contact cutoff (at its start or under the pulse) and that passed the
+   other checks is first also judged on the caller's
    objective at half its step (`objective`, `policy.needs_step_check`) and, when it moved too
    much, at a quarter, the half- or quarter-step solve standing in its place where its own
    error passes (`policy.after_half_step`, `policy.after_quarter_step`);
@@ -23,7 +24,7 @@ through `decide` (what to do after a solve) and, for one solve at a time, `solve
 4. a fallback that fails too raises.
 
 With an executor (`ahead`), the half-step solve that step 2 will most likely ask for (the
-previous evaluation's solve started in contact: `policy.needs_step_check` on its health) runs
+previous evaluation's solve reached contact: `policy.needs_step_check` on its health) runs
 on another thread while the step itself is solved: XLA runs each of these programs on one core,
 so on two cores the check costs the longer of the two solves, not their sum. It is taken where
 the policy asks for that configuration (the check, or a re-solve at half the step) and

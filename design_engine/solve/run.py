@@ -280,7 +280,7 @@ def simulate_scene(scene: Scene, config: SolverConfig | None = None) -> SceneRun
     the adaptive solver); `SolverConfig()` is the full reference model. `metrics["solver"]`
     says which configuration gave the result (`choice`: why), `resolves`: the reasons of the
     solves the policy made after its first, and `step_error` the half-step estimate when the
-    policy judged the result by it (a fixed step with contact that started in contact).
+    policy judged the result by it (a fixed step with contact whose voids reached the cutoff).
     """
     sol, wall, config, reasons, resolves, step_error = _run_with_policy(scene, config)
     metrics = scene_metrics(scene, sol)

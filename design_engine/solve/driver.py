@@ -30,6 +30,11 @@ so on two cores the check costs the longer of the two solves, not their sum. It 
 the policy asks for that configuration (the check, or a re-solve at half the step) and
 otherwise waited for and dropped, so the sequence of decisions and the result are the same as
 without it; `Outcome.unused_ahead` counts the dropped solves that had run (the work lost).
+While it runs, the step's own reverse pass (`finish`) is taken on this thread, before the
+check's verdict: where the step stands (most often) its gradient is ready when the check
+ends, and where it does not the early reverse pass is wasted and the solve that stands is
+finished as without the executor (on the 60-evaluation focusing run 102 s against 120 s,
+the same path: `benchmarks/results/bench_focusing_run_spec.json`).
 
 What happened comes back as a typed record (`Outcome`, a tuple of `Step`), not as strings.
 """
@@ -136,6 +141,14 @@ def decide(config: SolverConfig, scene: Scene, *, health: dict | None = None,
     return Step(FALLBACK, fb, reason, str(error))
 
 
+def _attempt(finish, result):
+    """`finish(result)`, or the `SimulationError` it raised."""
+    try:
+        return finish(result)
+    except SimulationError as exc:
+        return exc
+
+
 def _judged_at_half_steps(scene: Scene, steps: list, result, health: dict, solve, objective,
                           on_step) -> tuple:
     """Judge a fixed-step solve that `policy.needs_step_check` names (the last of `steps`,
@@ -207,7 +220,8 @@ def solve_with_policy(scene: Scene, config: SolverConfig,
     reverse one needs, so that a rejected solve does not pay for its gradient); its
     `SimulationError` counts as that solve's failure. `ahead`: an executor on which the
     half-step solve the check most likely needs (see the module docstring) is started beside
-    the step's own solve; `solve` must then be safe to call from two threads. Raises
+    the step's own solve, and the step's `finish` taken while it runs; `solve` and `finish`
+    must then be safe to call from two threads. Raises
     `PolicyFailed` when every allowed configuration failed.
     """
     early: list[tuple[SolverConfig, Future]] = []  # half-step solves started ahead
@@ -233,10 +247,12 @@ def solve_with_policy(scene: Scene, config: SolverConfig,
                     future.exception()
         return ran
 
-    def start_ahead(cfg: SolverConfig) -> None:
-        """Start `solve(cfg)` on the executor, unless one started ahead is still pending."""
+    def start_ahead(cfg: SolverConfig) -> bool:
+        """Start `solve(cfg)` on the executor, unless one started ahead is still pending;
+        whether `solve(cfg)` is now under way there."""
         if not early:
             early.append((cfg, ahead.submit(solve, cfg)))
+        return any(started == cfg for started, _ in early)
 
     try:
         outcome = _solve_with_policy(scene, config, solved, check, previous,
@@ -268,12 +284,14 @@ def _solve_with_policy(scene, config, solve, check, previous, budget_fails_at_on
         start = start_config(config, last, prior, scene)
         if start != config:
             steps.append(Step(CONTINUED, start, CONTINUED_REASON))
+    finished = None  # (result, its finish() or the SimulationError it raised), taken early
     while True:
         cfg, fallen_back = steps[-1].config, steps[-1].kind == FALLBACK
         if pending is None:
-            if (ahead is not None and objective is not None and prior is not None
-                    and not fallen_back and needs_step_check(cfg, prior, scene)):
-                ahead(refined(cfg))
+            beside = (ahead is not None and objective is not None and prior is not None
+                      and not fallen_back and needs_step_check(cfg, prior, scene)
+                      and ahead(refined(cfg)))
+            finished = None  # a result solved before, and its reverse pass, let go
             try:
                 result, health = solve(cfg)
             except SimulationError as exc:
@@ -282,9 +300,16 @@ def _solve_with_policy(scene, config, solve, check, previous, budget_fails_at_on
                 if (objective is not None and health is not None and not fallen_back
                         and needs_step_check(cfg, health, scene)
                         and next_config(cfg, health, scene) is None):
+                    if beside and finish is not None:
+                        # the half-step solve that judges this one runs on the other thread:
+                        # take this one's reverse pass meanwhile, which the check most often
+                        # lets stand (wasted, and not used, where it does not)
+                        finished = (result, _attempt(finish, result))
                     result, health = _judged_at_half_steps(scene, steps, result, health, solve,
                                                            objective, on_step)
                     cfg = steps[-1].config
+                    if finished is not None and finished[0] is not result:
+                        finished = None
         if pending is not None:
             try:
                 step = decide(cfg, scene, error=pending, fallen_back=fallen_back,
@@ -300,6 +325,11 @@ def _solve_with_policy(scene, config, solve, check, previous, budget_fails_at_on
                 if finish is None:
                     return Outcome(result, health, tuple(steps))
                 try:
+                    if finished is not None and finished[0] is result:
+                        done = finished[1]
+                        if isinstance(done, SimulationError):
+                            raise done
+                        return Outcome(done, health, tuple(steps))
                     return Outcome(finish(result), health, tuple(steps))
                 except SimulationError as exc:
                     pending = exc  # judged as the failure of this solve

@@ -424,11 +424,13 @@ def test_a_half_step_solve_started_ahead_changes_nothing_but_the_thread(scene):
 
 def test_the_step_is_differentiated_while_the_half_step_solve_that_judges_it_runs(scene):
     """`solve_with_policy(ahead=, finish=)`: where the half-step solve that will judge a step
-    was started ahead, the step's `finish` (an optimiser's reverse pass) runs while it is under
-    way. Where the step stands, that early finish is the outcome's; where the half step stands
-    instead, it is finished too and counts (the early finish wasted, never used); a finish that
-    failed early counts as that solve's failure, as it does when taken late. Every outcome
-    equals the one without the executor, which finishes the solve that stands alone."""
+    was started ahead and the previous evaluation's solve stood at the same step on its own
+    check, the step's `finish` (an optimiser's reverse pass) runs while it is under way. Where
+    the step stands, that early finish is the outcome's; where the half step stands instead, it
+    is finished too and counts (the early finish wasted, never used); a finish that failed
+    early counts as that solve's failure, as it does when taken late. A step climbing back
+    from the half that stood before is finished only once judged. Every outcome equals the one
+    without the executor, which finishes the solve that stands alone."""
     from concurrent.futures import ThreadPoolExecutor
 
     from design_engine.solve.policy import CONTACT_SUBSTEPS_MAX, STEP_ERROR_TOLERANCE, with_substeps
@@ -439,27 +441,30 @@ def test_the_step_is_differentiated_while_the_half_step_solve_that_judges_it_run
     half, quarter = refined(contact), refined(refined(contact))
     started = healthy(scene, void_margin=0.5 * span, start_void_margin=0.5 * span)
     substepped = with_substeps(contact, CONTACT_SUBSTEPS_MAX)
-    # answers, J of each answer in turn, results whose finish fails, the results finished with
-    # the executor and without it
+    judged = [(contact, started), (half, started), (quarter, started)]
+    # the previous evaluation's configuration, the answers, J of each answer in turn, results
+    # whose finish fails, the results finished with the executor and without it
     cases = {
-        "stands": ([(contact, started), (half, started)], [1.0, 1.0 + 0.375 * tol], (),
-                   ["result 0"], ["result 0"]),
-        "the half stands": ([(contact, started), (half, started), (quarter, started)],
-                            [1.0, 1.0 + 1.5 * tol, 1.0 + 1.875 * tol], (),
+        "stands": (contact, judged[:2], [1.0, 1.0 + 0.375 * tol], (), ["result 0"],
+                   ["result 0"]),
+        "the half stands": (contact, judged, [1.0, 1.0 + 1.5 * tol, 1.0 + 1.875 * tol], (),
                             ["result 0", "result 1"], ["result 1"]),
-        "its finish fails": ([(contact, started), (half, started), (substepped, healthy(scene))],
+        "its finish fails": (contact, judged[:2] + [(substepped, healthy(scene))],
                              [1.0, 1.0, 1.0], ("result 0",), ["result 0", "result 2"],
                              ["result 0", "result 2"]),
+        "a climb": (half, judged, [1.0, 1.0 + 1.5 * tol, 1.0 + 1.875 * tol], (), ["result 1"],
+                    ["result 1"]),
     }
-    for case, (answers, values, failing, with_pool, without) in cases.items():
-        def solve_with(ahead, solve, finished, values=values, failing=failing):
+    for case, (last, answers, values, failing, with_pool, without) in cases.items():
+        def solve_with(ahead, solve, finished, last=last, values=values, failing=failing):
             def finish(result):
                 finished.append(result)
                 if result in failing:
                     raise SimulationError("non-finite gradient")
                 return f"finished {result}"
 
-            return solve_with_policy(scene, contact, solve, previous=lambda: (None, started),
+            return solve_with_policy(scene, contact, solve,
+                                     previous=lambda: (last, dict(started, step_error=0.5 * tol)),
                                      objective=lambda r: values[int(r.split()[1])],
                                      finish=finish, ahead=ahead)
 
@@ -470,4 +475,5 @@ def test_the_step_is_differentiated_while_the_half_step_solve_that_judges_it_run
         assert (beside.result, beside.config, beside.resolves, beside.health) == \
             (alone.result, alone.config, alone.resolves, alone.health), case
         assert (early, late) == (with_pool, without), case
-    assert "non-finite gradient" in beside.resolves[0] and beside.config == substepped
+        if case == "its finish fails":
+            assert "non-finite gradient" in beside.resolves[0] and beside.config == substepped

@@ -771,6 +771,9 @@ def test_a_scene_that_starts_in_contact_is_judged_on_its_objective_at_half_the_s
         assert "strain_8pct: the objective" not in events
         assert rec["step_error"] == pytest.approx(expected, rel=1e-5)
         assert rec["step_error"] <= STEP_ERROR_TOLERANCE
+        # and the next evaluation's driver hears it (`previous`: whether to take the step's
+        # reverse pass while its check runs)
+        assert evaluator._state["strain_8pct"].last_health["step_error"] == rec["step_error"]
     else:  # the estimate went over: the fixed-step J, solved here too, says by how much
         j = float(make_objective(scene, config)[1](x)[0])
         expected = 4 / 3 * abs(j - j_half) / abs(j)

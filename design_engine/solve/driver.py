@@ -33,8 +33,9 @@ without it; `Outcome.unused_ahead` counts the dropped solves that had run (the w
 While it runs, the step's own reverse pass (`finish`) is taken on this thread, before the
 check's verdict: where the step stands (most often) its gradient is ready when the check
 ends, and where it does not the early reverse pass is wasted and the solve that stands is
-finished as without the executor (on the 60-evaluation focusing run 102 s against 120 s,
-the same path: `benchmarks/results/bench_focusing_run_spec.json`).
+finished as without the executor. It is taken so where the previous evaluation's solve
+stood at the same step on its own check (`_likely_to_stand`): on the 60-evaluation focusing
+run 102 s against 119 s, the same path (`benchmarks/results/bench_focusing_run_spec.json`).
 
 What happened comes back as a typed record (`Outcome`, a tuple of `Step`), not as strings.
 """

@@ -11,10 +11,10 @@ through `decide` (what to do after a solve) and, for one solve at a time, `solve
 2. after a solve that did not fail, `policy.next_config` says whether the result stands or which
    configuration solves again (contact, half the step, Dopri8); a fixed step with contact whose
    voids reached the contact cutoff (at its start or under the pulse) and that passed the
-   other checks is first also judged on the caller's
-   objective at half its step (`objective`, `policy.needs_step_check`) and, when it moved too
-   much, at a quarter, the half- or quarter-step solve standing in its place where its own
-   error passes (`policy.after_half_step`, `policy.after_quarter_step`);
+   other checks is first also judged on the caller's objective at half its step (`objective`,
+   `policy.needs_step_check`) and, when it moved too much, at a quarter, the half- or
+   quarter-step solve standing in its place where its own error passes
+   (`policy.after_half_step`, `policy.after_quarter_step`);
 3. after a fixed-step solve with contact that failed, the same step with its contact forces
    substepped (`policy.after_failure`, once); after any other solve that failed
    (`SimulationError`), the fallback solves once
@@ -48,10 +48,9 @@ from typing import Generic, TypeVar
 from design_engine.physics.scenes import Scene
 from design_engine.solve.fixed_step import is_fixed_step
 from design_engine.solve.policy import (HALF, REFINE, REJECT, STEP_ERROR_TOLERANCE,
-                                        after_failure,
-                                        after_half_step, after_quarter_step, fallback_config,
-                                        needs_step_check, next_config, refined,
-                                        relative_step_error, start_config)
+                                        after_failure, after_half_step, after_quarter_step,
+                                        fallback_config, needs_step_check, next_config,
+                                        refined, relative_step_error, start_config)
 from design_engine.solve.simulate import SimulationError, SolverConfig, StepBudgetError
 
 R = TypeVar("R")

@@ -18,8 +18,8 @@ The default policy, read off the work-precision and speed-up charts (README, `me
   h x omega_c <= CONTACT_STEP_LIMIT for the contact forces' step h and the solve's work-energy
   drift stays within ENERGY_TOLERANCE (`next_config`), and its objective moves by at most
   STEP_ERROR_TOLERANCE when the same start is solved at half the step (the driver, for a
-  caller that gives its objective). A barrier past h with the drift within
-  the tolerance keeps the step and substeps the contact forces (multiple time stepping,
+  caller that gives its objective). A barrier past h with the drift within the tolerance
+  keeps the step and substeps the contact forces (multiple time stepping,
   `FixedStepVerlet.contact_substeps`, up to CONTACT_SUBSTEPS_MAX); a drift past the tolerance
   repeats the solve once at REFINE x the step when that is predicted to pass, else with
   adaptive Dopri8 at the reference tolerances with contact. A fixed step with contact that
@@ -82,8 +82,8 @@ CONTACT_ENTRY_SUBSTEPS = 4
 # a fixed-step solve with contact whose voids reached the cutoff, at its start (a static
 # pre-compression past it) or under the pulse, is also judged on the objective itself: the
 # driver solves the same start at half the step (`driver.solve_with_policy(objective=...)`),
-# and a J that moves by more than this (x 4/3,
-# Richardson: the error of the whole step) does not stand. The half-step solve is then judged
+# and a J that moves by more than this (x 4/3, Richardson: the error of the whole step) does
+# not stand. The half-step solve is then judged
 # at its own half when the quarter of the step is predicted to pass (`after_half_step`): it
 # stands when its own estimate passes; else the quarter-step solve stands when its error by
 # that pair (a quarter of it) passes and the two changes shrink as a second-order step's

@@ -426,10 +426,10 @@ class TaskEvaluator:
         value, grad, terms, aux = out.result
         why = list(st.reasons) + [s.reason for s in out.steps[1:]]
         if not out.fell_back:
-            last = {k: np.asarray(v) for k, v in aux.items()}
-            if "step_error" in out.health:  # the driver's `previous`: did the step stand on it
-                last["step_error"] = float(out.health["step_error"])
-            st = dataclasses.replace(st, last_config=out.config, last_health=last)
+            # the health of the solve that counted, with its half-step estimate where judged
+            # so (the driver's `previous`: whether the step stood on it)
+            st = dataclasses.replace(st, last_config=out.config, last_health={
+                k: np.asarray(v) for k, v in out.health.items()})
         record = self._record(out.config, why, name)
         if "step_error" in out.health:  # the half-step check judged the solve that counted
             record["step_error"] = float(out.health["step_error"])

@@ -339,22 +339,15 @@ def with_contact(config: SolverConfig) -> SolverConfig:
     return contact_config()
 
 
-def starts_in_contact(health: dict, scene: Scene) -> bool:
-    """Whether the solve of `health` started with a void past the contact cutoff (a static
-    pre-compression that loads the barrier before the pulse)."""
-    return past_cutoff(health.get("start_void_margin", np.inf), scene)
-
-
 def needs_step_check(config: SolverConfig, health: dict, scene: Scene) -> bool:
     """Whether an accepted fixed-step solve is also to be judged at half its step
     (STEP_ERROR_TOLERANCE): one with contact whose voids reached the contact cutoff, at its
-    start (a static pre-compression past it) or under the pulse. A solve with contact whose
-    voids stayed clear of the cutoff solved the model without contact terms, which the
-    work-energy balance bounds."""
+    start (a static pre-compression past it) or under the pulse (`void_margin`, the deepest
+    over every sample, the first included). A solve with contact whose voids stayed clear of
+    the cutoff solved the model without contact terms, which the work-energy balance bounds."""
     return (config.use_contact and is_fixed_step(config.solver)
             and config.solver.stability_limited
-            and (starts_in_contact(health, scene)
-                 or past_cutoff(health.get("void_margin", np.inf), scene)))
+            and past_cutoff(health.get("void_margin", np.inf), scene))
 
 
 def contact_step_ratio(solver, health: dict, scene: Scene) -> float:

@@ -506,6 +506,6 @@ def checked(value_aux, config: SolverConfig | None = None):
     return value_aux
 
 
-__all__ = ["SceneRun", "cached_program", "prestressed_state", "simulate_scene", "simulate_rig", "make_objective",
-           "static_start", "StaticStart", "checked", "to_trajectory", "scene_metrics",
-           "scene_objective", "compiled_simulator"]
+__all__ = ["SceneRun", "cached_program", "prestressed_state", "simulate_scene", "simulate_rig",
+           "make_objective", "static_start", "StaticStart", "checked", "to_trajectory",
+           "scene_metrics", "scene_objective", "compiled_simulator"]

@@ -292,3 +292,49 @@ def test_local_workers_start_with_the_worker_environment():
     flags = seen.pop("XLA_FLAGS")
     assert seen == {k: v for k, v in WORKER_ENV.items() if k != "XLA_FLAGS"}
     assert flags == f"{os.environ['XLA_FLAGS']} {WORKER_ENV['XLA_FLAGS']}"
+
+
+def _cores_of_every_thread() -> list[list[int]]:
+    """In a worker: the cores each of its threads may run on."""
+    return [sorted(os.sched_getaffinity(int(tid))) for tid in os.listdir("/proc/self/task")]
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="no CPU affinity here")
+def test_local_workers_run_on_a_core_each(cluster):
+    """Every thread of each local worker runs on one core, one the cores this process may use;
+    two workers on two different ones where this process may use two or more."""
+    _, client = cluster
+    allowed = sorted(os.sched_getaffinity(0))
+    seen = client.run(_cores_of_every_thread)
+    cores = []
+    for threads in seen.values():
+        assert len(threads) >= 2 and all(t == threads[0] for t in threads)
+        assert len(threads[0]) == 1 and threads[0][0] in allowed
+        cores.append(threads[0][0])
+    assert len(set(cores)) == min(2, len(allowed))
+
+
+PIN = """
+import json, os, sys, threading
+from design_engine.sweeps.cores import pin_to_one_core
+before = threading.Event()
+threading.Thread(target=before.wait, daemon=True).start()  # a thread that exists already
+core = pin_to_one_core(int(sys.argv[1]))
+after = threading.Event()
+threading.Thread(target=after.wait, daemon=True).start()  # one started afterwards
+print(json.dumps([core, [sorted(os.sched_getaffinity(int(t)))
+                         for t in os.listdir("/proc/self/task")]]))
+"""
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="no CPU affinity here")
+def test_a_pinned_process_runs_every_thread_on_one_core():
+    """`pin_to_one_core(k)`: the k-th core this process may use, modulo their count, for the
+    threads that exist and those started later."""
+    allowed = sorted(os.sched_getaffinity(0))
+    for index in (0, 1, 3):
+        out = subprocess.run([sys.executable, "-c", PIN, str(index)], capture_output=True,
+                             text=True, check=True)
+        core, threads = json.loads(out.stdout)
+        assert core == allowed[index % len(allowed)]
+        assert len(threads) >= 3 and all(t == [core] for t in threads)

@@ -6,12 +6,18 @@ one per core) with the scheduler, the workers and the dashboard on 127.0.0.1 onl
 started by `dask worker`, `dask-jobqueue` on SLURM/PBS, ...: they must reach the same files).
 Workers are spawned with one thread for XLA and BLAS each (a sweep's parallelism is its
 tasks), and share the persistent compilation cache, so a scene's program is compiled once per
-cache, not once per task.
+cache, not once per task. A local cluster's worker N runs on core N, modulo the cores this
+process may use (`OneCorePerWorker`, `cores.pin_to_one_core`: XLA otherwise forks its larger
+loops over every core and wakes the other core for each).
 """
 
 import contextlib
 import logging
 import os
+
+from distributed.diagnostics.plugin import WorkerPlugin
+
+from design_engine.sweeps.cores import pin_to_one_core
 
 log = logging.getLogger("metarig.distributed")
 
@@ -37,20 +43,41 @@ def worker_environment() -> dict[str, str]:
     return env
 
 
+def worker_xla_flags() -> str:
+    """A local worker's XLA_FLAGS: this process's (`design_engine` sets its code generators),
+    then WORKER_ENV's."""
+    return " ".join(filter(None, (os.environ.get("XLA_FLAGS", ""), WORKER_ENV["XLA_FLAGS"])))
+
+
+class OneCorePerWorker(WorkerPlugin):
+    """Runs a local cluster's worker (named by its number) on one core of its own
+    (`pin_to_one_core`); a worker with another name is left as it is."""
+
+    def setup(self, worker) -> None:
+        try:
+            index = int(worker.name)
+        except (TypeError, ValueError):
+            return
+        core = pin_to_one_core(index)
+        if core is not None:
+            log.debug("worker %s runs on core %d", worker.name, core)
+
+
 def local_cluster(n: int, dashboard_address: str | None = "127.0.0.1:0"):
     """A `LocalCluster` of `n` single-threaded worker processes on 127.0.0.1 that start with
     `worker_environment()`. Dask's nanny lets a variable of its own process win over its
     pre-spawn environment, and this process has XLA_FLAGS set (`design_engine` sets its code
     generators), so the workers' XLA_FLAGS (this process's, then one thread for XLA) go to the
-    nanny as the worker's own environment, set before the worker starts XLA."""
+    nanny as the worker's own environment, set before the worker starts XLA. Each worker runs
+    on one core (`OneCorePerWorker`), a killed one restarted by its nanny on the same."""
     import dask
     from distributed import LocalCluster
 
-    xla = " ".join(filter(None, (os.environ.get("XLA_FLAGS", ""), WORKER_ENV["XLA_FLAGS"])))
     with dask.config.set({"distributed.nanny.pre-spawn-environ": worker_environment()}):
         return LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
                             host="127.0.0.1", dashboard_address=dashboard_address,
-                            silence_logs=logging.WARNING, env={"XLA_FLAGS": xla})
+                            silence_logs=logging.WARNING, env={"XLA_FLAGS": worker_xla_flags()},
+                            plugins={OneCorePerWorker()})
 
 
 @contextlib.contextmanager

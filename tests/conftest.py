@@ -6,6 +6,10 @@ Every test process (the session, or each xdist worker) picks its own `ROS_DOMAIN
 tests start (they inherit the environment) never meet another test's nodes. The workers of one run
 (pytest-xdist) take consecutive ids of one block, so two of them never share a domain.
 
+Each xdist worker runs on a core of its own, with everything it starts (its tests compute on one
+thread, and XLA otherwise forks its larger loops over every core: README, "Tests and
+benchmarks").
+
 Compiled XLA programs are kept in `.pytest_cache/jax` (unless `METARIG_JAX_CACHE` is set), all of
 them (`METARIG_JAX_CACHE_MIN_S=0`), so the worker processes and the commands that tests start as
 subprocesses reuse each other's programs.

@@ -67,26 +67,11 @@ def main(argv=None) -> int:
         p.error(f"--samples must be at least 2, got {args.samples}")
 
     import jax
-    import jax.numpy as jnp
-    import numpy as np
 
-    import design_engine  # noqa: F401  (float64)
-    from design_engine.physics.scenes import build_scene
-    from design_engine.solve.fixed_step import step_grid
-    from design_engine.solve.policy import choose_config
-    from design_engine.solve.run import static_equilibrium
-    from design_engine.solve.simulate import make_simulator
+    from protection_forward import protection_forward
 
-    scene = build_scene("protection-24x18", strain=0.08)
-    config = choose_config(scene).config
-    times = np.asarray(scene.sample_times)[:args.samples]
-    steps = step_grid(times, config.solver.max_dt).n_steps
-    sim = make_simulator(scene.lattice, scene.supports, config, times, model=scene.model)
-    x = jnp.asarray(scene.design)
-    q_s = jnp.asarray(static_equilibrium(scene, config, x))
-    ts = jnp.asarray(times)
-    solve = jax.jit(lambda x, q: sim(x, scene.material, scene.loading, ts,
-                                     (q, jnp.zeros_like(q))).q).lower(x, q_s).compile()
+    solve, x, q_s, steps, config = protection_forward(args.samples)
+    solve = solve.lower(x, q_s).compile()
     jax.block_until_ready(solve(x, q_s))
     best = float("inf")
     for _ in range(3):

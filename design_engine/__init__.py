@@ -11,24 +11,28 @@ run checks its results for NaN and solver failure itself.
 import os
 
 os.environ.setdefault("EQX_ON_ERROR", "nan")
+
+
+def _default_xla_flag(flag: str) -> None:
+    """Append `flag` ("--name=value") to XLA_FLAGS unless they name its setting already (a
+    flag of the user's own wins). XLA reads XLA_FLAGS when its CPU backend starts (the first
+    computation), so this holds even when jax was imported before."""
+    if flag.split("=")[0].lstrip("-") not in os.environ.get("XLA_FLAGS", ""):
+        os.environ["XLA_FLAGS"] = " ".join(filter(None, (os.environ.get("XLA_FLAGS", ""), flag)))
+
+
 # XLA's classic CPU code generators instead of its newer fusion emitters: on the engine's own
 # programs they compile in 0.55-0.65x and run in 0.83-1.0x the time; float64 results agree to
 # 1e-12, the float32 fixed step to 7e-6 (benchmarks/bench_xla_emitters.py ->
-# benchmarks/results/bench_xla_emitters.json, 2 cores). XLA
-# reads XLA_FLAGS when its CPU backend starts (the first computation), so this holds even when
-# jax was imported before. A flag of the user's own for the emitters wins;
-# METARIG_XLA_CLASSIC_EMITTERS=0 leaves XLA's default.
-if (os.environ.get("METARIG_XLA_CLASSIC_EMITTERS", "1") != "0"
-        and "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", "")):
-    os.environ["XLA_FLAGS"] = " ".join(filter(None, (os.environ.get("XLA_FLAGS", ""),
-                                                     "--xla_cpu_use_fusion_emitters=false")))
+# benchmarks/results/bench_xla_emitters.json, 2 cores). METARIG_XLA_CLASSIC_EMITTERS=0 leaves
+# XLA's default.
+if os.environ.get("METARIG_XLA_CLASSIC_EMITTERS", "1") != "0":
+    _default_xla_flag("--xla_cpu_use_fusion_emitters=false")
 # XLA's copy insertion with region analysis (its GPU default), which leaves out copies of loop
 # buffers that its CPU default keeps: the policy's forward passes 2-7 % faster, reverse passes
 # 0-4 %, J and gradient the same to the bit (benchmarks/bench_programs.py ->
-# bench_programs_copy_region_analysis.json, _2.json). A flag of the user's own for it wins.
-if "xla_cpu_copy_insertion_use_region_analysis" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = " ".join(filter(None, (
-        os.environ.get("XLA_FLAGS", ""), "--xla_cpu_copy_insertion_use_region_analysis=true")))
+# bench_programs_copy_region_analysis.json, _2.json)
+_default_xla_flag("--xla_cpu_copy_insertion_use_region_analysis=true")
 
 import logging  # noqa: E402
 

@@ -28,7 +28,7 @@ def pareto_main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-evals", type=int, help="evaluations per run (default the task's)")
     h = p.add_mutually_exclusive_group()
     h.add_argument("--workers", type=int, help="worker processes of a local cluster "
-                   "(default one per core)")
+                   "(default one per core this process may use)")
     h.add_argument("--scheduler", type=text("--scheduler"),
                    help="address of an existing Dask scheduler (tcp://HOST:PORT)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

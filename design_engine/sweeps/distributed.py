@@ -85,7 +85,8 @@ def dask_client(workers: int | None = None, scheduler: str | None = None):
     """A `distributed.Client` for the sweep; the local cluster (if any) is closed on exit.
 
     Args:
-        workers: worker processes of a new LocalCluster (default `os.cpu_count()`).
+        workers: worker processes of a new LocalCluster (default: one per core this process
+            may use, so that each runs on a core of its own).
         scheduler: address of an existing scheduler (`tcp://HOST:PORT`); excludes `workers`.
     """
     from distributed import Client
@@ -103,7 +104,8 @@ def dask_client(workers: int | None = None, scheduler: str | None = None):
         finally:
             client.close()
         return
-    n = workers or os.cpu_count() or 1
+    n = workers or (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
+                    else os.cpu_count()) or 1
     if n < 1:
         raise ValueError(f"need at least one worker, got {n}")
     cluster = local_cluster(n)

@@ -338,3 +338,21 @@ def test_a_pinned_process_runs_every_thread_on_one_core():
         core, threads = json.loads(out.stdout)
         assert core == allowed[index % len(allowed)]
         assert len(threads) >= 3 and all(t == [core] for t in threads)
+
+
+ONE_CORE_CLUSTER = """
+import os
+os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+from design_engine.sweeps.distributed import dask_client
+with dask_client() as client:
+    print(len(client.scheduler_info()["workers"]))
+"""
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="no CPU affinity here")
+def test_the_default_local_cluster_has_a_worker_per_core_this_process_may_use():
+    """A process narrowed to one core (as `taskset -c K` does) gets one local worker, not one
+    per core of the machine."""
+    out = subprocess.run([sys.executable, "-c", ONE_CORE_CLUSTER], capture_output=True,
+                         text=True, check=True, timeout=120)
+    assert out.stdout.split()[-1] == "1"

@@ -104,8 +104,7 @@ def dask_client(workers: int | None = None, scheduler: str | None = None):
         finally:
             client.close()
         return
-    n = workers or (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
-                    else os.cpu_count()) or 1
+    n = workers or len(os.sched_getaffinity(0))  # as `TaskEvaluator` counts its threads
     if n < 1:
         raise ValueError(f"need at least one worker, got {n}")
     cluster = local_cluster(n)

@@ -32,7 +32,7 @@ ROOT = Path(__file__).resolve().parent.parent
 CHILD = """
 import json, sys, time
 pin, samples, repeats = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
-from design_engine.sweeps.cores import pin_to_one_core
+from metarig.cores import pin_to_one_core
 core = pin_to_one_core(pin) if pin >= 0 else None  # before XLA starts
 import jax
 sys.path.insert(0, "benchmarks")

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from metarig.cores import usable_cores
 from ros_nodes import topics
 from ros_nodes.logic.comparison_run import CompareError
 from ros_nodes.recorded_run import (Tracked, camera_calibration_path, measured_poses,
@@ -53,7 +54,6 @@ def compare_recording(source: str | Path, out: Path | None = None, poses: str = 
     Raises:
         CompareError: anything about the inputs that makes a comparison impossible.
     """
-    import os
 
     from ros_nodes.logic import comparison_run as run
     from ros_nodes.logic.recording import RecordingError, read_recording
@@ -69,7 +69,7 @@ def compare_recording(source: str | Path, out: Path | None = None, poses: str = 
     _calibration(out, rec)  # a damaged calibration.json is refused before any work
     scene, polygons = run.design_scene(doc, where=str(rec.path))
     tracked = measured_poses(rec, poses, polygons, camera_calibration_path(run_dir, calibration),
-                             workers or os.cpu_count() or 1, progress, dic, design=doc)
+                             workers or usable_cores(), progress, dic, design=doc)
     run.check_poses(scene, tracked.poses, where=str(rec.path), lost_hint=(
         " (small units in pixels? try --margin-px 1.5 --min-points 16)"
         if tracked.tracked_here else ""))

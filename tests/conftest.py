@@ -38,8 +38,8 @@ import design_engine  # noqa: E402, F401  (enables x64 and the compilation cache
 
 if "PYTEST_XDIST_WORKER" in os.environ:
     # each worker process computes on one thread: on a core of its own, before its first XLA
-    # computation (`design_engine.sweeps.cores`)
-    from design_engine.sweeps.cores import pin_to_one_core
+    # computation (`metarig.cores`)
+    from metarig.cores import pin_to_one_core
 
     pin_to_one_core(_worker)
 

@@ -316,7 +316,7 @@ def test_local_workers_run_on_a_core_each(cluster):
 
 PIN = """
 import json, os, sys, threading
-from design_engine.sweeps.cores import pin_to_one_core
+from metarig.cores import pin_to_one_core
 before = threading.Event()
 threading.Thread(target=before.wait, daemon=True).start()  # a thread that exists already
 core = pin_to_one_core(int(sys.argv[1]))

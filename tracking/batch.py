@@ -13,7 +13,6 @@ backward difference, quality = ZNCC, complete = False when interrupted.
 
 import logging
 import multiprocessing as mp
-import os
 import queue as queue_mod
 import signal
 import threading
@@ -26,6 +25,7 @@ import cv2
 import numba
 import numpy as np
 
+from metarig.cores import usable_cores
 from metarig.trajectory import Trajectory
 from tracking.calibration import Calibration
 from tracking.dic import (
@@ -287,6 +287,12 @@ def run_tracking(
                         progress, threads, bonds)[0]
 
 
+def threads_per_worker(workers: int) -> int:
+    """The numba threads each of `workers` tracker processes takes by default: the cores this
+    process may use, shared out (at least one)."""
+    return max(1, usable_cores() // workers)
+
+
 def track_source(
     spec: SourceSpec, polygons_m: np.ndarray, calib: Calibration, cfg: DICConfig,
     workers: int = 1, reference: str | None = None, block: int = 8, max_frames: int = 0,
@@ -326,7 +332,7 @@ def track_source(
              spec.kind, workers)
     workers = max(1, min(int(workers), n))
     splits = np.array_split(np.arange(n), workers)
-    threads = threads or max(1, (os.cpu_count() or 1) // workers)
+    threads = threads or threads_per_worker(workers)
     jobs = [TrackJob(spec, polygons_m[ids], calib, cfg, reference, block, max_frames, threads,
                      _job_bonds(bonds, ids, n)) for ids in splits]
     total = count_frames(spec)

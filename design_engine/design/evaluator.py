@@ -34,7 +34,6 @@ the cores, evaluates on one (`threads=1`).
 """
 
 import dataclasses
-import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -56,6 +55,7 @@ from design_engine.solve.run import (cached_program, checked, compile_key, confi
                                      static_start)
 from design_engine.solve.simulate import (SimulationError, Solution, SolverConfig, make_simulator,
                                           solve_health)
+from metarig.cores import usable_cores
 
 STEP_RECHECK = 0.8  # re-choose the fixed step above this fraction of the stability limit
 STEP_CHECK_ITERATIONS = 30  # warm-started power iterations per evaluation
@@ -155,7 +155,7 @@ class TaskEvaluator:
         may use; 1 solves one after the other)."""
         self.task = task
         self.forced = config
-        threads = len(os.sched_getaffinity(0)) if threads is None else threads
+        threads = usable_cores() if threads is None else threads
         if threads < 1:
             raise ValueError(f"threads must be at least 1, got {threads}")
         # scenes side by side, and each scene's half-step solve started ahead on a pool of its

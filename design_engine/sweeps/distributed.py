@@ -17,7 +17,7 @@ import os
 
 from distributed.diagnostics.plugin import WorkerPlugin
 
-from design_engine.sweeps.cores import pin_to_one_core
+from metarig.cores import pin_to_one_core, usable_cores
 
 log = logging.getLogger("metarig.distributed")
 
@@ -104,7 +104,7 @@ def dask_client(workers: int | None = None, scheduler: str | None = None):
         finally:
             client.close()
         return
-    n = workers or len(os.sched_getaffinity(0))  # as `TaskEvaluator` counts its threads
+    n = workers or usable_cores()
     if n < 1:
         raise ValueError(f"need at least one worker, got {n}")
     cluster = local_cluster(n)

@@ -1,5 +1,7 @@
-"""Which cores a process runs on: one of its own, for processes that each compute on one thread
-(a sweep's local workers, the test suite's worker processes).
+"""Which cores this process may use, and how it keeps to one of them: the count that sizes every
+pool of workers or threads (a design run's solves, a sweep's local workers, the tracker's
+processes and threads), and the pinning of processes that each compute on one thread (a sweep's
+local workers, the test suite's worker processes).
 
 XLA's CPU runtime sizes its thread pool by the cores a process may use when its first
 computation starts, and forks its larger loops over that pool, waking another core for each.
@@ -11,6 +13,13 @@ protection scene's fixed step took 76 us a step in two processes pinned to a cor
 
 import os
 from pathlib import Path
+
+
+def usable_cores() -> int:
+    """The cores this process may use: its CPU affinity, which `taskset`, a cgroup's cpuset or a
+    container narrows, where `os.cpu_count()` counts every core of the machine (a pool sized by
+    that doubles up processes on the cores they share)."""
+    return len(os.sched_getaffinity(0))
 
 
 def pin_to_one_core(index: int) -> int | None:

@@ -99,3 +99,30 @@ def test_the_fourth_order_step_runs_in_float32():
     q64, _ = _fixed_step(0.05, 4)
     # 1000 sub-steps of float32 rounding (measured 1.1e-5 on amplitudes up to 3.1)
     assert np.max(np.abs(q32 - q64)) < 1e-4
+
+
+def test_steps_on_one_grid_share_one_program_and_its_result():
+    """A fixed step's program depends on its step grid, not on the step asked for nor on the
+    policy's mark of a refined step (`run.compile_key`): two steps that give one grid get one
+    program, whose result is the one a program built for the other step gives; another grid,
+    another program."""
+    import dataclasses
+
+    from design_engine.physics.scenes import build_scene
+    from design_engine.solve.run import compiled_simulator
+    from design_engine.solve.simulate import SolverConfig, make_simulator
+
+    scene = build_scene("focusing-24x16", nx=4, ny=3, amplitude_m=2e-3)
+    ts = np.asarray(scene.sample_times)
+    interval = float(np.max(np.diff(ts)))
+    on_grid = [interval / 10.0, interval / 9.6]  # both 10 steps a sample interval
+    assert {step_grid(ts, dt).n_sub for dt in on_grid} == {10}
+    config = SolverConfig(solver=FixedStepVerlet(max_dt=on_grid[0]), use_contact=False)
+    other = dataclasses.replace(config, solver=FixedStepVerlet(max_dt=on_grid[1], refined=True))
+    program = compiled_simulator(scene, config)
+    assert compiled_simulator(scene, other) is program
+    assert compiled_simulator(scene, dataclasses.replace(
+        config, solver=FixedStepVerlet(max_dt=interval / 11.0))) is not program
+    args = (jnp.asarray(scene.design), scene.material, scene.loading, jnp.asarray(ts))
+    own = jax.jit(make_simulator(scene.lattice, scene.supports, other, ts, model=scene.model))
+    np.testing.assert_array_equal(np.asarray(program(*args).q), np.asarray(own(*args).q))

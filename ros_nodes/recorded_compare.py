@@ -54,7 +54,6 @@ def compare_recording(source: str | Path, out: Path | None = None, poses: str = 
     Raises:
         CompareError: anything about the inputs that makes a comparison impossible.
     """
-
     from ros_nodes.logic import comparison_run as run
     from ros_nodes.logic.recording import RecordingError, read_recording
 

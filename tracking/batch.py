@@ -306,8 +306,9 @@ def track_source(
         workers: processes; the units are split between them.
         reference: image file of the reference configuration (None: the first frame).
         block: frames per result block. max_frames: stop after this many (0: all).
-        progress: show a progress bar. threads: numba threads per worker (0: all cores shared
-            out between the workers), while a reader thread decodes and prepares frames.
+        progress: show a progress bar. threads: numba threads per worker (0: the cores this
+            process may use, shared out between the workers, `threads_per_worker`), while a
+            reader thread decodes and prepares frames.
         bonds: [nb, 4] the lattice's ligaments (`tracking.units.load_unit_bonds`) for the check
             of every pose against its neighbours (None: no such check); a worker checks the
             ligaments between its own units.

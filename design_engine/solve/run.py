@@ -49,7 +49,7 @@ def compile_key(scene: Scene, config: SolverConfig, tag: str, ts_ms) -> tuple:
     (`fixed_step.step_grid`), not on the step asked for, nor on the policy's mark of a refined
     one: two steps on one grid (a step re-chosen a few percent from one solved before, a
     refinement equal to a chosen step) share one program, where each traced and lowered one of
-    its own (1.2 s, and 0.4 s more from the compile cache, on the focus-vs-protect scene at 8 %)."""
+    its own (README, "Where a front run's evaluations spend their time")."""
     s = scene.supports
     times = b""
     if is_fixed_step(config.solver):

@@ -159,6 +159,11 @@ class AbstractFixedStep(eqx.Module):
         """The same scheme with another largest step (ms)."""
         return dataclasses.replace(self, max_dt=max_dt)
 
+    def on_grid(self, grid: StepGrid) -> "AbstractFixedStep":
+        """The scheme as the programs of a solve on `grid` see it (their cache key,
+        `run.compile_key`): its step the grid's, whatever step was asked for."""
+        return self.with_max_dt(grid.dt_nominal)
+
 
 def is_fixed_step(solver) -> bool:
     """True for a fixed-step scheme, False for an adaptive diffrax solver."""
@@ -213,6 +218,10 @@ class FixedStepVerlet(AbstractFixedStep):
 
     def force_evaluations(self, num_steps: int) -> int:
         return num_steps * (len(SUZUKI_4) if self.order == 4 else 1) + 1
+
+    def on_grid(self, grid: StepGrid) -> "FixedStepVerlet":
+        # the policy's mark of a refined step changes no program
+        return dataclasses.replace(self, max_dt=grid.dt_nominal, refined=False)
 
     def summary(self) -> dict:
         return {"max_dt_s": self.max_dt * 1e-3, **({"refined": True} if self.refined else {}),

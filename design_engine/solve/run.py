@@ -54,10 +54,8 @@ def compile_key(scene: Scene, config: SolverConfig, tag: str, ts_ms) -> tuple:
     times = b""
     if is_fixed_step(config.solver):
         times = np.asarray(ts_ms).tobytes()
-        solver = config.solver.with_max_dt(step_grid(ts_ms, config.solver.max_dt).dt_nominal)
-        if getattr(solver, "refined", False):
-            solver = dataclasses.replace(solver, refined=False)
-        config = dataclasses.replace(config, solver=solver)
+        config = dataclasses.replace(config, solver=config.solver.on_grid(
+            step_grid(ts_ms, config.solver.max_dt)))
     return (tag, scene.lattice.kind, scene.lattice.shape, scene.lattice.spacing,
             scene.lattice.ligament_length, s.constrained.tobytes(), s.channel.tobytes(),
             s.gain.tobytes(), repr(config), times, scene.model)

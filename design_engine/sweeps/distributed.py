@@ -7,7 +7,7 @@ started by `dask worker`, `dask-jobqueue` on SLURM/PBS, ...: they must reach the
 Workers are spawned with one thread for XLA and BLAS each (a sweep's parallelism is its
 tasks), and share the persistent compilation cache, so a scene's program is compiled once per
 cache, not once per task. A local cluster's worker N runs on core N, modulo the cores this
-process may use (`OneCorePerWorker`, `cores.pin_to_one_core`: XLA otherwise forks its larger
+process may use (`OneCorePerWorker`, `metarig.cores.pin_to_one_core`: XLA otherwise forks its larger
 loops over every core and wakes the other core for each).
 """
 

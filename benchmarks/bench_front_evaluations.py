@@ -6,7 +6,9 @@ why (used up the step budget `budget.max_solve_steps`; any other reason, named),
 time of an evaluation on a worker (median, 90th percentile, longest; the first evaluation of a
 run, which compiles, apart), with how often each scene counted a Dopri8 solve and why
 (`dopri8_why_per_scene`: after a work-energy drift, with the last drift the evaluation's event
-reports for the scene; after the half-step check; otherwise). JSON in
+reports for the scene; after the half-step check; otherwise), and the same times by how many of
+its scenes an evaluation solved with Dopri8 (`eval_s_by_dopri8_scenes`; `"0, no event"`: no
+Dopri8 and nothing re-solved, re-chosen or judged again). JSON in
 OUT/bench_front_evaluations.json, copied to benchmarks/results/.
 
     .venv/bin/python benchmarks/bench_front_evaluations.py [--task focus-vs-protect]
@@ -40,6 +42,7 @@ BUDGET = "step budget"  # in the event of an evaluation that used up budget.max_
 def summarise(out: Path) -> dict:
     """The evaluations of every run of the sweep in `out`: counts, failures by reason, times."""
     evals, first, failed, reasons, dopri8 = [], [], 0, Counter(), Counter()
+    classes: dict[str, list[float]] = {}  # how many scenes Dopri8 solved -> evaluation times
     why: dict[str, dict] = {}  # scene -> why its Dopri8 solves counted (the report's entry)
     budget = 0
     runs = sorted((out / "runs").glob("*/history.json"))
@@ -59,6 +62,12 @@ def summarise(out: Path) -> dict:
                 else:
                     reasons[event[:120]] += 1
             event = e.get("event") or ""
+            solvers = [rec["config"]["solver"] for rec in (e.get("solver") or {}).values()]
+            if e["eval"] != 1 and not e.get("failed"):
+                n_d8 = solvers.count("Dopri8")
+                classes.setdefault(str(n_d8), []).append(float(e["wall_s"]))
+                if n_d8 == 0 and not event:
+                    classes.setdefault("0, no event", []).append(float(e["wall_s"]))
             for scene, rec in (e.get("solver") or {}).items():
                 if rec["config"]["solver"] != "Dopri8":
                     continue
@@ -85,6 +94,9 @@ def summarise(out: Path) -> dict:
         "eval_s_after_the_first": {
             "median": float(np.median(t)), "p90": float(np.percentile(t, 90)),
             "max": float(t.max()), "mean": float(t.mean()), "count": int(t.size)},
+        "eval_s_by_dopri8_scenes": {
+            k: {"count": len(v), "median": float(np.median(v)), "max": float(max(v))}
+            for k, v in sorted(classes.items())},
         "first_eval_s": {"median": float(np.median(first)), "max": float(max(first))},
         "worker_s_total": float(t.sum() + sum(first)),
     }

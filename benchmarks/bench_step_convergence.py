@@ -185,7 +185,8 @@ def row_for(scene, halvings: int, dtype: str | None = None,
             j, health, wall = _solve(scene, config)
             steps.append({"dt_us": config.solver.max_dt * 1e3, "J": j,
                           "J_rel_err": abs(j - ref_j) / abs(ref_j),
-                          "energy_error": health.get("energy_error"), "wall_s": wall})
+                          "energy_error": health.get("energy_error"),
+                          "void_margin": health.get("void_margin"), "wall_s": wall})
         except SimulationError as exc:
             steps.append({"dt_us": config.solver.max_dt * 1e3, "error": str(exc)})
         config = (refined(config) if newmark_iterations is None else dataclasses.replace(

@@ -16,7 +16,7 @@ from design_engine.design.evaluator import TaskEvaluator
 from design_engine.design.optimize import ResumeError, run_design
 from design_engine.design.task import TaskError, load_task, preset_names, preset_path
 from design_engine.physics.lattice import periodic_design, quads
-from design_engine.solve.policy import GRADIENT_ATOL
+from design_engine.solve.policy import GRADIENT_ATOL, contact_config
 from design_engine.solve.run import config_summary
 from design_engine.solve.simulate import SimulationError
 
@@ -375,7 +375,10 @@ def test_a_failed_solve_is_recorded_and_the_run_goes_on(tmp_path, monkeypatch, m
     assert reversed_configs == [e["solver"]["pulse"]["config"] for e in ev if not e["failed"]]
     assert "injected" in ev[2]["event"] and ev[2]["objective"] is not None
     assert ev[2]["solver"]["pulse"]["config"]["solver"] == "Dopri8"
-    assert ev[2]["solver"]["pulse"]["config"]["atol"] == GRADIENT_ATOL  # policy.for_gradient
+    # policy.for_gradient: the pulse starts at rest, out of contact, so the reference's atol
+    # stays (GRADIENT_ATOL is for a start in contact), with a stored state per step
+    fallback = ev[2]["solver"]["pulse"]["config"]
+    assert fallback["atol"] == contact_config().atol > GRADIENT_ATOL and fallback["checkpoints"]
     assert ev[4]["failed"] and ev[4]["objective"] is None and "evaluation failed" in ev[4]["event"]
     assert all(math.isfinite(e["max_constraint"]) for e in ev)
     assert ev[5]["objective"] is not None  # the run went on
@@ -390,7 +393,6 @@ def test_an_adaptive_solve_over_the_step_budget_fails_the_design_at_once(make_ta
     stiffness), so the optimiser steps back. The budget is a task-file key, recorded with the
     configuration; within it the same solve stands."""
     from design_engine.design.evaluator import EvaluationFailed
-    from design_engine.solve.policy import contact_config
 
     path = tmp_path / "budget.toml"
     path.write_text(preset_path("splitting").read_text().replace(
@@ -471,8 +473,6 @@ def test_a_fixed_step_that_would_shrink_past_a_quarter_gives_way_to_dopri8(make_
     """When the highest frequency of the current design (set by a deep contact barrier) would
     need a step below a quarter of the first one, the scene moves to adaptive Dopri8 (a fixed
     step there needs many times the steps and the reverse pass's memory)."""
-    from design_engine.solve.policy import contact_config
-
     task = make_task(3)
     evaluator = TaskEvaluator(task)
     st = evaluator._state["pulse"]
@@ -686,7 +686,7 @@ def test_a_static_start_taken_as_an_input_is_differentiated_through_the_equilibr
     task = _protect_task(tmp_path)
     evaluator = TaskEvaluator(task, threads=1)
     name, scene = "strain_8pct", task.scenes["strain_8pct"]
-    config = evaluator._budgeted(evaluator._state[name].config, name)
+    config = evaluator._budgeted(evaluator._state[name].config, name, task.initial_design)
     assert config.use_contact and config.dtype == "float64"  # the jammed 8 % start
 
     def value(x):

@@ -251,19 +251,21 @@ class TaskEvaluator:
 
         return _ScenePrograms(*split_gradient(objective), objective, *split_gradient(from_start))
 
-    def _budgeted(self, config: SolverConfig, name: str) -> SolverConfig:
-        """`config` as this evaluator solves scene `name`: if adaptive, with the task's step
-        budget, as an optimiser's gradient needs it (`policy.for_gradient`; a fixed step's count
-        is set by its step and the window)."""
+    def _budgeted(self, config: SolverConfig, name: str, x) -> SolverConfig:
+        """`config` as this evaluator solves scene `name` at design `x`: if adaptive, with the
+        task's step budget, as an optimiser's gradient needs it (`policy.for_gradient`; a fixed
+        step's count is set by its step and the window)."""
         if self.forced is not None or is_fixed_step(config.solver):
             return config
         config = dataclasses.replace(config, max_steps=min(config.max_steps,
                                                            self.max_solve_steps))
-        return for_gradient(config, self.task.scenes[name])
+        scene = self.task.scenes[name].with_design(np.asarray(x, np.float64))
+        return for_gradient(config, scene)
 
-    def _record(self, config: SolverConfig, why: list[str], name: str) -> dict:
-        """What an evaluation records of the configuration that counted for scene `name`."""
-        return {"config": config_summary(self._budgeted(config, name)), "why": why}
+    def _record(self, config: SolverConfig, why: list[str], name: str, x) -> dict:
+        """What an evaluation records of the configuration that counted for scene `name` at
+        design `x`."""
+        return {"config": config_summary(self._budgeted(config, name, x)), "why": why}
 
     def _solve(self, name: str, config: SolverConfig, x: np.ndarray, equilibrium=None):
         """The forward pass of one value-and-gradient solve: `(value, pending gradient, term
@@ -279,7 +281,7 @@ class TaskEvaluator:
         design (`run.static_start`, one pair of programs per scene): the configuration's own
         programs then hold no Hessian of the equilibrium (README, "Static pre-compression")."""
         scene = self.task.scenes[name]
-        config = self._budgeted(config, name)
+        config = self._budgeted(config, name, x)
         programs = self._function(name, config)
         terms = [t for t in self.task.terms if t.scene == name]
         x = jnp.asarray(x)
@@ -390,7 +392,7 @@ class TaskEvaluator:
                 grad = self._gradient(pending)
             except SimulationError as exc:
                 raise EvaluationFailed(f"{name}: {exc}") from None
-            return _SceneOutcome(value, grad, terms, self._record(st.config, list(st.reasons), name),
+            return _SceneOutcome(value, grad, terms, self._record(st.config, list(st.reasons), name, x),
                                  [], st, 0)
 
         events: list[str] = []
@@ -430,7 +432,7 @@ class TaskEvaluator:
             # so (the driver's `previous`: whether the step stood on it)
             st = dataclasses.replace(st, last_config=out.config, last_health={
                 k: np.asarray(v) for k, v in out.health.items()})
-        record = self._record(out.config, why, name)
+        record = self._record(out.config, why, name, x)
         if "step_error" in out.health:  # the half-step check judged the solve that counted
             record["step_error"] = float(out.health["step_error"])
         return _SceneOutcome(value, grad, terms, record, events, st, out.unused_ahead)

@@ -414,18 +414,26 @@ def make_objective(scene: Scene, config: SolverConfig | None = None, weights=Non
     last: dict = {"config": None, "health": None}
 
     def program(cfg, gradient: bool):
-        """(forward, reverse) of the gradient's solve of `cfg`, or the jitted value."""
+        """(forward, reverse) of the gradient's solve of `cfg` (`for_gradient` already applied),
+        or the jitted value."""
         key = (repr(cfg), gradient)
         if key not in programs:
-            programs[key] = (_split_objective(scene, for_gradient(cfg, scene), weights)
+            programs[key] = (_split_objective(scene, cfg, weights)
                              if gradient else _objective(scene, cfg, weights, jit=True))
         return programs[key]
 
     def pick(gradient: bool, x):
+        # the gradient's adaptive solves as an optimiser's at this design (at the scene's own
+        # where `x` is traced)
+        at = scene if isinstance(x, jax.core.Tracer) else scene.with_design(
+            np.asarray(x, np.float64))
+
         def solve(cfg):
             start = static_equilibrium(scene, cfg, x)
-            out = (program(cfg, gradient)[0](x, None, start) if gradient
-                   else program(cfg, False)(x, None, start))
+            if gradient:
+                cfg = for_gradient(cfg, at)
+            out = program(cfg, gradient)[0](x, None, start) if gradient else program(
+                cfg, False)(x, None, start)
             checked(out[:2], cfg)
             return (cfg, out), out[1]
 

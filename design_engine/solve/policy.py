@@ -99,12 +99,13 @@ CONTACT_ENTRY_SUBSTEPS = 4
 STEP_ERROR_TOLERANCE = 1e-4
 STEP_CONVERGENCE_MIN = 2.0
 # an adaptive solve whose gradient an optimiser takes (`for_gradient`) of a scene whose pulse
-# starts in contact (a static pre-compression past the cutoff) controls its error to this
-# absolute tolerance on mm and mm/s instead of the reference's 1e-4 (with states of
-# millimetres, rtol 1e-8 is far below either, so atol sets the steps). At 1e-4 Dopri8's J on a
-# focus-vs-protect design at 8 % was within 3.4e-6 but its gradient pointed 0.99986 along the
-# tight solve's (cosine); at 1e-5 0.9999999 on the three designs charted, for about the same
-# time: there the steps are held by the solver's stability, not its tolerance
+# starts in contact (`start_in_contact`: a static pre-compression past the cutoff, a ramp)
+# controls its error to this absolute tolerance on mm and mm/s instead of the reference's 1e-4
+# (with states of millimetres, rtol 1e-8 is far below either, so atol sets the steps). At
+# 1e-4 Dopri8's J on a focus-vs-protect design at 8 % was within 3.4e-6 but its gradient
+# pointed 0.99986 along the tight solve's (cosine); at 1e-5 0.9999999 on the three designs
+# charted, for about the same time: there the steps are held by the solver's stability, not
+# its tolerance
 # (`benchmarks/bench_step_convergence.py --adaptive-rtols 1e-8 --adaptive-atols 1e-3 1e-4 1e-5`).
 # Where the pulse starts out of contact the reference's 1e-4 stays: on six designs that enter
 # contact under the pulse (five of the focus-vs-protect front's 1 % scene, the focusing run's

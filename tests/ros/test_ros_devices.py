@@ -72,10 +72,13 @@ def test_shaker_refuses_out_of_limits_then_plays_a_pulse_and_stops(ros_node, sta
 
         spin_until(ex, stopped, 15.0, "the node's stop diagnostics")
         t_stop = stamp(stopped()[0])
-        spin_until(ex, lambda: states and stamp(states[-1]) > t_stop + 0.3, 15.0,
-                   "0.3 s of joint states after stop")
-        late = [m.position[0] for m in states if stamp(m) > t_stop + 0.25]
-        assert len(late) >= 20 and np.abs(late).max() < 1e-4
+        # 20 joint states from 0.25 s after the stop on, however fast the node publishes them
+        # (a node short of CPU in a loaded suite once published one in the 0.05 s after that)
+        def late():
+            return [m.position[0] for m in states if stamp(m) > t_stop + 0.25]
+
+        spin_until(ex, lambda: len(late()) >= 20, 15.0, "20 joint states from 0.25 s after stop")
+        assert np.abs(late()).max() < 1e-4
     finally:
         print(stop_process(proc))
 

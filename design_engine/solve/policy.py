@@ -216,11 +216,7 @@ def choose_config(scene: Scene, *, full_model: bool = False,
     where, in_contact = "at rest", False
     if ld.strain > 0.0:
         where = "in the static pre-compression"
-        if state is None:
-            try:
-                state = equilibrium_state(scene)
-            except EquilibriumError as exc:
-                raise SimulationError(str(exc)) from None
+        state = _equilibrium(scene) if state is None else state
         margin = static_void_margin(scene, state)
         in_contact = past_cutoff(margin, scene)
     omega = max_angular_frequency(scene, state=state) if omega is None else omega
@@ -324,13 +320,17 @@ def start_in_contact(scene: Scene) -> bool:
     ld = scene.loading
     if ld.strain > 0.0 and not ld.is_static:
         return True
-    state = np.zeros((scene.n_units, 3))
-    if ld.strain > 0.0:
-        try:
-            state = equilibrium_state(scene)
-        except EquilibriumError as exc:
-            raise SimulationError(str(exc)) from None
+    state = _equilibrium(scene) if ld.strain > 0.0 else np.zeros((scene.n_units, 3))
     return past_cutoff(static_void_margin(scene, state), scene)
+
+
+def _equilibrium(scene: Scene) -> np.ndarray:
+    """The static pre-compression's equilibrium (`equilibrium_state`, kept once solved); its
+    failure as the `SimulationError` a solve reports."""
+    try:
+        return equilibrium_state(scene)
+    except EquilibriumError as exc:
+        raise SimulationError(str(exc)) from None
 
 
 def past_cutoff(void_margin: float, scene: Scene) -> bool:

@@ -423,15 +423,12 @@ def make_objective(scene: Scene, config: SolverConfig | None = None, weights=Non
         return programs[key]
 
     def pick(gradient: bool, x):
-        # the gradient's adaptive solves as an optimiser's at this design (at the scene's own
-        # where `x` is traced)
-        at = scene if isinstance(x, jax.core.Tracer) else scene.with_design(
-            np.asarray(x, np.float64))
-
         def solve(cfg):
             start = static_equilibrium(scene, cfg, x)
-            if gradient:
-                cfg = for_gradient(cfg, at)
+            if gradient:  # the adaptive solves as an optimiser's at this design (at the
+                # scene's own where `x` is traced)
+                cfg = for_gradient(cfg, scene if isinstance(x, jax.core.Tracer)
+                                   else scene.with_design(np.asarray(x, np.float64)))
             out = program(cfg, gradient)[0](x, None, start) if gradient else program(
                 cfg, False)(x, None, start)
             checked(out[:2], cfg)

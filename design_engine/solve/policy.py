@@ -48,9 +48,8 @@ from design_engine.physics.energy import (DEFAULT_MODEL, Model, bond_geometry, f
                                           make_energy, void_stiffness)
 from design_engine.physics.geometry import block_geometry
 from design_engine.physics.scenes import Scene
-from design_engine.physics.statics import EquilibriumError, equilibrium_state
 from design_engine.solve.fixed_step import FixedStepVerlet, is_fixed_step
-from design_engine.solve.simulate import SimulationError, SolverConfig
+from design_engine.solve.simulate import SolverConfig, static_state
 
 STABILITY_SAFETY = 0.6  # fraction of the Verlet stability limit 2 / omega_max
 # largest dt x omega_c (the contact barrier's own frequency at the deepest void) a fixed step
@@ -216,7 +215,7 @@ def choose_config(scene: Scene, *, full_model: bool = False,
     where, in_contact = "at rest", False
     if ld.strain > 0.0:
         where = "in the static pre-compression"
-        state = _equilibrium(scene) if state is None else state
+        state = static_state(scene) if state is None else state
         margin = static_void_margin(scene, state)
         in_contact = past_cutoff(margin, scene)
     omega = max_angular_frequency(scene, state=state) if omega is None else omega
@@ -314,23 +313,14 @@ def for_gradient(config: SolverConfig, scene: Scene) -> SolverConfig:
 
 def start_in_contact(scene: Scene) -> bool:
     """Whether the state the scene's pulse starts from, at its own design, has a void past the
-    contact cutoff: the equilibrium of a static pre-compression (`equilibrium_state`, kept once
+    contact cutoff: the equilibrium of a static pre-compression (`simulate.static_state`, kept once
     solved), or rest; a dynamic ramp's start counts as in contact (its stages close the voids
     before the pulse). Raises `SimulationError` when the equilibrium is not found."""
     ld = scene.loading
     if ld.strain > 0.0 and not ld.is_static:
         return True
-    state = _equilibrium(scene) if ld.strain > 0.0 else np.zeros((scene.n_units, 3))
+    state = static_state(scene) if ld.strain > 0.0 else np.zeros((scene.n_units, 3))
     return past_cutoff(static_void_margin(scene, state), scene)
-
-
-def _equilibrium(scene: Scene) -> np.ndarray:
-    """The static pre-compression's equilibrium (`equilibrium_state`, kept once solved); its
-    failure as the `SimulationError` a solve reports."""
-    try:
-        return equilibrium_state(scene)
-    except EquilibriumError as exc:
-        raise SimulationError(str(exc)) from None
 
 
 def past_cutoff(void_margin: float, scene: Scene) -> bool:

@@ -25,7 +25,8 @@ from design_engine.solve.objectives import (angular_momentum, block_kinetic_ener
                                             region_energy_ratio)
 from design_engine.solve.policy import Choice, choose_config, for_gradient
 from design_engine.solve.simulate import (SimulationError, Solution, SolverConfig, check_solution,
-                                          make_simulator, simulation_error, solve_health)
+                                          make_simulator, simulation_error, solve_health,
+                                          static_state)
 from metarig.trajectory import Trajectory
 
 _COMPILED: dict[tuple, object] = {}
@@ -267,15 +268,10 @@ def prestressed_state(scene: Scene, config=None) -> np.ndarray:
     at t_c + t_d holds the small residual vibration of the ramp; the reference state for scenes
     without stages.
     """
-    from design_engine.physics.statics import EquilibriumError, equilibrium_state
-
     if scene.loading.strain <= 0.0:
         return np.zeros((scene.n_units, 3))
     if scene.loading.is_static:
-        try:
-            return equilibrium_state(scene)
-        except EquilibriumError as exc:
-            raise SimulationError(str(exc)) from None
+        return static_state(scene)
     config = config or SolverConfig()
     ts = np.asarray([0.5 * scene.window_start, scene.window_start])
     sim = compiled_simulator(scene, config, ts)

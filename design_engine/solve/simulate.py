@@ -21,7 +21,8 @@ from design_engine.physics.geometry import block_geometry
 from design_engine.physics.lattice import Lattice
 from design_engine.physics.loading import Loading, Supports, make_prescribed
 from design_engine.physics.material import Material
-from design_engine.physics.statics import EquilibriumError, check_equilibrium, make_static_solver
+from design_engine.physics.statics import (EquilibriumError, check_equilibrium, equilibrium_state,
+                                           make_static_solver)
 from design_engine.solve.fixed_step import AbstractFixedStep, is_fixed_step, step_grid
 
 
@@ -316,6 +317,16 @@ def simulation_error(health: dict, config: SolverConfig) -> SimulationError | No
     if msg is None:
         return None
     return (StepBudgetError if int(health["result"]) == MAX_STEPS_REACHED else SimulationError)(msg)
+
+
+def static_state(scene) -> np.ndarray:
+    """[n_blocks, 3] the static pre-compression's equilibrium of `scene`
+    (`statics.equilibrium_state`, kept once solved); its failure as the `SimulationError` a
+    solve reports (the one translation the policy and `run` share)."""
+    try:
+        return equilibrium_state(scene)
+    except EquilibriumError as exc:
+        raise SimulationError(str(exc)) from None
 
 
 def failure_message(result: int, config: SolverConfig) -> str | None:

@@ -294,6 +294,17 @@ def test_local_workers_start_with_the_worker_environment():
     assert flags == f"{os.environ['XLA_FLAGS']} {WORKER_ENV['XLA_FLAGS']}"
 
 
+def test_a_local_cluster_of_no_workers_is_refused_not_replaced_by_the_default():
+    """`dask_client(workers=0)` (or fewer) raises before any process starts; only None means
+    one worker per usable core."""
+    from design_engine.sweeps.distributed import dask_client
+
+    for workers in (0, -1):
+        with pytest.raises(ValueError, match="need at least one worker"):
+            with dask_client(workers=workers):
+                pass
+
+
 def _cores_of_every_thread() -> list[list[int]]:
     """In a worker: the cores each of its threads may run on."""
     return [sorted(os.sched_getaffinity(int(tid))) for tid in os.listdir("/proc/self/task")]

@@ -104,7 +104,7 @@ def dask_client(workers: int | None = None, scheduler: str | None = None):
         finally:
             client.close()
         return
-    n = workers or usable_cores()
+    n = usable_cores() if workers is None else workers
     if n < 1:
         raise ValueError(f"need at least one worker, got {n}")
     cluster = local_cluster(n)

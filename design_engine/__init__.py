@@ -47,6 +47,10 @@ if _cache:
     jax.config.update("jax_compilation_cache_dir", _cache)
     jax.config.update("jax_persistent_cache_min_compile_time_secs",
                       float(os.environ.get("METARIG_JAX_CACHE_MIN_S", "0.5")))
+    # JAX points XLA's GPU autotune cache into the cache folder, and that path then enters every
+    # program's key: a cache copied or moved to another folder missed every program. The CPU
+    # has no use for that cache
+    jax.config.update("jax_persistent_cache_enable_xla_caches", "none")
 
 from design_engine.design.constraints import ConstraintLimits as ConstraintLimits  # noqa: E402
 from design_engine.design.constraints import make_constraints as make_constraints  # noqa: E402

@@ -262,10 +262,11 @@ class TaskEvaluator:
         scene = self.task.scenes[name].with_design(np.asarray(x, np.float64))
         return for_gradient(config, scene)
 
-    def _record(self, config: SolverConfig, why: list[str], name: str, x) -> dict:
-        """What an evaluation records of the configuration that counted for scene `name` at
-        design `x`."""
-        return {"config": config_summary(self._budgeted(config, name, x)), "why": why}
+    @staticmethod
+    def _record(config: SolverConfig, why: list[str]) -> dict:
+        """What an evaluation records of the configuration that counted, as `_solve` solved
+        with it (`_budgeted`)."""
+        return {"config": config_summary(config), "why": why}
 
     def _solve(self, name: str, config: SolverConfig, x: np.ndarray, equilibrium=None):
         """The forward pass of one value-and-gradient solve: `(value, pending gradient, term
@@ -392,7 +393,7 @@ class TaskEvaluator:
                 grad = self._gradient(pending)
             except SimulationError as exc:
                 raise EvaluationFailed(f"{name}: {exc}") from None
-            return _SceneOutcome(value, grad, terms, self._record(st.config, list(st.reasons), name, x),
+            return _SceneOutcome(value, grad, terms, self._record(pending[0], list(st.reasons)),
                                  [], st, 0)
 
         events: list[str] = []
@@ -408,9 +409,10 @@ class TaskEvaluator:
             value, pending, terms, aux = self._solve(name, config, x, start)
             return (value, pending, terms, aux), aux
 
-        def finish(result):  # the reverse pass, for the solve that counts only
+        def finish(result):  # the reverse pass, for the solve that counts only (and its
+            # configuration as solved, for the record)
             value, pending, terms, aux = result
-            return value, self._gradient(pending), terms, aux
+            return value, self._gradient(pending), terms, aux, pending[0]
 
         def log(step):
             events.append(f"{name}: {step.error}; {step.reason}" if step.error
@@ -425,14 +427,14 @@ class TaskEvaluator:
         except PolicyFailed as exc:
             raise EvaluationFailed(f"{name}: {exc}", checked[0]) from None
         st = checked[0]
-        value, grad, terms, aux = out.result
+        value, grad, terms, _, counted = out.result
         why = list(st.reasons) + [s.reason for s in out.steps[1:]]
         if not out.fell_back:
             # the health of the solve that counted, with its half-step estimate where judged
             # so (the driver's `previous`: whether the step stood on it)
             st = dataclasses.replace(st, last_config=out.config, last_health={
                 k: np.asarray(v) for k, v in out.health.items()})
-        record = self._record(out.config, why, name, x)
+        record = self._record(counted, why)
         if "step_error" in out.health:  # the half-step check judged the solve that counted
             record["step_error"] = float(out.health["step_error"])
         return _SceneOutcome(value, grad, terms, record, events, st, out.unused_ahead)

@@ -32,6 +32,9 @@ def test_shaker_refuses_out_of_limits_then_plays_a_pulse_and_stops(ros_node, sta
         node.create_subscription(DiagnosticArray, T.DIAGNOSTICS.name, diags.append, COMMAND)
         node.create_subscription(JointTrajectory, "/shaker/command", cmds.append, LATCHED)
         fire = node.create_client(FirePulse, "/shaker/fire")
+        # the stream flows before any motion: a reader matched late (under load) would miss
+        # the start of the pulse, the joint states being volatile
+        spin_until(ex, lambda: states, 20.0, "the shaker's joint states")
         # the YAML limit (8 mm) is in force: 10 mm is refused with the reason
         r = call(fire, FirePulse.Request(waveform="pulse", amplitude_m=0.010, frequency_hz=30.0), ex)
         assert not r.accepted and "amplitude" in r.message and "0.008" in r.message
@@ -162,6 +165,9 @@ def test_shaker_compensates_its_drive_and_the_measured_peak_error_drops(ros_node
         compensate = node.create_client(FirePulse, T.SHAKER_COMPENSATE.name)
         req = FirePulse.Request(waveform="pulse", amplitude_m=0.0075, frequency_hz=30.0,
                                 delay_s=0.05)
+        # the stream flows before the first pulse: a reader matched late (under load) missed
+        # the start of its window (46 of the 72 joint states asked for, once)
+        spin_until(ex, lambda: states, 20.0, "the shaker's joint states")
 
         def stamp(t):
             return t.sec + 1e-9 * t.nanosec

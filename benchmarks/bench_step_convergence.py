@@ -41,6 +41,12 @@ the forward rows).
 designs (key `adaptive`: relative error of J, gradient cosine, wall time, steps): what the
 fallback's tolerance buys; `--adaptive-solver Dopri5` or `Tsit5` times that solver instead.
 
+`--contact-band-deg D` solves the scene (fixed step and both Dopri8 references) with a study
+variant of the contact law whose curvature is ramped in over D degrees below the cutoff
+(`c2_contact_law`: twice continuously differentiable, where the spec's law is C1 with a
+curvature jump of k_c at the cutoff; rows keyed `/ c2 D deg`): whether the jump limits the
+fixed step's convergence, of J or, with `--gradients`, of the gradient.
+
 Writes OUT/bench_step_convergence.json after every row (rows it holds are skipped on a rerun).
 """
 
@@ -57,6 +63,29 @@ from run_folder import run_designs
 
 TIGHT = (1e-10, 1e-8)
 FALLBACK = (1e-8, 1e-4)
+
+
+def c2_contact_law(band_rad: float):
+    """A study variant of the spec's contact law (`energy.contact_law`, 5.3), C2 at the cutoff:
+    (alpha - theta_c)^2 becomes d^3 / (3 b) for d = theta_c - alpha < b and d^2 - b d + b^2 / 3
+    beyond (value, slope and curvature continuous at b), the rest of the law unchanged."""
+    import jax.numpy as jnp
+
+    def energy(alpha, k, theta_min, theta_cut):
+        b = jnp.asarray(band_rad, alpha.dtype)
+        span = theta_cut - theta_min
+        active = (alpha >= theta_min) & (alpha < theta_cut)
+        tau = jnp.where(active, (alpha - theta_cut) / span, -0.5)
+        d = jnp.where(active, theta_cut - alpha, 2.0 * b)
+        f = jnp.where(d < b, d**3 / (3.0 * b), d**2 - b * d + b**2 / 3.0)
+        return jnp.where(active, 0.5 * k * f / (1.0 - tau**2), 0.0)
+
+    def law(m, mat):
+        def barrier(alpha):
+            return energy(alpha, mat.k_contact, mat.contact_min, mat.contact_cutoff)
+        return {"contact": barrier(m.voids[:, 0]) + barrier(m.voids[:, 1])}
+
+    return law
 
 
 def _timed(scene, config, gradient: bool):
@@ -229,9 +258,14 @@ def main(argv=None) -> int:
     p.add_argument("--adaptive-solver", default="Dopri8", choices=("Dopri8", "Dopri5", "Tsit5"),
                    help="with --adaptive-rtols: the adaptive solver timed (rows keyed with it "
                    "unless Dopri8)")
+    p.add_argument("--contact-band-deg", type=float, help="solve with a C2 variant of the "
+                   "contact law, its curvature ramped in over this many degrees below the cutoff")
     p.add_argument("--out", type=Path, default=Path("runs/bench-step-convergence"))
     args = p.parse_args(argv)
+    if args.contact_band_deg is not None and not args.contact_band_deg > 0:
+        p.error(f"--contact-band-deg must be positive, got {args.contact_band_deg}")
     from design_engine.design.task import load_task
+    from design_engine.physics.energy import Model
 
     task, xs = (run_designs(p, args.task, args.run) if args.run is not None
                 else (load_task(args.task), []))
@@ -281,16 +315,23 @@ def main(argv=None) -> int:
                part != "adaptive" and args.contact_substeps is not None
                and f"substeps {args.contact_substeps}")
     suffix = "".join(f" / {v}" for v in options if v) if part != "adaptive" else ""
+    model = (None if args.contact_band_deg is None
+             else Model(contact=c2_contact_law(np.radians(args.contact_band_deg))))
     if part == "adaptive" and args.adaptive_atols != [FALLBACK[1]]:
         suffix = " / atols " + " ".join(f"{a:g}" for a in args.adaptive_atols)
     if part == "adaptive" and args.adaptive_solver != "Dopri8":
         suffix += f" / {args.adaptive_solver}"
+    if args.contact_band_deg is not None:
+        suffix += f" / c2 {args.contact_band_deg:g} deg"
     for label, x in designs:
         for name in args.scenes or list(task.scenes):
             key = f"{label} / {name}" + suffix
             if key in doc.setdefault(part, {}):
                 continue
-            row = make(task.scenes[name].with_design(x)) | {"machine": describe()}
+            scene = task.scenes[name].with_design(x)
+            if model is not None:
+                scene = dataclasses.replace(scene, model=model)
+            row = make(scene) | {"machine": describe()}
             doc[part][key] = row
             path.write_text(json.dumps(doc, indent=1))
             print(f"{key}: {line(row)}", flush=True)

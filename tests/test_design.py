@@ -780,3 +780,18 @@ def test_a_scene_that_starts_in_contact_is_judged_on_its_objective_at_half_the_s
         moved = re.search(r"strain_8pct: the objective moved by ([0-9.e+-]+) of itself", events)
         assert moved and (rec["config"]["solver"] == "Dopri8" or rec["config"]["refined"]), events
         assert float(moved.group(1)) == pytest.approx(expected, rel=0.01)
+
+
+def test_the_evaluator_phases_a_benchmark_times_exist():
+    """`benchmarks/bench_eval_phases.py` times the evaluator's phases by wrapping its methods by
+    name (`PHASES`): a renamed method fails here, not in a benchmark run hours later."""
+    import ast
+    from pathlib import Path
+
+    source = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_eval_phases.py"
+    phases = next(ast.literal_eval(node.value) for node in ast.parse(source.read_text()).body
+                  if isinstance(node, ast.Assign)
+                  and any(getattr(t, "id", None) == "PHASES" for t in node.targets))
+    assert phases, "bench_eval_phases.py names no phase"
+    missing = [name for name in phases if not callable(getattr(TaskEvaluator, name, None))]
+    assert not missing, f"TaskEvaluator has no {missing}: bench_eval_phases.py would fail"

@@ -23,7 +23,7 @@ def test_shaker_refuses_out_of_limits_then_plays_a_pulse_and_stops(ros_node, sta
     params = tmp_path / "shaker.yaml"
     # the test's client node may command motion (by default only the sequencer)
     params.write_text("shaker:\n  ros__parameters:\n    allowed_callers: [/test_client]\n"
-                      "    device:\n      max_amplitude_m: 0.008\n")
+                      "    device:\n      max_amplitude_m: 0.008\n      max_duration_s: 60.0\n")
     proc = start_node("metarig-shaker", "--params-file", str(params))
     node, ex = ros_node
     try:
@@ -53,15 +53,16 @@ def test_shaker_refuses_out_of_limits_then_plays_a_pulse_and_stops(ros_node, sta
         x = np.array([m.position[0] for m in states])
         assert x.max() == pytest.approx(0.0075, rel=0.05)  # measured peak follows the command
         assert abs(x[-1]) < 2e-4
-        # stop during a second waveform (a 7.5 s burst: a second request refused meanwhile): the
+        # stop during a second waveform (a 50 s burst: a second request refused meanwhile): the
         # actuator returns to rest. A motion request is not repeated (no resend: the node has
-        # answered before, and a repeat is not harmless)
+        # answered before, and a repeat is not harmless). The burst outlasts any stall of a
+        # loaded machine: a 7.5 s one had ended before the second request was taken, once
         r = call(fire, FirePulse.Request(waveform="burst", amplitude_m=0.002, frequency_hz=20.0,
-                                         cycles=150.0), ex, resend_s=45.0)
+                                         cycles=1000.0), ex, resend_s=45.0)
         assert r.accepted, r.message
         r2 = call(fire, FirePulse.Request(waveform="pulse", amplitude_m=0.002, frequency_hz=20.0),
                   ex, resend_s=45.0)
-        assert not r2.accepted and "already playing" in r2.message
+        assert not r2.accepted and "already playing" in r2.message, r2.message
         assert call(node.create_client(Trigger, "/shaker/stop"), Trigger.Request(), ex).success
 
         def stamp(m):

@@ -96,7 +96,7 @@ def test_stage_moves_holds_refuses_and_validates_parameters(ros_node, start_node
     from std_msgs.msg import String
 
     from ros_nodes import topics as T
-    from ros_nodes.nodes._common import LATCHED, qos_profile
+    from ros_nodes.nodes._common import qos_profile
 
     proc = start_node("metarig-stage", "-p", "allowed_callers:=[/test_client]")
     node, ex = ros_node
@@ -104,7 +104,10 @@ def test_stage_moves_holds_refuses_and_validates_parameters(ros_node, start_node
         states, modes = [], []
         node.create_subscription(JointState, T.STAGE_JOINTS.name, states.append,
                                  qos_profile(T.STAGE_JOINTS.qos, depth=5000))
-        node.create_subscription(String, "/stage/state", lambda m: modes.append(m.data), LATCHED)
+        # a reader queue of 10: with the latched topic's depth of 1, a client stalled for the
+        # 0.08 s of the move would find "holding" only
+        node.create_subscription(String, "/stage/state", lambda m: modes.append(m.data),
+                                 qos_profile(T.STAGE_STATE.qos, depth=10))
         setp = node.create_client(SetStrain, "/stage/set_strain")
         r = call(setp, SetStrain.Request(strain=0.15), ex)
         assert not r.accepted and "strain 0.15 outside" in r.message

@@ -17,7 +17,7 @@ from ros_nodes.nodes.sequencer_node import RigError, ask, until  # noqa: E402
 def test_an_unanswered_state_query_is_asked_again(ros_context):
     """A lifecycle node that has just started may drop its first answer (Fast DDS: "failed to
     send response (timeout)" when it has not yet matched the client's reader). Here the server
-    holds the first request for 8 s and answers later ones at once: `ask` has the answer of its
+    holds the first request for up to 60 s and answers later ones at once: `ask` has the answer of its
     second request within about `resend_s`, and refuses in one line when nothing answers."""
     import rclpy
 
@@ -28,7 +28,7 @@ def test_an_unanswered_state_query_is_asked_again(ros_context):
     def on_get_state(request, response):
         seen.append(time.monotonic())
         if len(seen) == 1:
-            release.wait(8.0)  # the dropped answer
+            release.wait(60.0)  # the dropped answer (held past any stall of a loaded machine)
         response.current_state.label = "active"
         return response
 
@@ -44,10 +44,12 @@ def test_an_unanswered_state_query_is_asked_again(ros_context):
     try:
         until(client.service_is_ready, "the service", 30.0)  # discovery is not what is timed
         t0 = time.monotonic()
-        answer = ask(client, GetState.Request(), timeout_s=20.0, resend_s=1.0)
+        answer = ask(client, GetState.Request(), timeout_s=40.0, resend_s=1.0)
         assert answer.current_state.label == "active"
-        # (a third request only where DDS itself dropped one, the case `ask` is for)
-        assert len(seen) >= 2 and time.monotonic() - t0 < 6.0
+        # (a third request only where DDS itself dropped one, the case `ask` is for); answered
+        # by a resend long before the held request could have been (a process stalled 8 s in a
+        # loaded suite is on record)
+        assert len(seen) >= 2 and time.monotonic() - t0 < 30.0
         with pytest.raises(RigError, match=r"^timed out waiting for service /nobody/get_state$"):
             ask(silent, GetState.Request(), timeout_s=0.5, resend_s=0.2)
     finally:

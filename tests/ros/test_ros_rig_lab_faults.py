@@ -19,15 +19,17 @@ from ros_nodes import topics as T  # noqa: E402
 
 def test_stages_that_stop_answering_end_the_run_with_one_line(tmp_path, emu, lab_env,
                                                              start_node):
-    proc, _, out = start_lab_rig(start_node, tmp_path, emu.port, lab_env, "--record-s", "30")
+    proc, _, out = start_lab_rig(start_node, tmp_path, emu.port, lab_env, "--record-s", "60")
     lines = read_until(proc, "phase pulse", 90.0)
     time.sleep(0.5)
     emu.silent = True  # the controller reads and never answers
     t0 = time.monotonic()
-    rest, _ = proc.communicate(timeout=60)
+    rest, _ = proc.communicate(timeout=120)
     text = "".join(lines) + rest
     assert proc.returncode == 1, text[-3000:]
-    assert time.monotonic() - t0 < 20  # not the 30 s capture: ended by the fault
+    # not the 60 s capture: ended by the fault (the margin takes a loaded machine's stalls of
+    # several seconds, one of 8 s on record)
+    assert time.monotonic() - t0 < 40
     assert "Traceback" not in text
     why = "stage fault: no reply from the stage controller on " + emu.port
     errors = [x for x in text.splitlines() if "metarig.rig:" in x and why in x]
@@ -87,14 +89,14 @@ def test_a_generator_fault_mid_run_stops_its_output_and_ends_the_run_in_one_line
     lab.write_text(lab_text(emu.port).replace("max_volts = 5.0", "max_volts = 5.0\n"
                                               "watchdog_s = 0.1"))
     proc = start_node([sys.executable, "-c", GENERATOR_FAULT_MID_RUN, "--hardware", "lab",
-                       "--lab", lab, "--out", out, *RUN, "--record-s", "30"],
+                       "--lab", lab, "--out", out, *RUN, "--record-s", "60"],
                       env={**lab_env, "FAULT": fault})
     lines = read_until(proc, "injected", 90.0)
     t0 = time.monotonic()
-    rest, _ = proc.communicate(timeout=60)
+    rest, _ = proc.communicate(timeout=120)
     text = "".join(lines) + rest
     assert proc.returncode == 1, text[-3000:]
-    assert time.monotonic() - t0 < 20 and "Traceback" not in text, text[-3000:]  # not 30 s
+    assert time.monotonic() - t0 < 40 and "Traceback" not in text, text[-3000:]  # not 60 s
     why = "shaker fault: Keysight Technologies 33522B serial MY52400001 " + why
     errors = [x for x in text.splitlines() if "metarig.rig:" in x and why in x]
     assert errors, text[-3000:]

@@ -158,7 +158,7 @@ def test_a_comparison_without_poses_is_refused_with_one_line(ros_node, start_nod
         for k in (1, 2):  # refused, and still answering
             res = call(client, Trigger.Request(), ex)
             assert not res.success and res.message == "no poses received on /dic/poses"
-            spin_until(ex, lambda k=k: len(_statuses(diags)) >= k, 10, "the error status")
+            spin_until(ex, lambda k=k: len(_statuses(diags)) >= k, 30, "the error status")
         assert proc.poll() is None
     finally:
         out = stop_process(proc)

@@ -69,7 +69,7 @@ class _Watch:
 
         return call(self.clients[name], Trigger.Request(), self.ex, timeout_s=20.0)
 
-    def until(self, predicate, what: str, timeout_s: float = 15.0) -> None:
+    def until(self, predicate, what: str, timeout_s: float = 30.0) -> None:
         spin_until(self.ex, predicate, timeout_s, what)
 
     def state(self) -> str:

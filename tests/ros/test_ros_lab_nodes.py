@@ -50,7 +50,7 @@ def test_shaker_plays_on_the_lab_function_generator_and_refuses_what_it_cannot(
         assert r.accepted, r.message
         # the emulated generator holds the pulse: 7.5 mm at 2 mm/V is 3.75 V peak, 7.5 Vpp
         assert float(drive.query("VOLT?")) == pytest.approx(7.5) and drive.query("OUTP?") == "1"
-        spin_until(ex, lambda: shaker._playing_until is None, 10.0, "the pulse to end")
+        spin_until(ex, lambda: shaker._playing_until is None, 30.0, "the pulse to end")
         # the lab file's limits, not the node's device.* ones (12 mm): 11 mm is refused
         r = _fire(client, ex, 0.011)
         assert not r.accepted and "outside the limits (0, 0.01] m" in r.message
@@ -64,7 +64,7 @@ def test_shaker_plays_on_the_lab_function_generator_and_refuses_what_it_cannot(
         # the node still serves: a good pulse after the refusal
         r = _fire(client, ex, 0.005)
         assert r.accepted, r.message
-        spin_until(ex, lambda: shaker._playing_until is None, 10.0, "the pulse to end")
+        spin_until(ex, lambda: shaker._playing_until is None, 30.0, "the pulse to end")
         # no drive compensation: the generator's readings are its command, not a measurement
         from metarig_msgs.srv import FirePulse
 
@@ -148,7 +148,7 @@ def test_stages_move_the_zaber_emulator_of_a_lab_file(ros_context, ros_node, tmp
             assert r.accepted, r.message
             # 0.01 x 0.2 m = 2 mm closing: each stage 1 mm, 1000 microsteps
             spin_until(ex, lambda: emu.position(1, 1) == 1000 and emu.position(2, 1) == 1000
-                       and stage._stages.status.mode.value == "holding", 10.0,
+                       and stage._stages.status.mode.value == "holding", 30.0,
                        "the stages to hold at 2 mm closing")
             assert "/1 1 move abs 1000" in emu.received and "/2 1 move abs 1000" in emu.received
         finally:

@@ -110,7 +110,7 @@ def test_only_the_sequencer_or_the_allow_list_may_command_motion(devices):
         # the allow-list names the script: both may command
         shaker.set_parameters([Parameter("allowed_callers",
                                          value=["/sequencer", "/elsewhere/script"])])
-        spin_until(intruder.ex, lambda: shaker._playing_until is None, 10.0, "the pulse to end")
+        spin_until(intruder.ex, lambda: shaker._playing_until is None, 30.0, "the pulse to end")
         r = intruder.fire()
         assert r.accepted, r.message
         # the script gone and the list back to the sequencer: the sequencer commands again

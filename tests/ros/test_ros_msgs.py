@@ -39,7 +39,7 @@ def test_unit_pose_array_round_trip_over_dds(ros_context):
     m.quality = np.ones(n, np.float32)
     m.lost = [i % 7 == 0 for i in range(n)]
     pub.publish(m)
-    spin_until(ex, lambda: got, 10.0, "the pose message")
+    spin_until(ex, lambda: got, 30.0, "the pose message")
     r = got[0]
     np.testing.assert_array_equal(np.asarray(r.ids), np.arange(n))
     np.testing.assert_allclose(np.asarray(r.x), m.x)

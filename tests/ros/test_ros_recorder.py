@@ -258,14 +258,14 @@ def test_a_topic_with_two_publishers_is_not_counted_lost_by_sequence(ros_context
         for _ in range(n):
             pub.publish(DiagnosticArray())
             count = len(received) + 1
-            spin_until(ex, lambda c=count: len(received) >= c, 10.0, "the message delivered")
+            spin_until(ex, lambda c=count: len(received) >= c, 30.0, "the message delivered")
 
     send(a, 5)
     send(b, 1)  # before the recording: a's count is at 5, b's at 1
     rec.start()
     for pub in (b, a, b, a):  # b 2, a 6, b 3, a 7
         send(pub, 1)
-    spin_until(ex, lambda: rec.message_counts().get(T.DIAGNOSTICS.name, 0) >= 4, 10.0,
+    spin_until(ex, lambda: rec.message_counts().get(T.DIAGNOSTICS.name, 0) >= 4, 30.0,
                "the four messages written")
     report = rec.stop()
     for n in (rec, other):

@@ -223,7 +223,7 @@ def _armed_burst(drive):
     return start
 
 
-def _await_fault(drive, timeout_s=5.0):
+def _await_fault(drive, timeout_s=30.0):
     deadline = time.monotonic() + timeout_s
     while not drive.fault and time.monotonic() < deadline:
         time.sleep(0.01)

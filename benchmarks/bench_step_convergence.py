@@ -67,23 +67,22 @@ FALLBACK = (1e-8, 1e-4)
 
 def c2_contact_law(band_rad: float):
     """A study variant of the spec's contact law (`energy.contact_law`, 5.3), C2 at the cutoff:
-    (alpha - theta_c)^2 becomes d^3 / (3 b) for d = theta_c - alpha < b and d^2 - b d + b^2 / 3
+    the spec's barrier (`energy.contact_energy`, with (alpha - theta_c)^2 in its numerator) times
+    f(d) / d^2, d = theta_c - alpha, where f(d) = d^3 / (3 b) for d < b and d^2 - b d + b^2 / 3
     beyond (value, slope and curvature continuous at b), the rest of the law unchanged."""
     import jax.numpy as jnp
 
-    def energy(alpha, k, theta_min, theta_cut):
+    from design_engine.physics.energy import contact_energy
+
+    def barrier(alpha, mat):
         b = jnp.asarray(band_rad, alpha.dtype)
-        span = theta_cut - theta_min
-        active = (alpha >= theta_min) & (alpha < theta_cut)
-        tau = jnp.where(active, (alpha - theta_cut) / span, -0.5)
-        d = jnp.where(active, theta_cut - alpha, 2.0 * b)
-        f = jnp.where(d < b, d**3 / (3.0 * b), d**2 - b * d + b**2 / 3.0)
-        return jnp.where(active, 0.5 * k * f / (1.0 - tau**2), 0.0)
+        d = mat.contact_cutoff - alpha
+        far = jnp.where(d < b, b, d)  # no division by a small d in the branch not taken
+        ramp = jnp.where(d < b, d / (3.0 * b), 1.0 - b / far + b**2 / (3.0 * far**2))
+        return contact_energy(alpha, mat.k_contact, mat.contact_min, mat.contact_cutoff) * ramp
 
     def law(m, mat):
-        def barrier(alpha):
-            return energy(alpha, mat.k_contact, mat.contact_min, mat.contact_cutoff)
-        return {"contact": barrier(m.voids[:, 0]) + barrier(m.voids[:, 1])}
+        return {"contact": barrier(m.voids[:, 0], mat) + barrier(m.voids[:, 1], mat)}
 
     return law
 

@@ -21,6 +21,9 @@ from design_engine.physics.geometry import block_geometry
 from design_engine.physics.lattice import Lattice
 from design_engine.physics.loading import Loading, Supports, make_prescribed
 from design_engine.physics.material import Material
+from design_engine.physics.native.build import available as native_available
+from design_engine.physics.native.force import (make_contact_energy_and_gradient,
+                                                make_energy_and_gradient)
 from design_engine.physics.statics import (EquilibriumError, check_equilibrium, equilibrium_state,
                                            make_static_solver)
 from design_engine.solve.fixed_step import AbstractFixedStep, is_fixed_step, step_grid
@@ -147,6 +150,7 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
              and getattr(config.solver, "splits_contact", False))
     energy_fn = make_energy(lattice, linearized=config.linearized,
                             use_contact=config.use_contact and not split, model=model)
+    energy_and_gradient = fixed_step_force(lattice, config, model, energy_fn, split)
     rhs = make_rhs(supports, energy_fn, VELOCITY_SCALE)
     full = make_full_state(supports)
     _, prescribed = make_prescribed(supports)
@@ -157,8 +161,8 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
     fixed_theta = np.flatnonzero(constrained % 3 == 2)  # where the prescribed ones sit in q_c
     # unit k's rotation is entry theta_order[k] of [free rotations, prescribed rotations]
     theta_order = np.argsort(np.concatenate([free[free_rotations], constrained[fixed_theta]]))
-    # the contact energy of the rotations in the order the fast force holds them
-    contact_fn = make_contact_energy(lattice, model, order=theta_order) if split else None
+    # the contact energy and its gradient of the rotations in the order the fast force holds them
+    contact_fn = fast_contact_force(lattice, config, model, theta_order) if split else None
     bb = np.asarray(lattice.bond_blocks)
     fixed = is_fixed_step(config.solver)
     if fixed:
@@ -186,8 +190,8 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
         def force(qf, t):
             # one pass gives the force on the free units, the energy and, from the reactions
             # of the prescribed units, the power their motion puts in (the ledger's inputs)
-            potential, grad = jax.value_and_grad(
-                lambda q: energy_fn(q, args.bonds, args.material))(full(qf, t, args.loading))
+            potential, grad = energy_and_gradient(full(qf, t, args.loading), args.bonds,
+                                                  args.material)
             grad = grad.reshape(-1)
             power = jnp.dot(grad[constrained], prescribed(t, args.loading)[1])
             return -grad[free], (potential, power)
@@ -197,8 +201,8 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
             # give the power their motion puts in
             qc, qc_dot = prescribed(t, args.loading)
 
-            potential, g = jax.value_and_grad(contact_fn)(
-                jnp.concatenate([theta_f, qc[fixed_theta]]), args.bonds, args.material)
+            potential, g = contact_fn(jnp.concatenate([theta_f, qc[fixed_theta]]), args.bonds,
+                                      args.material)
             g_f, g_c = g[:free_rotations.size], g[free_rotations.size:]
             return -g_f, (potential, jnp.dot(g_c, qc_dot[fixed_theta]))
 
@@ -273,6 +277,31 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
         )
 
     return simulate
+
+
+def _native(config: SolverConfig, model: Model) -> bool:
+    """Whether a fixed-step solve takes its forces from the native custom calls: where its solver
+    asks for them (`FixedStepVerlet.native_force`), the model is the default nonlinear one and
+    they can be built here (`physics.native`)."""
+    return (getattr(config.solver, "native_force", False) and model == DEFAULT_MODEL
+            and not config.linearized and native_available())
+
+
+def fixed_step_force(lattice: Lattice, config: SolverConfig, model: Model, energy_fn, split: bool):
+    """`fn(q [n_blocks, 3], bonds, material) -> (energy, dE/dq)` of a fixed-step solve: the native
+    custom call (`_native`), else JAX's gradient of `energy_fn`."""
+    if _native(config, model):
+        return make_energy_and_gradient(lattice, use_contact=config.use_contact and not split)
+    return jax.value_and_grad(energy_fn)
+
+
+def fast_contact_force(lattice: Lattice, config: SolverConfig, model: Model, order):
+    """`fn(theta, bonds, material) -> (contact energy, its gradient)` of a split step's fast
+    force, the rotations held in `order` (`energy.make_contact_energy`): the native custom call
+    (`_native`), else JAX's gradient."""
+    if _native(config, model):
+        return make_contact_energy_and_gradient(lattice, order=order)
+    return jax.value_and_grad(make_contact_energy(lattice, model, order=order))
 
 
 def solve_health(sol: Solution, xp=jnp) -> dict:

@@ -29,6 +29,10 @@ TARGETS = {
     "metarig_bond_force_f32": "MetarigBondForceF32",
     "metarig_bond_force_vjp_f64": "MetarigBondForceVjpF64",
     "metarig_bond_force_vjp_f32": "MetarigBondForceVjpF32",
+    "metarig_contact_force_f64": "MetarigContactForceF64",
+    "metarig_contact_force_f32": "MetarigContactForceF32",
+    "metarig_contact_force_vjp_f64": "MetarigContactForceVjpF64",
+    "metarig_contact_force_vjp_f32": "MetarigContactForceVjpF32",
 }
 
 _lock = threading.Lock()

@@ -1,7 +1,9 @@
-"""The native bond force as a JAX function: `make_energy_and_gradient(lattice)`.
+"""The native bond force as JAX functions: `make_energy_and_gradient(lattice)`, and the contact
+terms alone from the rotations, `make_contact_energy_and_gradient(lattice, order)`.
 
-The same energy as `energy.make_energy` with the default model (nonlinear ligament law and
-contact barrier), and its gradient, computed by the custom calls of `bond_force.cc`; reverse
+The same energies as `energy.make_energy` with the default model (nonlinear ligament law and
+contact barrier) and `energy.make_contact_energy`, and their gradients, computed by the custom
+calls of `bond_force.cc`; reverse
 differentiable to any order the fixed-step solves take (a custom VJP whose backward pass is the
 Hessian-vector product and its derivative with respect to the bond geometry and the material,
 also a custom call). Forward-mode differentiation is not defined: the statics, the calibration's
@@ -14,6 +16,20 @@ import numpy as np
 
 from design_engine.physics.lattice import Lattice
 from design_engine.physics.native.build import library
+
+def _suffix(dtype) -> str:
+    if dtype == jnp.float64:
+        return "f64"
+    if dtype == jnp.float32:
+        return "f32"
+    raise TypeError(f"the native bond force takes float32 or float64 states, not {dtype}")
+
+
+def _per_bond(material, fields, n: int, dtype):
+    """[n, len(fields)] of the material's fields (scalars or [n] arrays)."""
+    return jnp.stack([jnp.broadcast_to(jnp.asarray(getattr(material, f), dtype), (n,))
+                      for f in fields], axis=1)
+
 
 # the material's fields in the order of the kernel's two [n_bonds, 3] material arrays
 LIGAMENT_FIELDS = ("k_stretch", "k_shear", "k_bend")
@@ -32,20 +48,13 @@ def make_energy_and_gradient(lattice: Lattice, *, use_contact: bool = True):
     n = b1.size
     attrs = {"l0": np.float64(lattice.ligament_length), "contact": np.int32(bool(use_contact))}
 
-    def suffix(dtype):
-        if dtype == jnp.float64:
-            return "f64"
-        if dtype == jnp.float32:
-            return "f32"
-        raise TypeError(f"the native bond force takes float32 or float64 states, not {dtype}")
-
     def r0(dtype):
         return jnp.asarray(np.ascontiguousarray(lattice.bond_r0), dtype)
 
     @jax.custom_vjp
     def core(q, arms, vref, lig, con):
         call = jax.ffi.ffi_call(
-            f"metarig_bond_force_{suffix(q.dtype)}",
+            f"metarig_bond_force_{_suffix(q.dtype)}",
             (jax.ShapeDtypeStruct((), q.dtype), jax.ShapeDtypeStruct(q.shape, q.dtype)),
             vmap_method="sequential")
         return call(b1, b2, q, arms, vref, r0(q.dtype), lig, con, **attrs)
@@ -57,7 +66,7 @@ def make_energy_and_gradient(lattice: Lattice, *, use_contact: bool = True):
         q, arms, vref, lig, con = inputs
         ebar, gbar = cotangents
         call = jax.ffi.ffi_call(
-            f"metarig_bond_force_vjp_{suffix(q.dtype)}",
+            f"metarig_bond_force_vjp_{_suffix(q.dtype)}",
             tuple(jax.ShapeDtypeStruct(a.shape, q.dtype) for a in inputs),
             vmap_method="sequential")
         return call(b1, b2, q, arms, vref, r0(q.dtype), lig, con, jnp.asarray(ebar, q.dtype),
@@ -69,9 +78,50 @@ def make_energy_and_gradient(lattice: Lattice, *, use_contact: bool = True):
         dtype = q.dtype
         arms = jnp.concatenate([bonds.arm1, bonds.arm2], axis=1).astype(dtype)
         vref = bonds.void_ref.astype(dtype)
-        lig, con = (jnp.stack([jnp.broadcast_to(jnp.asarray(getattr(material, f), dtype), (n,))
-                               for f in fields], axis=1)
-                    for fields in (LIGAMENT_FIELDS, CONTACT_FIELDS))
-        return core(q, arms, vref, lig, con)
+        return core(q, arms, vref, _per_bond(material, LIGAMENT_FIELDS, n, dtype),
+                    _per_bond(material, CONTACT_FIELDS, n, dtype))
+
+    return energy_and_gradient
+
+
+def make_contact_energy_and_gradient(lattice: Lattice, order=None):
+    """Factory: `fn(theta [n_blocks], bonds, material) -> (contact energy mJ, dE/dtheta)`, the
+    contact terms alone from the units' rotations (rad), as `energy.make_contact_energy` with
+    the same `order` (where unit k's rotation sits in theta) and the default contact law."""
+    library()
+    b1, b2 = lattice.bond_blocks[:, 0], lattice.bond_blocks[:, 1]
+    if order is not None:
+        b1, b2 = np.asarray(order)[b1], np.asarray(order)[b2]
+    b1, b2 = np.ascontiguousarray(b1, np.int32), np.ascontiguousarray(b2, np.int32)
+    n = b1.size
+
+    @jax.custom_vjp
+    def core(theta, vref, con):
+        call = jax.ffi.ffi_call(
+            f"metarig_contact_force_{_suffix(theta.dtype)}",
+            (jax.ShapeDtypeStruct((), theta.dtype),
+             jax.ShapeDtypeStruct(theta.shape, theta.dtype)),
+            vmap_method="sequential")
+        return call(b1, b2, theta, vref, con)
+
+    def forward(*inputs):
+        return core(*inputs), inputs
+
+    def backward(inputs, cotangents):
+        theta = inputs[0]
+        ebar, gbar = cotangents
+        call = jax.ffi.ffi_call(
+            f"metarig_contact_force_vjp_{_suffix(theta.dtype)}",
+            tuple(jax.ShapeDtypeStruct(a.shape, theta.dtype) for a in inputs),
+            vmap_method="sequential")
+        return call(b1, b2, *inputs, jnp.asarray(ebar, theta.dtype),
+                    jnp.asarray(gbar, theta.dtype))
+
+    core.defvjp(forward, backward)
+
+    def energy_and_gradient(theta, bonds, material):
+        dtype = theta.dtype
+        return core(theta, bonds.void_ref.astype(dtype),
+                    _per_bond(material, CONTACT_FIELDS, n, dtype))
 
     return energy_and_gradient

@@ -235,7 +235,7 @@ ffi::Error Read(Buf<ffi::S32> b1, Buf<ffi::S32> b2, Buf<DT> q, Buf<DT> arms, Buf
   }
   *in = {b1.typed_data(), b2.typed_data(), q.typed_data(), arms.typed_data(),
          vref.typed_data(), r0.typed_data(), lig.typed_data(), con.typed_data(),
-         q.element_count() / 3, n};
+         static_cast<int64_t>(q.element_count() / 3), n};
   for (int64_t k = 0; k < n; ++k) {
     if (in->i1[k] < 0 || in->i2[k] < 0 || in->i1[k] >= in->nb || in->i2[k] >= in->nb)
       return ffi::Error::InvalidArgument("bond_force: a bond's unit index is out of range");

@@ -8,6 +8,7 @@ CPU (the code is built for the CPU it runs on, `-march=native`). Where there is 
 """
 
 import ctypes
+import fcntl
 import hashlib
 import logging
 import os
@@ -73,8 +74,6 @@ def _key(compiler_version: str) -> str:
 
 
 def _build() -> Path:
-    import jax
-
     cxx = _compiler()
     if shutil.which(cxx) is None:
         raise NativeUnavailable(f"no C++ compiler ({cxx}) on this machine")
@@ -87,6 +86,17 @@ def _build() -> Path:
     if out.exists():
         return out
     out.parent.mkdir(parents=True, exist_ok=True)
+    # one process builds while the others (test workers) wait for its library
+    with open(out.with_suffix(".lock"), "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if out.exists():
+            return out
+        return _compile(cxx, out)
+
+
+def _compile(cxx: str, out: Path) -> Path:
+    import jax
+
     # built beside its final name and moved there in one step, so that processes building at
     # once (test workers) never load a half-written library
     fd, tmp = tempfile.mkstemp(suffix=".so", dir=out.parent)

@@ -47,6 +47,7 @@ from design_engine.physics.dynamics import dof_masses
 from design_engine.physics.energy import (DEFAULT_MODEL, Model, bond_geometry, followed_voids,
                                           make_energy, void_stiffness)
 from design_engine.physics.geometry import block_geometry
+from design_engine.physics.native.build import available as native_available
 from design_engine.physics.scenes import Scene
 from design_engine.solve.fixed_step import FixedStepVerlet, is_fixed_step
 from design_engine.solve.simulate import SolverConfig, static_state
@@ -220,11 +221,14 @@ def choose_config(scene: Scene, *, full_model: bool = False,
         in_contact = past_cutoff(margin, scene)
     omega = max_angular_frequency(scene, state=state) if omega is None else omega
     dt = safety * 2.0 / omega
+    native = scene.model == DEFAULT_MODEL and native_available()
     reasons = (
         f"highest natural frequency {where} {omega / (2 * np.pi) * 1e3:.0f} Hz",
         f"fixed-step Verlet, dt = {dt * 1e3:.1f} us = {safety:g} x the stability limit (1 force "
         "evaluation per step; within 0.5 % of J and 1 % of the gradient on the focusing chart)",
         "float32: within 1e-5 of J and 3e-3 of the gradient on the focusing chart",
+        *(("forces by the native custom calls (physics.native): the same force to rounding, "
+           "3-5x faster per evaluation",) if native else ()),
         "contact terms left out while every void stays above the contact cutoff (checked after "
         "each solve; exact then, else re-solved with contact at the same step while the "
         f"barrier's own frequency stays below {CONTACT_STEP_LIMIT:g} / dt, else with Dopri8)",
@@ -237,8 +241,11 @@ def choose_config(scene: Scene, *, full_model: bool = False,
     # CPU against 16.1-16.4 s, and 19 MB of residuals against 2.2 GB
     # (benchmarks/bench_contact_step.py --profile): memory traffic, not arithmetic, was the cost.
     # Since then a step at a time, from its stored start state (`fixed_step.march`)
-    config = SolverConfig(solver=FixedStepVerlet(max_dt=dt, remat=True), use_contact=False,
-                          dtype="float32")
+    # native_force: the forces by the native custom calls where they can be built (the same
+    # force to rounding, a step's force 3-4x and its reverse 5x faster than XLA's,
+    # benchmarks/bench_force_pieces.py)
+    config = SolverConfig(solver=FixedStepVerlet(max_dt=dt, remat=True, native_force=native),
+                          use_contact=False, dtype="float32")
     if in_contact:
         config = with_contact(dataclasses.replace(config, dtype="float64"))
         reasons += (f"the static pre-compression already closes voids past the contact cutoff "

@@ -10,7 +10,9 @@ once per round, so that a change of load falls on all of them alike):
 - the force evaluation (energy and gradient) of the whole model without and with contact, the
   slow and fast forces of a split step (`FixedStepVerlet.contact_substeps`);
 - the reverse of those force evaluations (the product of the Hessian with a vector, as a fixed
-  step's reverse pass takes it: `jax.vjp` of the force).
+  step's reverse pass takes it: `jax.vjp` of the force);
+- the same force evaluations and reverses by the native custom calls (`physics.native`, in
+  float64 and float32, against XLA's float32 too), where they can be built here.
 Writes OUT/NAME.json (default bench_force_pieces.json; per piece: median and min us per
 iteration, machine, load). Run from another checkout's source to time its code with this
 script (`git worktree add DIR REF`, then `PYTHONPATH=DIR python benchmarks/...`: the file
@@ -92,6 +94,45 @@ def main(argv=None) -> int:
         "force reverse (Hessian product), with contact": (
             hessian_product(E.make_energy(lattice)), q0),
     }
+    from design_engine.physics.native.build import NativeUnavailable, library
+
+    try:
+        library()
+    except NativeUnavailable as exc:
+        print(f"native rows left out: {exc}")
+    else:
+        from design_engine.physics.native.force import (make_contact_energy_and_gradient,
+                                                        make_energy_and_gradient)
+
+        def native_force(fn, cast):
+            return lambda q: q + 1e-9 * fn(q, cast, mat)[1]
+
+        def native_reverse(fn, cast, d):
+            return lambda q: q + 1e-9 * jax.vjp(lambda z: fn(z, cast, mat)[1], q)[1](d)[0]
+
+        for dtype in ("float64", "float32"):
+            cast = jax.tree.map(lambda a, t=dtype: a.astype(t), bonds)
+            q_t, d_t = q0.astype(dtype), direction.astype(dtype)
+            both, slow = make_energy_and_gradient(lattice), make_energy_and_gradient(
+                lattice, use_contact=False)
+            fast = make_contact_energy_and_gradient(lattice)
+            pieces.update({
+                f"native force, with contact, {dtype}": (native_force(both, cast), q_t),
+                f"native force, no contact (slow force), {dtype}": (native_force(slow, cast), q_t),
+                f"native contact force from the rotations (fast force), {dtype}": (
+                    lambda th, f=fast, c=cast: th + 1e-9 * f(th, c, mat)[1], q_t[:, 2]),
+                f"native force reverse (Hessian product), with contact, {dtype}": (
+                    native_reverse(both, cast, d_t), q_t),
+            })
+            if dtype == "float32":
+                pieces.update({
+                    "force, with contact, float32": (
+                        lambda q, c=cast: q + 1e-9 * jax.grad(
+                            lambda z: E.make_energy(lattice)(z, c, mat))(q), q_t),
+                    "force reverse (Hessian product), with contact, float32": (
+                        lambda q, c=cast, d=d_t: q + 1e-9 * jax.vjp(jax.grad(
+                            lambda z: E.make_energy(lattice)(z, c, mat)), q)[1](d)[0], q_t),
+                })
 
     def program(body, init):
         run = jax.jit(lambda c: jax.lax.scan(lambda s, _: (body(s), None), c, None,

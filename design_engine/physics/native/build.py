@@ -152,3 +152,20 @@ def _register(lib: ctypes.CDLL) -> None:
     for target, symbol in TARGETS.items():
         jax.ffi.register_ffi_target(target, jax.ffi.pycapsule(getattr(lib, symbol)),
                                     platform="cpu")
+
+
+def main() -> int:
+    """`python -m design_engine.physics.native.build`: build now (as `make install` does) and
+    say where, or why not; never fails, since the engine then keeps the JAX force."""
+    try:
+        path = _build() if os.environ.get("METARIG_NATIVE", "1") != "0" else None
+    except NativeUnavailable as exc:
+        print(f"native bond force not built ({exc}): the engine uses the JAX force")
+        return 0
+    print(f"native bond force: {path}" if path else
+          "native bond force switched off (METARIG_NATIVE=0)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

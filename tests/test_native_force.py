@@ -174,27 +174,51 @@ def test_the_native_force_maps_over_a_batch_of_states(native):
         assert float(e[k]) == float(e_k) and bool(jnp.all(g[k] == g_k))
 
 
-def test_a_solve_in_contact_with_native_forces_gives_the_jax_solve_s_value_and_gradient(native):
+@pytest.mark.parametrize("method", ["verlet", "dopri8"])
+def test_a_solve_in_contact_with_native_forces_gives_the_jax_solve_s_value_and_gradient(native,
+                                                                                        method):
+    import diffrax
+
     from design_engine.physics.scenes import build_scene
     from design_engine.solve.fixed_step import FixedStepVerlet
     from design_engine.solve.run import make_objective
     from design_engine.solve.simulate import SolverConfig
 
     # 6x6 at 7 %: the static pre-compression closes voids past the cutoff, so the pulse runs in
-    # contact from the start, with the contact forces split off and substepped
+    # contact from the start; the fixed step with the contact forces split off and substepped,
+    # Dopri8 as the design loop's fallback solves it
     scene = build_scene("protection-24x18", nx=6, ny=6, strain=0.07, amplitude_m=2e-3)
     x = jnp.asarray(scene.design)
+    solver = (FixedStepVerlet(max_dt=0.02, remat=True, contact_substeps=4) if method == "verlet"
+              else diffrax.Dopri8())
     out = {}
     for flag in (False, True):
-        solver = FixedStepVerlet(max_dt=0.02, remat=True, contact_substeps=4, native_force=flag)
-        value_and_grad, _ = make_objective(scene, SolverConfig(solver=solver))
+        config = SolverConfig(solver=solver, native_force=flag, rtol=1e-10, atol=1e-8)
+        value_and_grad, _ = make_objective(scene, config)
         (j, aux), g = value_and_grad(x)
         assert int(aux["result"]) == 0 and float(aux["start_void_margin"]) < float(
             scene.material.contact_cutoff - scene.material.contact_min)
         out[flag] = (float(j), np.asarray(g))
     (j0, g0), (j1, g1) = out[False], out[True]
-    assert j0 > 0.0 and abs(j1 - j0) <= 1e-11 * j0
-    assert np.linalg.norm(g1 - g0) <= 1e-8 * np.linalg.norm(g0)
+    # the fixed steps see the same force to rounding; Dopri8's controller picks its steps from
+    # rounding-level differences, so the two agree within the solver's own error: at these
+    # tolerances its gradient is 3e-5 (JAX) and 6e-5 (native) from one at rtol 1e-11, where
+    # the two agree to 2e-6
+    j_tol, g_tol = (1e-10, 1e-7) if method == "verlet" else (1e-9, 2e-4)
+    assert j0 > 0.0 and abs(j1 - j0) <= j_tol * j0
+    assert np.linalg.norm(g1 - g0) <= g_tol * np.linalg.norm(g0)
+
+
+def test_forward_mode_solves_keep_the_jax_force():
+    import diffrax
+
+    from design_engine.physics.energy import DEFAULT_MODEL
+    from design_engine.solve.simulate import SolverConfig, _native
+
+    config = SolverConfig(solver=diffrax.Dopri8(), native_force=True)
+    assert not _native(dataclasses.replace(config, adjoint=diffrax.ForwardMode()), DEFAULT_MODEL)
+    assert not _native(dataclasses.replace(config, native_force=False), DEFAULT_MODEL)
+    assert not _native(dataclasses.replace(config, linearized=True), DEFAULT_MODEL)
 
 
 def test_a_machine_without_a_compiler_is_told_why_in_one_line(monkeypatch):
@@ -203,9 +227,11 @@ def test_a_machine_without_a_compiler_is_told_why_in_one_line(monkeypatch):
         build._build()
 
 
-def test_a_solver_that_asks_for_native_forces_says_so_in_its_summary():
+def test_a_configuration_that_asks_for_native_forces_says_so_in_its_summary():
     from design_engine.solve.fixed_step import FixedStepVerlet
+    from design_engine.solve.run import config_summary
+    from design_engine.solve.simulate import SolverConfig
 
-    solver = FixedStepVerlet(max_dt=0.02, native_force=True)
-    assert solver.summary()["native_force"] is True
-    assert "native_force" not in dataclasses.replace(solver, native_force=False).summary()
+    config = SolverConfig(solver=FixedStepVerlet(max_dt=0.02), native_force=True)
+    assert config_summary(config)["native_force"] is True
+    assert "native_force" not in config_summary(dataclasses.replace(config, native_force=False))

@@ -3,7 +3,6 @@ measured input (`fit_pulse`), in windows of growing length (continuation), weigh
 pose errors, with the model error that the tracking noise does not explain (`model_error`).
 """
 
-import dataclasses
 import math
 import time
 
@@ -47,9 +46,8 @@ def pulse_config(scene):
     choice = choose_config(scene)
     if choice.config.use_contact:
         return contact_forward_config()
-    # the JAX force: jacfwd takes forward-mode derivatives, which the native one has not
-    solver = dataclasses.replace(choice.config.solver, native_force=False)
-    return SolverConfig(solver=solver, use_contact=True, dtype="float64")
+    # the JAX force (native_force off): jacfwd takes forward-mode derivatives
+    return SolverConfig(solver=choice.config.solver, use_contact=True, dtype="float64")
 
 
 WINDOWS = (0.25, 0.5, 1.0)  # continuation: fractions of the record after the input's onset

@@ -7,7 +7,6 @@ velocities (mm/s) while time runs in ms.
 """
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -80,15 +79,19 @@ def make_full_state(supports: Supports):
     return full
 
 
-def make_rhs(supports: Supports, energy_fn, velocity_scale: float = VELOCITY_SCALE):
-    """Factory: `rhs(t, y, args)` for diffrax, y = [q_f, velocity_scale * q_f'] ([2 n_free])."""
+def make_rhs(supports: Supports, energy_and_gradient, velocity_scale: float = VELOCITY_SCALE):
+    """Factory: `rhs(t, y, args)` for diffrax, y = [q_f, velocity_scale * q_f'] ([2 n_free]);
+    `energy_and_gradient(q [n_blocks, 3], bonds, material) -> (energy, dE/dq)` (JAX's
+    `jax.value_and_grad` of an energy, or the native force)."""
     full = make_full_state(supports)
     n_free = int(supports.free.size)
+    free = np.asarray(supports.free)
 
     def rhs(t, y, args: DynamicsArgs):
         q_f, p_f = y[:n_free], y[n_free:]
         v_f = p_f / velocity_scale
-        grad = jax.grad(lambda qf: energy_fn(full(qf, t, args.loading), args.bonds, args.material))(q_f)
+        _, grad_all = energy_and_gradient(full(q_f, t, args.loading), args.bonds, args.material)
+        grad = grad_all.reshape(-1)[free]
         acc = args.inv_mass * (-grad - args.damping * v_f)
         return jnp.concatenate([v_f, velocity_scale * acc])
 

@@ -184,10 +184,6 @@ class FixedStepVerlet(AbstractFixedStep):
         order: 2, velocity Verlet; 4, each step a symmetric composition of five Verlet steps
             (`SUZUKI_4`: fourth order, five force evaluations a step; a study of whether a
             higher order pays in contact, not used by the policy).
-        native_force: evaluate the default model's force by the native custom call
-            (`physics.native`) where it can be built, else by JAX: the same force to rounding,
-            for reverse-mode derivatives only (a forward-mode derivative, `jax.jvp` or
-            `jax.jacfwd`, of such a solve raises).
     """
 
     max_dt: float = eqx.field(static=True, default=0.05)
@@ -195,7 +191,6 @@ class FixedStepVerlet(AbstractFixedStep):
     refined: bool = eqx.field(static=True, default=False)
     contact_substeps: int = eqx.field(static=True, default=1)
     order: int = eqx.field(static=True, default=2)
-    native_force: bool = eqx.field(static=True, default=False)
     stability_limited = True
 
     def __check_init__(self):
@@ -232,8 +227,7 @@ class FixedStepVerlet(AbstractFixedStep):
         return {"max_dt_s": self.max_dt * 1e-3, **({"refined": True} if self.refined else {}),
                 **({"order": self.order} if self.order != 2 else {}),
                 **({"remat": True} if self.remat else {}),
-                **({"contact_substeps": self.contact_substeps} if self.splits_contact else {}),
-                **({"native_force": True} if self.native_force else {})}
+                **({"contact_substeps": self.contact_substeps} if self.splits_contact else {})}
 
     def unstable_hint(self) -> str:
         return (" (the fixed step is above the stability limit 2/omega_max, or contact stiffened "

@@ -244,8 +244,8 @@ def choose_config(scene: Scene, *, full_model: bool = False,
     # native_force: the forces by the native custom calls where they can be built (the same
     # force to rounding, a step's force 3-4x and its reverse 5x faster than XLA's,
     # benchmarks/bench_force_pieces.py)
-    config = SolverConfig(solver=FixedStepVerlet(max_dt=dt, remat=True, native_force=native),
-                          use_contact=False, dtype="float32")
+    config = SolverConfig(solver=FixedStepVerlet(max_dt=dt, remat=True), use_contact=False,
+                          dtype="float32", native_force=native)
     if in_contact:
         config = with_contact(dataclasses.replace(config, dtype="float64"))
         reasons += (f"the static pre-compression already closes voids past the contact cutoff "
@@ -295,8 +295,10 @@ def contact_frequency(min_void_margin: float, material, min_inertia: float,
 
 
 def contact_config() -> SolverConfig:
-    """Configuration for scenes in contact: Dopri8 at the reference tolerances, with contact."""
-    return SolverConfig(solver=diffrax.Dopri8())
+    """Configuration for scenes in contact: Dopri8 at the reference tolerances, with contact,
+    its right-hand side by the native force where it can be built (`SolverConfig.native_force`;
+    the judge of the charts, `SolverConfig()`'s Dopri5 and the re-checks' Dopri8, keep JAX's)."""
+    return SolverConfig(solver=diffrax.Dopri8(), native_force=native_available())
 
 
 def for_gradient(config: SolverConfig, scene: Scene) -> SolverConfig:
@@ -355,7 +357,8 @@ def with_contact(config: SolverConfig) -> SolverConfig:
     far past the tolerance (8x6 at 44 deg under 4 and 6 mm pulses: 3.1e-3 and 2.2e-3, J off by
     37 % and 53 %), so the work-energy check rejects them in either precision."""
     if is_fixed_step(config.solver) and config.solver.stability_limited:
-        config = SolverConfig(solver=config.solver, use_contact=True, dtype=config.dtype)
+        config = SolverConfig(solver=config.solver, use_contact=True, dtype=config.dtype,
+                              native_force=config.native_force)
         if hasattr(config.solver, "contact_substeps"):
             config = with_substeps(config, max(config.solver.contact_substeps,
                                                CONTACT_ENTRY_SUBSTEPS))

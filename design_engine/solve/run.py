@@ -305,7 +305,8 @@ def simulate_scene(scene: Scene, config: SolverConfig | None = None) -> SceneRun
 def config_summary(config: SolverConfig) -> dict:
     """JSON-ready description of a solver configuration."""
     out = {"solver": type(config.solver).__name__, "linearized": config.linearized,
-           "use_contact": config.use_contact, "dtype": config.dtype}
+           "use_contact": config.use_contact, "dtype": config.dtype,
+           **({"native_force": True} if config.native_force else {})}
     if is_fixed_step(config.solver):
         out.update(config.solver.summary())
     else:

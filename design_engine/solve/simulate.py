@@ -48,6 +48,12 @@ class SolverConfig(eqx.Module):
         stretch_scale: factor on the ligament stretch stiffness (model variant): the stiff
             stretch mode sets the explicit step limit while a pulse barely excites it, so a
             softer stretch allows larger steps at an error that the work-precision chart shows.
+        native_force: take the default model's forces from the native custom calls
+            (`physics.native`) where they can be built, else from JAX: the same forces to
+            rounding, for the fixed step (its force and a split step's contact force) and an
+            adaptive solver's right-hand side. Reverse-mode derivatives only: a solve with
+            `diffrax.ForwardMode` keeps the JAX force, and `jax.jvp` / `jax.jacfwd` of any
+            other such solve raises.
     """
 
     solver: diffrax.AbstractSolver | AbstractFixedStep = diffrax.Dopri5()
@@ -61,6 +67,7 @@ class SolverConfig(eqx.Module):
     progress: bool = eqx.field(static=True, default=False)
     dtype: str = eqx.field(static=True, default="float64")
     stretch_scale: float = eqx.field(static=True, default=1.0)
+    native_force: bool = eqx.field(static=True, default=False)
 
 
 class Solution(eqx.Module):
@@ -150,8 +157,8 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
              and getattr(config.solver, "splits_contact", False))
     energy_fn = make_energy(lattice, linearized=config.linearized,
                             use_contact=config.use_contact and not split, model=model)
-    energy_and_gradient = fixed_step_force(lattice, config, model, energy_fn, split)
-    rhs = make_rhs(supports, energy_fn, VELOCITY_SCALE)
+    energy_and_gradient = model_force(lattice, config, model, energy_fn, split)
+    rhs = make_rhs(supports, energy_and_gradient, VELOCITY_SCALE)
     full = make_full_state(supports)
     _, prescribed = make_prescribed(supports)
     free = np.asarray(supports.free)
@@ -280,16 +287,17 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
 
 
 def _native(config: SolverConfig, model: Model) -> bool:
-    """Whether a fixed-step solve takes its forces from the native custom calls: where its solver
-    asks for them (`FixedStepVerlet.native_force`), the model is the default nonlinear one and
-    they can be built here (`physics.native`)."""
-    return (getattr(config.solver, "native_force", False) and model == DEFAULT_MODEL
-            and not config.linearized and native_available())
+    """Whether a solve takes its forces from the native custom calls: where its configuration
+    asks for them (`SolverConfig.native_force`), its derivatives are reverse-mode (not
+    `diffrax.ForwardMode`), the model is the default nonlinear one and they can be built here
+    (`physics.native`)."""
+    return (config.native_force and not isinstance(config.adjoint, diffrax.ForwardMode)
+            and model == DEFAULT_MODEL and not config.linearized and native_available())
 
 
-def fixed_step_force(lattice: Lattice, config: SolverConfig, model: Model, energy_fn, split: bool):
-    """`fn(q [n_blocks, 3], bonds, material) -> (energy, dE/dq)` of a fixed-step solve: the native
-    custom call (`_native`), else JAX's gradient of `energy_fn`."""
+def model_force(lattice: Lattice, config: SolverConfig, model: Model, energy_fn, split: bool):
+    """`fn(q [n_blocks, 3], bonds, material) -> (energy, dE/dq)` of a solve: the native custom
+    call (`_native`), else JAX's gradient of `energy_fn`."""
     if _native(config, model):
         return make_energy_and_gradient(lattice, use_contact=config.use_contact and not split)
     return jax.value_and_grad(energy_fn)

@@ -428,11 +428,13 @@ def test_the_fixed_step_follows_the_design(make_task):
     # as if the optimiser had made the units lighter: the step now sits at 0.95 x the limit
     evaluator._state["pulse"] = dataclasses.replace(st, config=SolverConfig(
         solver=FixedStepVerlet(max_dt=0.95 * 2.0 / st.omega), use_contact=False,
-        dtype="float32"))
+        dtype="float32", native_force=True))
     out = evaluator.evaluate(task.initial_design)
     assert any("re-chosen" in e for e in out.events)
     st = evaluator._state["pulse"]  # each evaluation leaves a new state
     assert st.config.solver.max_dt == pytest.approx(0.6 * 2.0 / st.omega, rel=1e-3)
+    # only the step changes: the rest of the configuration (here the native force) stays
+    assert st.config.native_force and st.config.dtype == "float32"
     again = evaluator.evaluate(task.initial_design + 0.01)  # within the limit: no new step
     st = evaluator._state["pulse"]
     assert not again.events

@@ -373,8 +373,7 @@ class TaskEvaluator:
         else:
             last = None  # its step is the old one
         return dataclasses.replace(
-            st, config=SolverConfig(solver=solver.with_max_dt(new_dt),
-                                    use_contact=st.config.use_contact, dtype=st.config.dtype),
+            st, config=dataclasses.replace(st.config, solver=solver.with_max_dt(new_dt)),
             last_config=last,
             reasons=st.reasons[:1] + (step_reason,) + st.reasons[2:]), (
             f"{name}: highest natural frequency rose to {hz:.0f} Hz; fixed step "

@@ -12,8 +12,9 @@ carries (`Scene.model`) to the simulator, the statics, the modal analysis, the c
 the solver policy (whose contact frequency is the law's own second derivative:
 `void_stiffness`).
 
-Energies in mJ, angles rad, lengths mm. Forces are never written by hand: the dynamics take
-`jax.grad` of `make_energy(...)`.
+Energies in mJ, angles rad, lengths mm. This module writes no force by hand: the dynamics take
+`jax.grad` of `make_energy(...)`. The one hand-written force is the default model's in
+`physics.native` (C++ custom calls, for speed), tested against the gradient of this energy.
 """
 
 import functools

@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from design_engine._types import Array, Float
-from design_engine.physics.energy import BondGeometry, bond_geometry
+from design_engine.physics.energy import BondGeometry, Force, bond_geometry
 from design_engine.physics.geometry import BlockGeometry
 from design_engine.physics.lattice import Lattice
 from design_engine.physics.loading import Loading, Supports, make_prescribed
@@ -79,18 +79,19 @@ def make_full_state(supports: Supports):
     return full
 
 
-def make_rhs(supports: Supports, energy_and_gradient, velocity_scale: float = VELOCITY_SCALE):
-    """Factory: `rhs(t, y, args)` for diffrax, y = [q_f, velocity_scale * q_f'] ([2 n_free]);
-    `energy_and_gradient(q [n_blocks, 3], bonds, material) -> (energy, dE/dq)` (JAX's
-    `jax.value_and_grad` of an energy, or the native force)."""
+def make_rhs(supports: Supports, force: Force, velocity_scale: float = VELOCITY_SCALE):
+    """Factory: `rhs(t, y, (args, packed))` for diffrax, y = [q_f, velocity_scale * q_f']
+    ([2 n_free]); `force` an `energy.Force` (JAX's gradient of an energy, or the native force),
+    `packed` its `force.pack(args.bonds, args.material, dtype)`, prepared once per solve."""
     full = make_full_state(supports)
     n_free = int(supports.free.size)
     free = np.asarray(supports.free)
 
-    def rhs(t, y, args: DynamicsArgs):
+    def rhs(t, y, args_packed):
+        args, packed = args_packed
         q_f, p_f = y[:n_free], y[n_free:]
         v_f = p_f / velocity_scale
-        _, grad_all = energy_and_gradient(full(q_f, t, args.loading), args.bonds, args.material)
+        _, grad_all = force.evaluate(full(q_f, t, args.loading), packed)
         grad = grad_all.reshape(-1)[free]
         acc = args.inv_mass * (-grad - args.damping * v_f)
         return jnp.concatenate([v_f, velocity_scale * acc])

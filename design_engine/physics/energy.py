@@ -20,6 +20,7 @@ Energies in mJ, angles rad, lengths mm. This module writes no force by hand: the
 import functools
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -313,6 +314,26 @@ def make_energy(lattice: Lattice, *, linearized: bool = False, use_contact: bool
         return jnp.sum(per_bond)
 
     return energy
+
+
+class Force(NamedTuple):
+    """A force in two parts, so that what it reads of the design and the material is prepared
+    once per solve, outside the time loop (and its reverse summed once, after it):
+    `pack(bonds, material, dtype) -> packed` and `evaluate(q, packed) -> (energy, dE/dq)`.
+    Called as `force(q, bonds, material)` it does both."""
+
+    pack: Callable
+    evaluate: Callable
+
+    def __call__(self, q, bonds, material):
+        return self.evaluate(q, self.pack(bonds, material, q.dtype))
+
+
+def jax_force(energy_fn) -> Force:
+    """The `Force` of `energy_fn(q, bonds, material)` by JAX's gradient (nothing to pack)."""
+    grad = jax.value_and_grad(energy_fn)
+    return Force(pack=lambda bonds, material, dtype: (bonds, material),
+                 evaluate=lambda q, packed: grad(q, *packed))
 
 
 def make_contact_energy(lattice: Lattice, model: Model = DEFAULT_MODEL, order=None):

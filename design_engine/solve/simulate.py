@@ -15,7 +15,7 @@ import numpy as np
 from design_engine._types import Array, DesignVector, Float, Int
 from design_engine.physics.dynamics import (VELOCITY_SCALE, make_dynamics_args, make_full_state,
                                             make_rhs)
-from design_engine.physics.energy import (DEFAULT_MODEL, Model, followed_voids,
+from design_engine.physics.energy import (DEFAULT_MODEL, Force, Model, followed_voids, jax_force,
                                           make_contact_energy, make_energy)
 from design_engine.physics.geometry import block_geometry
 from design_engine.physics.lattice import Lattice
@@ -183,9 +183,10 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
         meter = diffrax.TqdmProgressMeter() if config.progress else diffrax.NoProgressMeter()
 
     def solve_adaptive(args, y0, ts):
+        packed = energy_and_gradient.pack(args.bonds, args.material, ts.dtype)
         sol = diffrax.diffeqsolve(
             term, config.solver, t0=jnp.zeros((), ts.dtype), t1=ts[-1], dt0=config.dt0, y0=y0,
-            args=args, saveat=diffrax.SaveAt(ts=ts), stepsize_controller=controller,
+            args=(args, packed), saveat=diffrax.SaveAt(ts=ts), stepsize_controller=controller,
             adjoint=config.adjoint, max_steps=config.max_steps, throw=False, progress_meter=meter,
         )
         ys = sol.ys
@@ -194,11 +195,14 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
         return ys[:, :n_free], ys[:, n_free:] / VELOCITY_SCALE, stats, jnp.zeros((), ys.dtype)
 
     def solve_fixed(args, y0, ts):
+        # what the forces read of the design and the material, prepared once, outside the steps
+        packed = energy_and_gradient.pack(args.bonds, args.material, ts.dtype)
+        fast_packed = contact_fn.pack(args.bonds, args.material, ts.dtype) if split else None
+
         def force(qf, t):
             # one pass gives the force on the free units, the energy and, from the reactions
             # of the prescribed units, the power their motion puts in (the ledger's inputs)
-            potential, grad = energy_and_gradient(full(qf, t, args.loading), args.bonds,
-                                                  args.material)
+            potential, grad = energy_and_gradient.evaluate(full(qf, t, args.loading), packed)
             grad = grad.reshape(-1)
             power = jnp.dot(grad[constrained], prescribed(t, args.loading)[1])
             return -grad[free], (potential, power)
@@ -208,8 +212,8 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
             # give the power their motion puts in
             qc, qc_dot = prescribed(t, args.loading)
 
-            potential, g = contact_fn(jnp.concatenate([theta_f, qc[fixed_theta]]), args.bonds,
-                                      args.material)
+            potential, g = contact_fn.evaluate(jnp.concatenate([theta_f, qc[fixed_theta]]),
+                                               fast_packed)
             g_f, g_c = g[:free_rotations.size], g[free_rotations.size:]
             return -g_f, (potential, jnp.dot(g_c, qc_dot[fixed_theta]))
 
@@ -295,21 +299,22 @@ def _native(config: SolverConfig, model: Model) -> bool:
             and model == DEFAULT_MODEL and not config.linearized and native_available())
 
 
-def model_force(lattice: Lattice, config: SolverConfig, model: Model, energy_fn, split: bool):
-    """`fn(q [n_blocks, 3], bonds, material) -> (energy, dE/dq)` of a solve: the native custom
-    call (`_native`), else JAX's gradient of `energy_fn`."""
+def model_force(lattice: Lattice, config: SolverConfig, model: Model, energy_fn,
+                split: bool) -> Force:
+    """The `energy.Force` of a solve, `(q [n_blocks, 3], bonds, material) -> (energy, dE/dq)`:
+    the native custom call (`_native`), else JAX's gradient of `energy_fn`."""
     if _native(config, model):
         return make_energy_and_gradient(lattice, use_contact=config.use_contact and not split)
-    return jax.value_and_grad(energy_fn)
+    return jax_force(energy_fn)
 
 
-def fast_contact_force(lattice: Lattice, config: SolverConfig, model: Model, order):
-    """`fn(theta, bonds, material) -> (contact energy, its gradient)` of a split step's fast
-    force, the rotations held in `order` (`energy.make_contact_energy`): the native custom call
-    (`_native`), else JAX's gradient."""
+def fast_contact_force(lattice: Lattice, config: SolverConfig, model: Model, order) -> Force:
+    """The `energy.Force` of a split step's fast force, `(theta, bonds, material) -> (contact
+    energy, its gradient)`, the rotations held in `order` (`energy.make_contact_energy`): the
+    native custom call (`_native`), else JAX's gradient."""
     if _native(config, model):
         return make_contact_energy_and_gradient(lattice, order=order)
-    return jax.value_and_grad(make_contact_energy(lattice, model, order=order))
+    return jax_force(make_contact_energy(lattice, model, order=order))
 
 
 def solve_health(sol: Solution, xp=jnp) -> dict:

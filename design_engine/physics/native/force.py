@@ -14,8 +14,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from design_engine.physics.energy import Force
 from design_engine.physics.lattice import Lattice
 from design_engine.physics.native.build import library
+
 
 def _suffix(dtype) -> str:
     if dtype == jnp.float64:
@@ -36,8 +38,9 @@ LIGAMENT_FIELDS = ("k_stretch", "k_shear", "k_bend")
 CONTACT_FIELDS = ("k_contact", "contact_min", "contact_cutoff")
 
 
-def make_energy_and_gradient(lattice: Lattice, *, use_contact: bool = True):
-    """Factory: `fn(q [n_blocks, 3], bonds, material) -> (energy mJ, dE/dq [n_blocks, 3])`.
+def make_energy_and_gradient(lattice: Lattice, *, use_contact: bool = True) -> Force:
+    """Factory: the `energy.Force` `fn(q [n_blocks, 3], bonds, material) -> (energy mJ, dE/dq
+    [n_blocks, 3])`, packing the bond geometry and material into the kernel's arrays.
 
     Builds and registers the custom calls on first use; raises `build.NativeUnavailable` (one
     line) where they cannot be had. Material fields may be scalars or [n_bonds] arrays.
@@ -74,18 +77,18 @@ def make_energy_and_gradient(lattice: Lattice, *, use_contact: bool = True):
 
     core.defvjp(forward, backward)
 
-    def energy_and_gradient(q, bonds, material):
-        dtype = q.dtype
+    def pack(bonds, material, dtype):
         arms = jnp.concatenate([bonds.arm1, bonds.arm2], axis=1).astype(dtype)
-        vref = bonds.void_ref.astype(dtype)
-        return core(q, arms, vref, _per_bond(material, LIGAMENT_FIELDS, n, dtype),
-                    _per_bond(material, CONTACT_FIELDS, n, dtype))
+        return (arms, bonds.void_ref.astype(dtype),
+                _per_bond(material, LIGAMENT_FIELDS, n, dtype),
+                _per_bond(material, CONTACT_FIELDS, n, dtype))
 
-    return energy_and_gradient
+    return Force(pack=pack, evaluate=lambda q, packed: core(q, *packed))
 
 
-def make_contact_energy_and_gradient(lattice: Lattice, order=None):
-    """Factory: `fn(theta [n_blocks], bonds, material) -> (contact energy mJ, dE/dtheta)`, the
+def make_contact_energy_and_gradient(lattice: Lattice, order=None) -> Force:
+    """Factory: the `energy.Force` `fn(theta [n_blocks], bonds, material) -> (contact energy mJ,
+    dE/dtheta)`, the
     contact terms alone from the units' rotations (rad), as `energy.make_contact_energy` with
     the same `order` (where unit k's rotation sits in theta) and the default contact law."""
     library()
@@ -119,9 +122,7 @@ def make_contact_energy_and_gradient(lattice: Lattice, order=None):
 
     core.defvjp(forward, backward)
 
-    def energy_and_gradient(theta, bonds, material):
-        dtype = theta.dtype
-        return core(theta, bonds.void_ref.astype(dtype),
-                    _per_bond(material, CONTACT_FIELDS, n, dtype))
+    def pack(bonds, material, dtype):
+        return bonds.void_ref.astype(dtype), _per_bond(material, CONTACT_FIELDS, n, dtype)
 
-    return energy_and_gradient
+    return Force(pack=pack, evaluate=lambda theta, packed: core(theta, *packed))

@@ -242,8 +242,8 @@ def choose_config(scene: Scene, *, full_model: bool = False,
     # (benchmarks/bench_contact_step.py --profile): memory traffic, not arithmetic, was the cost.
     # Since then a step at a time, from its stored start state (`fixed_step.march`)
     # native_force: the forces by the native custom calls where they can be built (the same
-    # force to rounding, a step's force 3-4x and its reverse 5x faster than XLA's,
-    # benchmarks/bench_force_pieces.py)
+    # force to rounding, a force evaluation 3.7x and its reverse 4-5x faster than XLA's,
+    # benchmarks/bench_force_pieces.py -> bench_force_pieces_native_amd.json)
     config = SolverConfig(solver=FixedStepVerlet(max_dt=dt, remat=True), use_contact=False,
                           dtype="float32", native_force=native)
     if in_contact:

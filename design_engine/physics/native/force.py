@@ -3,11 +3,10 @@ terms alone from the rotations, `make_contact_energy_and_gradient(lattice, order
 
 The same energies as `energy.make_energy` with the default model (nonlinear ligament law and
 contact barrier) and `energy.make_contact_energy`, and their gradients, computed by the custom
-calls of `bond_force.cc`; reverse
-differentiable to any order the fixed-step solves take (a custom VJP whose backward pass is the
-Hessian-vector product and its derivative with respect to the bond geometry and the material,
-also a custom call). Forward-mode differentiation is not defined: the statics, the calibration's
-Jacobians and the implicit step keep the JAX energy.
+calls of `bond_force.cc`. Reverse-mode differentiable as the solves need it: a custom VJP whose
+backward pass (the Hessian-vector product and its derivative in the bond geometry and the
+material) is a custom call too. Forward mode is not defined: the statics, the calibration's
+Jacobians and the implicit step keep the JAX energy (`SolverConfig.native_force`).
 """
 
 import jax
@@ -88,9 +87,9 @@ def make_energy_and_gradient(lattice: Lattice, *, use_contact: bool = True) -> F
 
 def make_contact_energy_and_gradient(lattice: Lattice, order=None) -> Force:
     """Factory: the `energy.Force` `fn(theta [n_blocks], bonds, material) -> (contact energy mJ,
-    dE/dtheta)`, the
-    contact terms alone from the units' rotations (rad), as `energy.make_contact_energy` with
-    the same `order` (where unit k's rotation sits in theta) and the default contact law."""
+    dE/dtheta)`, the contact terms alone from the units' rotations (rad), as
+    `energy.make_contact_energy` with the same `order` (where unit k's rotation sits in theta)
+    and the default contact law."""
     library()
     b1, b2 = lattice.bond_blocks[:, 0], lattice.bond_blocks[:, 1]
     if order is not None:

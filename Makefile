@@ -13,7 +13,7 @@ $(STAMP): pyproject.toml constraints.txt
 	$(BIN)/pip install -q -c constraints.txt -e ".[dev]"
 	$(BIN)/python -m ros_nodes.interfaces.build > $(VENV)/interfaces-build.log 2>&1 \
 		|| (tail -n 40 $(VENV)/interfaces-build.log; exit 1)
-	$(BIN)/python -m design_engine.physics.native.build
+	$(BIN)/python -c "from design_engine.physics.native.build import main; main()"
 	touch $(STAMP)
 
 install: $(STAMP)

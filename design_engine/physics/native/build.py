@@ -155,8 +155,8 @@ def _register(lib: ctypes.CDLL) -> None:
 
 
 def main() -> int:
-    """`python -m design_engine.physics.native.build`: build now (as `make install` does) and
-    say where, or why not; never fails, since the engine then keeps the JAX force."""
+    """Build now (`make install` calls this) and say where, or why not; never fails, since the
+    engine then keeps the JAX force."""
     try:
         path = _build() if os.environ.get("METARIG_NATIVE", "1") != "0" else None
     except NativeUnavailable as exc:
@@ -166,6 +166,3 @@ def main() -> int:
           "native bond force switched off (METARIG_NATIVE=0)")
     return 0
 
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -165,4 +165,3 @@ def main() -> int:
     print(f"native bond force: {path}" if path else
           "native bond force switched off (METARIG_NATIVE=0)")
     return 0
-

@@ -357,8 +357,7 @@ def with_contact(config: SolverConfig) -> SolverConfig:
     far past the tolerance (8x6 at 44 deg under 4 and 6 mm pulses: 3.1e-3 and 2.2e-3, J off by
     37 % and 53 %), so the work-energy check rejects them in either precision."""
     if is_fixed_step(config.solver) and config.solver.stability_limited:
-        config = SolverConfig(solver=config.solver, use_contact=True, dtype=config.dtype,
-                              native_force=config.native_force)
+        config = dataclasses.replace(config, use_contact=True)
         if hasattr(config.solver, "contact_substeps"):
             config = with_substeps(config, max(config.solver.contact_substeps,
                                                CONTACT_ENTRY_SUBSTEPS))

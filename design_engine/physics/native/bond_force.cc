@@ -11,7 +11,8 @@
 // Layout (`Inputs`): q [nb, 3] (u, v, theta) per unit; per bond arms [n, 4] (arm1 x, y,
 // arm2 x, y), void_ref [n, 2], r0 [n, 2], the ligament stiffnesses [n, 3] and the contact
 // constants [n, 3], bond k joining units b1[k] and b2[k]. Engine units: mm, rad, mJ, N/mm,
-// N mm/rad.
+// N mm/rad. Every call takes the lattice's constants first (b1, b2 and, for the whole force,
+// r0), then the state and the per-bond arrays (force.py's `_custom_call`).
 
 #include <cmath>
 #include <cstdint>
@@ -204,10 +205,6 @@ INLINE void bond(S u1, S v1, S th1, S u2, S v2, S th2, S hc1, S hs1, S hc2, S hs
   }
 }
 
-struct Layout {
-  int64_t nb, n;
-};
-
 template <ffi::DataType DT>
 using Buf = ffi::Buffer<DT>;
 template <ffi::DataType DT>
@@ -355,8 +352,8 @@ void ReverseLoop(int64_t n, const T* __restrict g, const T* __restrict d,
 
 // energy and gradient [nb, 3] of the bond map at q
 template <ffi::DataType DT>
-ffi::Error Force(Buf<ffi::S32> b1, Buf<ffi::S32> b2, Buf<DT> q, Buf<DT> arms, Buf<DT> vref,
-                 Buf<DT> r0, Buf<DT> lig, Buf<DT> con, Res<DT> energy, Res<DT> grad,
+ffi::Error Force(Buf<ffi::S32> b1, Buf<ffi::S32> b2, Buf<DT> r0, Buf<DT> q, Buf<DT> arms,
+                 Buf<DT> vref, Buf<DT> lig, Buf<DT> con, Res<DT> energy, Res<DT> grad,
                  double l0, int32_t contact) {
   using T = ffi::NativeType<DT>;
   Inputs<DT> in;
@@ -376,8 +373,8 @@ ffi::Error Force(Buf<ffi::S32> b1, Buf<ffi::S32> b2, Buf<DT> q, Buf<DT> arms, Bu
 // reverse of Force: cotangents (ebar, gbar [nb, 3]) of (energy, gradient) -> cotangents of q,
 // arms, void_ref and the two material arrays: ebar dE/dx + (d grad / dx)^T gbar
 template <ffi::DataType DT>
-ffi::Error ForceVjp(Buf<ffi::S32> b1, Buf<ffi::S32> b2, Buf<DT> q, Buf<DT> arms, Buf<DT> vref,
-                    Buf<DT> r0, Buf<DT> lig, Buf<DT> con, Buf<DT> ebar, Buf<DT> gbar,
+ffi::Error ForceVjp(Buf<ffi::S32> b1, Buf<ffi::S32> b2, Buf<DT> r0, Buf<DT> q, Buf<DT> arms,
+                    Buf<DT> vref, Buf<DT> lig, Buf<DT> con, Buf<DT> ebar, Buf<DT> gbar,
                     Res<DT> qbar, Res<DT> armsbar, Res<DT> vrefbar, Res<DT> ligbar,
                     Res<DT> conbar, double l0, int32_t contact) {
   using T = ffi::NativeType<DT>;

@@ -158,10 +158,9 @@ def main() -> int:
     """Build now (`make install` calls this) and say where, or why not; never fails, since the
     engine then keeps the JAX force."""
     try:
-        path = _build() if os.environ.get("METARIG_NATIVE", "1") != "0" else None
+        lib = library()
     except NativeUnavailable as exc:
-        print(f"native bond force not built ({exc}): the engine uses the JAX force")
+        print(f"native bond force not used ({exc}): the engine uses the JAX force")
         return 0
-    print(f"native bond force: {path}" if path else
-          "native bond force switched off (METARIG_NATIVE=0)")
+    print(f"native bond force: {lib._name}")
     return 0

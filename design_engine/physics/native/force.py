@@ -37,6 +37,38 @@ LIGAMENT_FIELDS = ("k_stretch", "k_shear", "k_bend")
 CONTACT_FIELDS = ("k_contact", "contact_min", "contact_cutoff")
 
 
+def _custom_call(name: str, constants, attrs=None):
+    """`core(x, *params) -> (energy, dE/dx)` by the custom call `metarig_<name>_<f32|f64>`,
+    reverse differentiable by `metarig_<name>_vjp_<...>` (the cotangents of x and every param).
+    Both calls take `constants(dtype)` (the lattice's, not differentiated) first, then x and
+    the params, and the vjp call the energy's and gradient's cotangents last."""
+    attrs = attrs or {}
+
+    @jax.custom_vjp
+    def core(x, *params):
+        call = jax.ffi.ffi_call(
+            f"metarig_{name}_{_suffix(x.dtype)}",
+            (jax.ShapeDtypeStruct((), x.dtype), jax.ShapeDtypeStruct(x.shape, x.dtype)),
+            vmap_method="sequential")
+        return call(*constants(x.dtype), x, *params, **attrs)
+
+    def forward(*inputs):
+        return core(*inputs), inputs
+
+    def backward(inputs, cotangents):
+        x = inputs[0]
+        ebar, gbar = cotangents
+        call = jax.ffi.ffi_call(
+            f"metarig_{name}_vjp_{_suffix(x.dtype)}",
+            tuple(jax.ShapeDtypeStruct(a.shape, x.dtype) for a in inputs),
+            vmap_method="sequential")
+        return call(*constants(x.dtype), *inputs, jnp.asarray(ebar, x.dtype),
+                    jnp.asarray(gbar, x.dtype), **attrs)
+
+    core.defvjp(forward, backward)
+    return core
+
+
 def make_energy_and_gradient(lattice: Lattice, *, use_contact: bool = True) -> Force:
     """Factory: the `energy.Force` `fn(q [n_blocks, 3], bonds, material) -> (energy mJ, dE/dq
     [n_blocks, 3])`, packing the bond geometry and material into the kernel's arrays.
@@ -47,34 +79,11 @@ def make_energy_and_gradient(lattice: Lattice, *, use_contact: bool = True) -> F
     library()
     b1 = np.ascontiguousarray(lattice.bond_blocks[:, 0], np.int32)
     b2 = np.ascontiguousarray(lattice.bond_blocks[:, 1], np.int32)
+    r0 = np.ascontiguousarray(lattice.bond_r0)
     n = b1.size
-    attrs = {"l0": np.float64(lattice.ligament_length), "contact": np.int32(bool(use_contact))}
-
-    def r0(dtype):
-        return jnp.asarray(np.ascontiguousarray(lattice.bond_r0), dtype)
-
-    @jax.custom_vjp
-    def core(q, arms, vref, lig, con):
-        call = jax.ffi.ffi_call(
-            f"metarig_bond_force_{_suffix(q.dtype)}",
-            (jax.ShapeDtypeStruct((), q.dtype), jax.ShapeDtypeStruct(q.shape, q.dtype)),
-            vmap_method="sequential")
-        return call(b1, b2, q, arms, vref, r0(q.dtype), lig, con, **attrs)
-
-    def forward(*inputs):
-        return core(*inputs), inputs
-
-    def backward(inputs, cotangents):
-        q, arms, vref, lig, con = inputs
-        ebar, gbar = cotangents
-        call = jax.ffi.ffi_call(
-            f"metarig_bond_force_vjp_{_suffix(q.dtype)}",
-            tuple(jax.ShapeDtypeStruct(a.shape, q.dtype) for a in inputs),
-            vmap_method="sequential")
-        return call(b1, b2, q, arms, vref, r0(q.dtype), lig, con, jnp.asarray(ebar, q.dtype),
-                    jnp.asarray(gbar, q.dtype), **attrs)
-
-    core.defvjp(forward, backward)
+    core = _custom_call("bond_force", lambda dtype: (b1, b2, jnp.asarray(r0, dtype)),
+                        {"l0": np.float64(lattice.ligament_length),
+                         "contact": np.int32(bool(use_contact))})
 
     def pack(bonds, material, dtype):
         arms = jnp.concatenate([bonds.arm1, bonds.arm2], axis=1).astype(dtype)
@@ -96,30 +105,7 @@ def make_contact_energy_and_gradient(lattice: Lattice, order=None) -> Force:
         b1, b2 = np.asarray(order)[b1], np.asarray(order)[b2]
     b1, b2 = np.ascontiguousarray(b1, np.int32), np.ascontiguousarray(b2, np.int32)
     n = b1.size
-
-    @jax.custom_vjp
-    def core(theta, vref, con):
-        call = jax.ffi.ffi_call(
-            f"metarig_contact_force_{_suffix(theta.dtype)}",
-            (jax.ShapeDtypeStruct((), theta.dtype),
-             jax.ShapeDtypeStruct(theta.shape, theta.dtype)),
-            vmap_method="sequential")
-        return call(b1, b2, theta, vref, con)
-
-    def forward(*inputs):
-        return core(*inputs), inputs
-
-    def backward(inputs, cotangents):
-        theta = inputs[0]
-        ebar, gbar = cotangents
-        call = jax.ffi.ffi_call(
-            f"metarig_contact_force_vjp_{_suffix(theta.dtype)}",
-            tuple(jax.ShapeDtypeStruct(a.shape, theta.dtype) for a in inputs),
-            vmap_method="sequential")
-        return call(b1, b2, *inputs, jnp.asarray(ebar, theta.dtype),
-                    jnp.asarray(gbar, theta.dtype))
-
-    core.defvjp(forward, backward)
+    core = _custom_call("contact_force", lambda dtype: (b1, b2))
 
     def pack(bonds, material, dtype):
         return bonds.void_ref.astype(dtype), _per_bond(material, CONTACT_FIELDS, n, dtype)

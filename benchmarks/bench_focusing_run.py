@@ -101,6 +101,7 @@ def _kind(config: dict) -> str:
     name = config["solver"]
     if name == "FixedStepVerlet":
         name = "Verlet" + (" refined" if config.get("refined") else "")
+        name += f" order {config['order']}" if config.get("order", 2) != 2 else ""
         name += " contact" if config["use_contact"] else " no contact"
         if config.get("contact_substeps", 1) > 1:
             name += f" x{config['contact_substeps']} substeps"
@@ -148,7 +149,8 @@ def _config(summary: dict):
         solver = FixedStepVerlet(max_dt=summary["max_dt_s"] * 1e3,
                                  refined=bool(summary.get("refined", False)),
                                  remat=bool(summary.get("remat", False)),
-                                 contact_substeps=int(summary.get("contact_substeps", 1)))
+                                 contact_substeps=int(summary.get("contact_substeps", 1)),
+                                 order=int(summary.get("order", 2)))
         return SolverConfig(solver=solver, use_contact=summary["use_contact"],
                             dtype=summary["dtype"])
     return SolverConfig(solver=getattr(diffrax, summary["solver"])(), rtol=summary["rtol"],

@@ -152,7 +152,7 @@ def policy_config(scene, dtype: str | None = None, order: int = 2,
     config = choose_config(scene).config
     if dtype is not None:
         config = dataclasses.replace(config, dtype=dtype)
-    solver = {"order": order} if order != 2 else {}
+    solver = {"order": order}  # the policy's own is 4 where the pulse starts in contact
     if contact_substeps is not None:
         solver["contact_substeps"] = contact_substeps
         config = dataclasses.replace(config, use_contact=True)

@@ -365,6 +365,71 @@ def test_the_driver_judges_a_solve_in_contact_at_half_its_step(scene):
     assert solve.calls == [contact, contact_config()]
 
 
+def test_a_fourth_order_solve_in_contact_is_judged_at_a_coarser_step(scene):
+    """The fourth-order step (`FixedStepVerlet(order=4)`, the policy's choice where the pulse
+    starts in contact) is judged by the same start solved at COARSE x its step
+    (`policy.check_config`), its estimate the change of the objective over COARSE^3 - 1
+    (`policy.coarse_step_error`). Within the tolerance it stands; over it, where halving is
+    predicted to pass (the estimate x 1/8 within half the tolerance) or the coarser solve
+    failed, the same start is solved at half the step, which stands when its error by the pair
+    (the change over 2^3 - 1, `policy.half_step_pair_error`) passes; else Dopri8. A refined step
+    is not halved again. The Verlet estimate's wording and arithmetic are unchanged
+    (`relative_step_error`'s default is 4/3 of the change)."""
+    from design_engine.solve.policy import (COARSE, COARSE_CHECK_ORDER, STEP_ERROR_TOLERANCE,
+                                            after_coarse_check, check_config,
+                                            coarse_step_error, half_step_pair_error,
+                                            next_config, relative_step_error)
+
+    tol = STEP_ERROR_TOLERANCE
+    span = float(scene.material.contact_cutoff - scene.material.contact_min)
+    fourth = with_contact(dataclasses.replace(VERLET, solver=dataclasses.replace(
+        VERLET.solver, order=4)))
+    coarse, half = check_config(fourth), refined(fourth)
+    assert check_config(with_contact(VERLET)) == refined(with_contact(VERLET))
+    assert coarse.solver.max_dt == pytest.approx(COARSE * fourth.solver.max_dt)
+    assert coarse.solver.order == 4 and not coarse.solver.refined
+    assert relative_step_error(1.0, 1.0 + 3e-4) == pytest.approx(4e-4)
+    assert coarse_step_error(2.0, 2.0 + 2 * 4.75e-4) == pytest.approx(
+        4.75e-4 / (COARSE**COARSE_CHECK_ORDER - 1))
+    assert half_step_pair_error(2.0, 2.0 + 2 * 7e-4) == pytest.approx(1e-4)
+    assert after_coarse_check(4 * tol, fourth) and not after_coarse_check(4.1 * tol, fourth)
+    assert after_coarse_check(float("inf"), fourth)
+    assert not after_coarse_check(2 * tol, half)
+    started = healthy(scene, void_margin=0.5 * span, start_void_margin=0.5 * span)
+    nxt, why = next_config(fourth, dict(started, step_error=2 * tol), scene)
+    assert nxt == contact_config() and f"at {COARSE:g} x the step" in why
+
+    def run(values, *answers):
+        """The driver on the fourth-order step; `values`: J of each result in turn."""
+        solve = Script(*answers)
+        out = solve_with_policy(scene, fourth, solve, objective=lambda r: values[
+            int(r.split()[1]) - 1])
+        return solve, out
+
+    growth = COARSE**COARSE_CHECK_ORDER - 1
+    solve, out = run([1.0, 1.0 + 0.5 * tol * growth], started, started)
+    assert solve.calls == [fourth, coarse] and out.result == "result 1" and out.resolves == ()
+    assert out.health["step_error"] == pytest.approx(0.5 * tol)
+    # over the tolerance, halving predicted to pass: the half stands on its pair's error
+    solve, out = run([1.0, 1.0 + 2 * tol * growth, 1.0 + 0.5 * tol * 7], started, started,
+                     started)
+    assert solve.calls == [fourth, coarse, half] and out.result == "result 3"
+    assert out.config == half and "stands" in out.resolves[0]
+    assert out.health["step_error"] == pytest.approx(0.5 * tol, rel=1e-3)
+    # the pair's error over the tolerance too: Dopri8, not judged
+    solve, out = run([1.0, 1.0 + 2 * tol * growth, 1.0 + 2 * tol * 7, 1.0], started, started,
+                     started, started)
+    assert solve.calls == [fourth, coarse, half, contact_config()]
+    assert "Dopri8" in out.resolves[0] and "by the pair" in out.resolves[0]
+    # not predicted to pass at half the step: Dopri8 at once
+    solve, out = run([1.0, 1.0 + 5 * tol * growth, 1.0], started, started, started)
+    assert solve.calls == [fourth, coarse, contact_config()]
+    # the coarser solve failed (beyond the composition's stability): the half is tried
+    solve, out = run([1.0, None, 1.0 + 0.5 * tol * 7], started,
+                     SimulationError("the coarser solve diverged"), started)
+    assert solve.calls == [fourth, coarse, half] and out.config == half
+
+
 class ByConfig:
     """A stand-in solve that may be called from several threads: answers each configuration
     with its own entry of `answers` (`[(config, health or exception)]`, each solved at most

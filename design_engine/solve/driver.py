@@ -14,7 +14,9 @@ through `decide` (what to do after a solve) and, for one solve at a time, `solve
    other checks is first also judged on the caller's objective at half its step (`objective`,
    `policy.needs_step_check`) and, when it moved too much, at a quarter, the half- or
    quarter-step solve standing in its place where its own error passes
-   (`policy.after_half_step`, `policy.after_quarter_step`);
+   (`policy.after_half_step`, `policy.after_quarter_step`); a fourth-order one at COARSE x its
+   step and, when it moved too much, at half its step, which stands where its error by that
+   pair passes (`policy.check_config`, `policy.after_coarse_check`);
 3. after a fixed-step solve with contact that failed, the same step with its contact forces
    substepped (`policy.after_failure`, once); after any other solve that failed
    (`SimulationError`), the fallback solves once
@@ -48,9 +50,11 @@ from typing import Generic, TypeVar
 from design_engine.physics.scenes import Scene
 from design_engine.solve.fixed_step import is_fixed_step
 from design_engine.solve.policy import (HALF, REFINE, REJECT, STEP_ERROR_TOLERANCE,
-                                        after_failure, after_half_step, after_quarter_step,
-                                        fallback_config, needs_step_check, next_config,
-                                        refined, relative_step_error, start_config)
+                                        after_coarse_check, after_failure, after_half_step,
+                                        after_quarter_step, check_config, coarse_step_error,
+                                        fallback_config, half_step_pair_error, moved,
+                                        needs_step_check, next_config, order_of, refined,
+                                        relative_step_error, start_config)
 from design_engine.solve.simulate import SimulationError, SolverConfig, StepBudgetError
 
 R = TypeVar("R")
@@ -200,6 +204,42 @@ def _judged_at_half_steps(scene: Scene, steps: list, result, health: dict, solve
     return stands[1], stands[2]
 
 
+def _judged_at_a_coarser_step(scene: Scene, steps: list, result, health: dict, solve, objective,
+                              on_step) -> tuple:
+    """Judge a fourth-order fixed-step solve as `_judged_at_half_steps` judges Verlet's, by the
+    same start solved at COARSE x its step (`policy.check_config`; its estimate
+    `policy.coarse_step_error` into the health as "step_error", inf where that solve failed).
+    Where that does not pass and `policy.after_coarse_check` says so, the same start is solved
+    at half the step, which stands in its place (appended to `steps` as a RESOLVE) when its
+    error by the pair (`policy.half_step_pair_error`, its "step_error") passes, with its other
+    checks; else the result goes on with "half_step_error" set (then Dopri8)."""
+    cfg = steps[-1].config
+    value = float(objective(result))
+    try:
+        coarse_result, _ = solve(check_config(cfg))
+        error = coarse_step_error(value, float(objective(coarse_result)))
+    except SimulationError:
+        error = float("inf")
+    health = dict(health, step_error=error)
+    if next_config(cfg, health, scene) is None or not after_coarse_check(error, cfg):
+        return result, health
+    half = refined(cfg)
+    try:
+        half_result, half_health = solve(half)
+        half_error = half_step_pair_error(float(objective(half_result)), value)
+    except SimulationError:
+        return result, dict(health, half_step_error=float("inf"))
+    half_health = dict(half_health, step_error=half_error)
+    if next_config(half, half_health, scene) is not None:
+        return result, dict(health, half_step_error=half_error)
+    steps.append(Step(RESOLVE, half, (
+        f"{moved(error, order=order_of(cfg.solver))}: the half-step solve "
+        f"({half.solver.max_dt * 1e3:.1f} us) stands, its error by that pair {half_error:.2e}")))
+    if on_step is not None:
+        on_step(steps[-1])
+    return half_result, half_health
+
+
 def solve_with_policy(scene: Scene, config: SolverConfig,
                       solve: Callable[[SolverConfig], tuple[R, dict | None]], *,
                       check: Callable[[], SolverConfig] | None = None,
@@ -301,7 +341,7 @@ def _solve_with_policy(scene, config, solve, check, previous, budget_fails_at_on
         if pending is None:
             beside = (ahead is not None and objective is not None and prior is not None
                       and not fallen_back and needs_step_check(cfg, prior, scene)
-                      and ahead(refined(cfg)))
+                      and ahead(check_config(cfg)))
             finished = None  # a result solved before, and its reverse pass, let go
             try:
                 result, health = solve(cfg)
@@ -316,8 +356,10 @@ def _solve_with_policy(scene, config, solve, check, previous, budget_fails_at_on
                         # take this one's reverse pass meanwhile (wasted, and not used, where
                         # the check does not let it stand)
                         finished = (result, _attempt(finish, result))
-                    result, health = _judged_at_half_steps(scene, steps, result, health, solve,
-                                                           objective, on_step)
+                    judge = (_judged_at_half_steps if order_of(cfg.solver) == 2
+                             else _judged_at_a_coarser_step)
+                    result, health = judge(scene, steps, result, health, solve, objective,
+                                           on_step)
                     cfg = steps[-1].config
                     if finished is not None and finished[0] is not result:
                         finished = None

@@ -12,13 +12,14 @@ The default policy, read off the work-precision and speed-up charts (README, `me
   that all void angles stayed above the contact cutoff at every sample, in which case the
   contact energy was identically zero and the result equals the full model's;
 - a solve whose voids reached the cutoff is repeated with contact at the same step and
-  precision (from the first solve, in float64, when the static equilibrium already reaches
-  it), and that result stands
+  precision (from the first solve, in float64 and by the fourth-order composition of Verlet
+  steps, `FixedStepVerlet(order=4)`, when the static equilibrium already reaches it), and that
+  result stands
   while the barrier's own frequency at the deepest void, omega_c (`contact_frequency`), keeps
   h x omega_c <= CONTACT_STEP_LIMIT for the contact forces' step h and the solve's work-energy
   drift stays within ENERGY_TOLERANCE (`next_config`), and its objective moves by at most
-  STEP_ERROR_TOLERANCE when the same start is solved at half the step (the driver, for a
-  caller that gives its objective). A barrier past h with the drift within the tolerance
+  STEP_ERROR_TOLERANCE when the same start is solved at half the step (at COARSE x the step
+  for the fourth order: the driver, for a caller that gives its objective). A barrier past h with the drift within the tolerance
   keeps the step and substeps the contact forces (multiple time stepping,
   `FixedStepVerlet.contact_substeps`, up to CONTACT_SUBSTEPS_MAX); a drift past the tolerance
   repeats the solve once at REFINE x the step when that is predicted to pass, else with
@@ -98,6 +99,24 @@ CONTACT_ENTRY_SUBSTEPS = 4
 # this estimate was 0.75-1.5x their error (README, "Contact under the pulse")
 STEP_ERROR_TOLERANCE = 1e-4
 STEP_CONVERGENCE_MIN = 2.0
+# a scene whose pulse starts in contact (a static pre-compression past the cutoff) is solved by
+# the fourth-order composition of Verlet steps (`FixedStepVerlet(order=4)`, five force
+# evaluations a step) at the step Verlet would take: on three designs of a focus-vs-protect run
+# at 8 % it was within 7.8e-6 to 1.4e-5 of J with the gradient at cosine >= 0.9999999, in
+# 1.1-1.2 x the time of Verlet at a quarter of the step, which missed J by 1.6e-5 to 1.7e-4,
+# and whose accepted gradients fell to 0.99986 on re-check
+# (benchmarks/bench_order4_check.py -> bench_order4_check_amd.json)
+START_IN_CONTACT_ORDER = 4
+# ... and its step check solves the same start at COARSE x the step, not half of it (0.7 x the
+# cost of the solve it judges, where half the step costs 2 x), taking the change as of order
+# COARSE_CHECK_ORDER: at 1.5 x the step (dt x omega_max = 1.8, the composition's stability
+# limit being 2.72) the error still grew 4.0-4.8 x where 1.5^4 = 5.1, so an estimate taken
+# as fourth order fell to 0.74 x the true error, and one taken as third order was 1.25-1.6 x it
+# (same file). A fourth-order solve that this check rejects, or whose coarser solve failed, is
+# re-solved once at half its step where that is predicted to pass, judged by the pair (its
+# change from the whole step, as of the same order); else Dopri8
+COARSE = 1.5
+COARSE_CHECK_ORDER = 3
 # an adaptive solve whose gradient an optimiser takes (`for_gradient`) of a scene whose pulse
 # starts in contact (`start_in_contact`: a static pre-compression past the cutoff, a ramp)
 # controls its error to this absolute tolerance on mm and mm/s instead of the reference's 1e-4
@@ -247,10 +266,13 @@ def choose_config(scene: Scene, *, full_model: bool = False,
     config = SolverConfig(solver=FixedStepVerlet(max_dt=dt, remat=True), use_contact=False,
                           dtype="float32", native_force=native)
     if in_contact:
-        config = with_contact(dataclasses.replace(config, dtype="float64"))
+        config = with_contact(dataclasses.replace(config, dtype="float64", solver=dataclasses.replace(
+            config.solver, order=START_IN_CONTACT_ORDER)))
         reasons += (f"the static pre-compression already closes voids past the contact cutoff "
                     f"({np.degrees(margin):.2f} deg above the asymptote): contact terms on, "
-                    "float64, from the first solve",)
+                    "float64, from the first solve, by the fourth-order composition of Verlet "
+                    "steps at that step (5 force evaluations a step; within 1.4e-5 of J where "
+                    "Verlet at a quarter of the step missed by up to 1.7e-4)",)
     return Choice(config, reasons, omega)
 
 
@@ -384,26 +406,73 @@ def contact_step_ratio(solver, health: dict, scene: Scene) -> float:
                                 float(health["min_inertia"]), scene.model))
 
 
-def relative_step_error(value: float, half: float) -> float:
+def relative_step_error(value: float, other: float, ratio: float = REFINE,
+                        order: int = 2) -> float:
     """The relative error of a fixed-step objective `value` estimated from the same start solved
-    at half the step (`half`): Richardson, 4/3 of the change, Verlet being second order
-    (`policy.STEP_ERROR_TOLERANCE`); inf when the half-step value is not finite."""
-    if not np.isfinite(half):
+    at `ratio` x the step (`other`), the error taken as growing with the step to the power
+    `order` (Richardson): by default half the step and Verlet's second order, 4/3 of the change
+    (`policy.STEP_ERROR_TOLERANCE`); inf when the other value is not finite."""
+    if not np.isfinite(other):
         return float("inf")
-    return 4.0 / 3.0 * abs(value - half) / max(abs(value), 1e-300)
+    return abs(value - other) / abs(ratio**order - 1.0) / max(abs(value), 1e-300)
+
+
+def order_of(solver) -> int:
+    """The order of a fixed step's scheme (2: Verlet; 4: `FixedStepVerlet(order=4)`)."""
+    return getattr(solver, "order", 2)
+
+
+def check_config(config: SolverConfig) -> SolverConfig:
+    """The configuration the step check solves a fixed-step solve's start with
+    (`needs_step_check`): half the step (`refined`) for Verlet, COARSE x the step for the
+    fourth order (marked refined as the step it judges is)."""
+    if order_of(config.solver) == 2:
+        return refined(config)
+    return dataclasses.replace(config, solver=dataclasses.replace(
+        config.solver, max_dt=config.solver.max_dt * COARSE))
+
+
+def coarse_step_error(value: float, coarse: float) -> float:
+    """A fourth-order solve's estimate from the same start solved at COARSE x its step
+    (`check_config`), taken as of order COARSE_CHECK_ORDER."""
+    return relative_step_error(value, coarse, COARSE, COARSE_CHECK_ORDER)
+
+
+def after_coarse_check(step_error: float, config: SolverConfig) -> bool:
+    """After a fourth-order solve with `config` that passed its other checks and whose coarser
+    check estimated `step_error` over STEP_ERROR_TOLERANCE (inf where that solve failed):
+    whether to solve the same start at half the step (`refined`), to be judged by the pair
+    (`half_step_pair_error`). Not for a refined step; not where the half is not predicted to
+    pass (the estimate x REFINE^COARSE_CHECK_ORDER within half the tolerance; a failed check
+    predicts nothing, and the half is tried)."""
+    return not config.solver.refined and (
+        not np.isfinite(step_error)
+        or step_error_passes(step_error * REFINE**COARSE_CHECK_ORDER))
+
+
+def half_step_pair_error(half: float, whole: float) -> float:
+    """The error of a fourth-order solve at half a step (`half`) by the pair it makes with the
+    whole step's (`whole`), taken as of order COARSE_CHECK_ORDER."""
+    return relative_step_error(half, whole, 1.0 / REFINE, COARSE_CHECK_ORDER)
 
 
 DEEPER, HALF, QUARTER, REJECT = "deeper", "half", "quarter", "reject"
 
 
-def moved(step_error: float, half_error: float | None = None) -> str:
+def moved(step_error: float, half_error: float | None = None, order: int = 2) -> str:
     """Why a fixed-step solve's half-step estimate `step_error` rejects it (with `half_error`,
-    the half-step solve's own estimate at a quarter of the step, where it was judged so)."""
-    why = (f"the objective moved by {float(step_error):.2e} of itself at half the step "
+    the half-step solve's own estimate at a quarter of the step, where it was judged so); of
+    a fourth-order solve (`order`), its estimate at COARSE x the step (and with `half_error`,
+    its half-step solve's by the pair, `half_step_pair_error`)."""
+    where = "half the step" if order == 2 else f"{COARSE:g} x the step"
+    why = (f"the objective moved by {float(step_error):.2e} of itself at {where} "
            f"(> {STEP_ERROR_TOLERANCE:g}; a solve in contact, where the work-energy "
            "balance does not bound it)")
     if half_error is None:
         return why
+    if order != 2:
+        return (f"{why}, and its half-step solve's error by the pair was "
+                f"{float(half_error):.2e}")
     why = f"{why}, and by {float(half_error):.2e} between a half and a quarter of the step"
     if not float(half_error) > 0.0:
         return why
@@ -474,7 +543,7 @@ def next_config(config: SolverConfig, health: dict, scene: Scene) -> tuple[Solve
     - voids reached the contact cutoff without contact terms: `with_contact(config)`;
     - a `step_error` in `health` (the driver's half-step check, `needs_step_check`) above
       STEP_ERROR_TOLERANCE: Dopri8 (the driver has already tried the half-step solves,
-      `after_half_step`);
+      `after_half_step`, or for the fourth order `after_coarse_check`);
     - an explicit fixed-step solve whose work-energy balance drifted by more than
       ENERGY_TOLERANCE of the energy it moved (`Solution.energy_error`), or, with contact, whose
       barrier frequency at the deepest void (`contact_frequency`) exceeds CONTACT_STEP_LIMIT /
@@ -493,8 +562,8 @@ def next_config(config: SolverConfig, health: dict, scene: Scene) -> tuple[Solve
         return None
     step_error = health.get("step_error")
     if step_error is not None and not float(step_error) <= STEP_ERROR_TOLERANCE:
-        return contact_config(), (f"{moved(step_error, health.get('half_step_error'))}: "
-                                  "re-solved with adaptive Dopri8")
+        why = moved(step_error, health.get("half_step_error"), order_of(solver))
+        return contact_config(), f"{why}: re-solved with adaptive Dopri8"
     drift = float(health.get("energy_error", 0.0))
     substeps = getattr(solver, "contact_substeps", 1)
     ratio = contact_step_ratio(solver, health, scene) if config.use_contact else 0.0
@@ -516,7 +585,7 @@ def next_config(config: SolverConfig, health: dict, scene: Scene) -> tuple[Solve
             nxt = with_substeps(config, n)
             return nxt, (f"{what}: re-solved with the contact forces stepped {n} times per step "
                          f"({nxt.solver.max_dt / n * 1e3:.1f} us)")
-    if not solver.refined and passes(drift * REFINE**2, ratio * REFINE):
+    if not solver.refined and passes(drift * REFINE**order_of(solver), ratio * REFINE):
         nxt = refined(config)
         return nxt, (f"{what}: re-solved once at {REFINE:g} x the step "
                      f"({nxt.solver.max_dt * 1e3:.1f} us)")
@@ -577,7 +646,7 @@ def start_config(choice: SolverConfig, last: SolverConfig | None, health: dict |
         dt = min(last.solver.max_dt / REFINE, top)
         up = dataclasses.replace(last, solver=dataclasses.replace(last.solver, max_dt=dt,
                                                                   refined=dt < top))
-        if passes(float(health.get("energy_error", 0.0)) / REFINE**2,
+        if passes(float(health.get("energy_error", 0.0)) / REFINE**order_of(last.solver),
                   contact_step_ratio(up.solver, health, scene)):
             return up
     return last

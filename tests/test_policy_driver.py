@@ -297,10 +297,12 @@ def test_a_solve_in_contact_is_judged_at_half_its_step_too(scene):
                               scene)[0] == REJECT
     # the next evaluation climbs one halving back toward the chosen step whatever the half-step
     # estimate (the step check's half and quarter solves catch a failed climb), refined while
-    # still below it
+    # still below it; where contact was entered under the pulse (a start in contact goes on by
+    # the fourth order instead: test_a_scene_that_starts_in_contact_goes_on_by_the_fourth_order)
+    under = dict(started, start_void_margin=2.0 * span)
     for error in (0.1 * tol, 0.1 * tol / REFINE**2, 8 * tol):
-        assert start_config(contact, half, dict(started, step_error=error), scene) == contact
-        assert start_config(contact, quarter, dict(started, step_error=error), scene) == half
+        assert start_config(contact, half, dict(under, step_error=error), scene) == contact
+        assert start_config(contact, quarter, dict(under, step_error=error), scene) == half
 
 
 def test_the_driver_judges_a_solve_in_contact_at_half_its_step(scene):
@@ -430,6 +432,33 @@ def test_a_fourth_order_solve_in_contact_is_judged_at_a_coarser_step(scene):
     assert solve.calls == [fourth, coarse, half] and out.config == half
 
 
+def test_a_scene_that_starts_in_contact_goes_on_by_the_fourth_order(scene):
+    """`policy.start_config` where the pulse starts in contact (the solve's
+    "start_void_margin" past the cutoff: a static pre-compression in deep contact): after a
+    Verlet step that ended refined (its half-step check sent it there) or after Dopri8, the
+    next evaluation goes on by the fourth order at the choice's step, and the fourth order
+    then continues; where contact was entered under the pulse, the refined step climbs back
+    and Dopri8 gives Verlet its chance again, as before."""
+    from design_engine.solve.policy import fourth_order
+
+    span = float(scene.material.contact_cutoff - scene.material.contact_min)
+    choice = with_contact(VERLET)
+    deep = healthy(scene, void_margin=0.5 * span, start_void_margin=0.5 * span)
+    under = healthy(scene, void_margin=0.5 * span, start_void_margin=2.0 * span)
+    fourth = fourth_order(choice)
+    assert fourth.solver.order == 4 and fourth.solver.max_dt == choice.solver.max_dt
+    assert not fourth.solver.refined
+    half = refined(choice)
+    assert start_config(choice, half, deep, scene) == fourth
+    assert start_config(choice, refined(half), deep, scene) == fourth
+    assert start_config(choice, contact_config(), deep, scene) == fourth
+    assert start_config(choice, fourth, deep, scene) == fourth
+    assert start_config(choice, half, under, scene) == choice
+    assert start_config(choice, contact_config(), under, scene) == choice
+    # a refined fourth order (its half stood) climbs back as Verlet's does
+    assert start_config(choice, refined(fourth), deep, scene) == fourth
+
+
 class ByConfig:
     """A stand-in solve that may be called from several threads: answers each configuration
     with its own entry of `answers` (`[(config, health or exception)]`, each solved at most
@@ -505,7 +534,8 @@ def test_the_step_is_differentiated_while_the_half_step_solve_that_judges_it_run
     the step stands, that early finish is the outcome's; where the half step stands instead, it
     is finished too and counts (the early finish wasted, never used); a finish that failed
     early counts as that solve's failure, as it does when taken late. A step climbing back
-    from the half that stood before is finished only once judged. Every outcome equals the one
+    from the half that stood before (contact entered under the pulse) is finished only once
+    judged. Every outcome equals the one
     without the executor, which finishes the solve that stands alone."""
     from concurrent.futures import ThreadPoolExecutor
 
@@ -540,7 +570,9 @@ def test_the_step_is_differentiated_while_the_half_step_solve_that_judges_it_run
                 return f"finished {result}"
 
             return solve_with_policy(scene, contact, solve,
-                                     previous=lambda: (last, dict(started, step_error=0.5 * tol)),
+                                     previous=lambda: (last, dict(  # entered under the pulse
+                                         started, start_void_margin=2.0 * span,
+                                         step_error=0.5 * tol)),
                                      objective=lambda r: values[int(r.split()[1])],
                                      finish=finish, ahead=ahead)
 

@@ -12,9 +12,10 @@ The default policy, read off the work-precision and speed-up charts (README, `me
   that all void angles stayed above the contact cutoff at every sample, in which case the
   contact energy was identically zero and the result equals the full model's;
 - a solve whose voids reached the cutoff is repeated with contact at the same step and
-  precision (from the first solve, in float64 and by the fourth-order composition of Verlet
-  steps, `FixedStepVerlet(order=4)`, when the static equilibrium already reaches it), and that
-  result stands
+  precision (from the first solve, in float64, when the static equilibrium already reaches
+  it; an optimiser's next evaluations there go on by the fourth-order composition of Verlet
+  steps, `FixedStepVerlet(order=4)`, once Verlet's step was refined or handed to Dopri8:
+  `start_config`), and that result stands
   while the barrier's own frequency at the deepest void, omega_c (`contact_frequency`), keeps
   h x omega_c <= CONTACT_STEP_LIMIT for the contact forces' step h and the solve's work-energy
   drift stays within ENERGY_TOLERANCE (`next_config`), and its objective moves by at most
@@ -99,13 +100,17 @@ CONTACT_ENTRY_SUBSTEPS = 4
 # this estimate was 0.75-1.5x their error (README, "Contact under the pulse")
 STEP_ERROR_TOLERANCE = 1e-4
 STEP_CONVERGENCE_MIN = 2.0
-# a scene whose pulse starts in contact (a static pre-compression past the cutoff) is solved by
+# an optimiser's scene whose pulse starts in contact (a static pre-compression past the
+# cutoff), once Verlet's step check has sent it to a refined step or to Dopri8, goes on with
 # the fourth-order composition of Verlet steps (`FixedStepVerlet(order=4)`, five force
-# evaluations a step) at the step Verlet would take: on three designs of a focus-vs-protect run
-# at 8 % it was within 7.8e-6 to 1.4e-5 of J with the gradient at cosine >= 0.9999999, in
-# 1.1-1.2 x the time of Verlet at a quarter of the step, which missed J by 1.6e-5 to 1.7e-4,
-# and whose accepted gradients fell to 0.99986 on re-check
-# (benchmarks/bench_order4_check.py -> bench_order4_check_amd.json)
+# evaluations a step) at the step Verlet would take (`start_config`). Not from the start:
+# where Verlet at that step stands (a focus-vs-protect run's evaluations 2-5) an evaluation
+# took 2.8-3.2 s, against 7.1-7.9 s with the fourth order from the first solve
+# (bench_fvp_run_order4_start_amd.json). In deep contact, on three designs of that run
+# at 8 % it was within 7.8e-6 to 1.4e-5 of J with the gradient at cosine >= 0.9999992, its
+# value and gradient in 1.0-1.2 x the time of Verlet at a quarter of the step (where Verlet's
+# half-step check sent them), which missed J by 1.6e-5 to 1.7e-4 with cosines down to
+# 0.9999873 (benchmarks/bench_order4_check.py -> bench_order4_check_amd.json)
 START_IN_CONTACT_ORDER = 4
 # ... and its step check solves the same start at COARSE x the step, not half of it (0.7 x the
 # cost of the solve it judges, where half the step costs 2 x), taking the change as of order
@@ -266,13 +271,10 @@ def choose_config(scene: Scene, *, full_model: bool = False,
     config = SolverConfig(solver=FixedStepVerlet(max_dt=dt, remat=True), use_contact=False,
                           dtype="float32", native_force=native)
     if in_contact:
-        config = with_contact(dataclasses.replace(config, dtype="float64", solver=dataclasses.replace(
-            config.solver, order=START_IN_CONTACT_ORDER)))
+        config = with_contact(dataclasses.replace(config, dtype="float64"))
         reasons += (f"the static pre-compression already closes voids past the contact cutoff "
                     f"({np.degrees(margin):.2f} deg above the asymptote): contact terms on, "
-                    "float64, from the first solve, by the fourth-order composition of Verlet "
-                    "steps at that step (5 force evaluations a step; within 1.4e-5 of J where "
-                    "Verlet at a quarter of the step missed by up to 1.7e-4)",)
+                    "float64, from the first solve",)
     return Choice(config, reasons, omega)
 
 
@@ -631,15 +633,23 @@ def start_config(choice: SolverConfig, last: SolverConfig | None, health: dict |
     the larger step). Its half-step estimate is not such a prediction: the step check solves
     the same start at half and a quarter of the larger step, and a half that stands is that
     solve (`after_quarter_step`), so a failed climb costs one forward solve at the larger step,
-    where a step that never climbed would stay halved for the rest of the run. Either way
+    where a step that never climbed would stay halved for the rest of the run. Where the
+    pulse starts in contact (`health`'s "start_void_margin" past the cutoff: a static
+    pre-compression in deep contact), a Verlet step that ended refined, or Dopri8, is followed
+    instead by the fourth-order step at the choice's step (`fourth_order`), which then
+    continues as any fixed step with contact does (START_IN_CONTACT_ORDER). Either way
     `next_config` and the step check still judge the result, so this changes the cost, not the
     answer."""
     if last is None or health is None or last == choice or not last.use_contact:
         return choice
     if not past_cutoff(health["void_margin"], scene) and not is_fixed_step(last.solver):
         return choice
+    deep = past_cutoff(health.get("start_void_margin", np.inf), scene)
     if is_fixed_step(choice.solver) and not is_fixed_step(last.solver):
-        return with_contact(choice)
+        return fourth_order(with_contact(choice)) if deep else with_contact(choice)
+    if (deep and is_fixed_step(choice.solver) and is_fixed_step(last.solver)
+            and order_of(last.solver) == 2 and getattr(last.solver, "refined", False)):
+        return fourth_order(with_contact(choice))
     if is_fixed_step(last.solver) and getattr(last.solver, "refined", False):
         top = (choice.solver.max_dt if is_fixed_step(choice.solver)
                else last.solver.max_dt / REFINE)
@@ -650,6 +660,13 @@ def start_config(choice: SolverConfig, last: SolverConfig | None, health: dict |
                   contact_step_ratio(up.solver, health, scene)):
             return up
     return last
+
+
+def fourth_order(config: SolverConfig) -> SolverConfig:
+    """The same fixed-step configuration by the fourth-order composition of Verlet steps
+    (START_IN_CONTACT_ORDER), not marked refined."""
+    return dataclasses.replace(config, solver=dataclasses.replace(
+        config.solver, order=START_IN_CONTACT_ORDER, refined=False))
 
 
 def fallback_config() -> tuple[SolverConfig, str]:

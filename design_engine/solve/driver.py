@@ -25,7 +25,8 @@ through `decide` (what to do after a solve) and, for one solve at a time, `solve
    (an optimiser steps back rather than grinding on a near-singular contact);
 4. a fallback that fails too raises.
 
-With an executor (`ahead`), the half-step solve that step 2 will most likely ask for (the
+With an executor (`ahead`), the check's solve that step 2 will most likely ask for (half the
+step, or 1.5 x it for the fourth order: `policy.check_config`; the
 previous evaluation's solve reached contact: `policy.needs_step_check` on its health) runs
 on another thread while the step itself is solved: XLA runs each of these programs on one core,
 so on two cores the check costs the longer of the two solves, not their sum. It is taken where

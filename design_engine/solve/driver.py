@@ -196,13 +196,20 @@ def _judged_at_half_steps(scene: Scene, steps: list, result, health: dict, solve
     verdict, reason = after_quarter_step(error, half_error, half, quarter, quarter_health, scene)
     if verdict == REJECT:
         return result, dict(health, half_step_error=half_error)
-    stands = ((half, half_result, dict(half_health, step_error=half_error)) if verdict == HALF
-              else (quarter, quarter_result, dict(quarter_health,
-                                                  step_error=half_error * REFINE**2)))
-    steps.append(Step(RESOLVE, stands[0], reason))
+    if verdict == HALF:
+        return _stands(steps, half, reason, on_step, half_result,
+                       dict(half_health, step_error=half_error))
+    return _stands(steps, quarter, reason, on_step, quarter_result,
+                   dict(quarter_health, step_error=half_error * REFINE**2))
+
+
+def _stands(steps: list, config: SolverConfig, reason: str, on_step, result, health) -> tuple:
+    """A judging solve (`config`, its `result` and `health`) that stands in place of the one it
+    judged: appended to `steps` as a RESOLVE (and shown to `on_step`); returns (result, health)."""
+    steps.append(Step(RESOLVE, config, reason))
     if on_step is not None:
         on_step(steps[-1])
-    return stands[1], stands[2]
+    return result, health
 
 
 def _judged_at_a_coarser_step(scene: Scene, steps: list, result, health: dict, solve, objective,
@@ -233,12 +240,10 @@ def _judged_at_a_coarser_step(scene: Scene, steps: list, result, health: dict, s
     half_health = dict(half_health, step_error=half_error)
     if next_config(half, half_health, scene) is not None:
         return result, dict(health, half_step_error=half_error)
-    steps.append(Step(RESOLVE, half, (
+    return _stands(steps, half, (
         f"{moved(error, order=order_of(cfg.solver))}: the half-step solve "
-        f"({half.solver.max_dt * 1e3:.1f} us) stands, its error by that pair {half_error:.2e}")))
-    if on_step is not None:
-        on_step(steps[-1])
-    return half_result, half_health
+        f"({half.solver.max_dt * 1e3:.1f} us) stands, its error by that pair {half_error:.2e}"),
+        on_step, half_result, half_health)
 
 
 def solve_with_policy(scene: Scene, config: SolverConfig,

@@ -20,8 +20,9 @@ The default policy, read off the work-precision and speed-up charts (README, `me
   h x omega_c <= CONTACT_STEP_LIMIT for the contact forces' step h and the solve's work-energy
   drift stays within ENERGY_TOLERANCE (`next_config`), and its objective moves by at most
   STEP_ERROR_TOLERANCE when the same start is solved at half the step (at COARSE x the step
-  for the fourth order: the driver, for a caller that gives its objective). A barrier past h with the drift within the tolerance
-  keeps the step and substeps the contact forces (multiple time stepping,
+  for the fourth order: the driver, for a caller that gives its objective). A barrier past h
+  with the drift within the tolerance keeps the step and substeps the contact forces
+  (multiple time stepping,
   `FixedStepVerlet.contact_substeps`, up to CONTACT_SUBSTEPS_MAX); a drift past the tolerance
   repeats the solve once at REFINE x the step when that is predicted to pass, else with
   adaptive Dopri8 at the reference tolerances with contact. A fixed step with contact that
@@ -644,12 +645,14 @@ def start_config(choice: SolverConfig, last: SolverConfig | None, health: dict |
         return choice
     if not past_cutoff(health["void_margin"], scene) and not is_fixed_step(last.solver):
         return choice
-    deep = past_cutoff(health.get("start_void_margin", np.inf), scene)
-    if is_fixed_step(choice.solver) and not is_fixed_step(last.solver):
-        return fourth_order(with_contact(choice)) if deep else with_contact(choice)
-    if (deep and is_fixed_step(choice.solver) and is_fixed_step(last.solver)
-            and order_of(last.solver) == 2 and getattr(last.solver, "refined", False)):
-        return fourth_order(with_contact(choice))
+    if is_fixed_step(choice.solver):
+        # Verlet's step check gave up on the last evaluation: Dopri8, or a refined Verlet step
+        gave_up = not is_fixed_step(last.solver) or (order_of(last.solver) == 2
+                                                     and getattr(last.solver, "refined", False))
+        if gave_up and past_cutoff(health.get("start_void_margin", np.inf), scene):
+            return fourth_order(with_contact(choice))
+        if not is_fixed_step(last.solver):
+            return with_contact(choice)
     if is_fixed_step(last.solver) and getattr(last.solver, "refined", False):
         top = (choice.solver.max_dt if is_fixed_step(choice.solver)
                else last.solver.max_dt / REFINE)

@@ -1,5 +1,5 @@
 """The fourth-order step and its coarser check, against Verlet's half steps, on scenes whose
-pulse starts in contact: the evidence behind `policy.START_IN_CONTACT_ORDER`, `policy.COARSE`
+pulse starts in contact: the evidence behind `policy.CONTACT_ORDER`, `policy.COARSE`
 and `policy.COARSE_CHECK_ORDER`.
 
 For each design (evaluations `--evals` of a `metarig design` run folder of `--task`) and scene

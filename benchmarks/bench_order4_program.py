@@ -1,7 +1,8 @@
 """The fourth-order step's value-and-gradient program, from this checkout and from an earlier
 one, side by side: its first call (tracing and compilation included) and its second, on the
 protection scene at 8 % (24x18, the focus-vs-protect run's scene in deep static contact), by
-the policy's configuration there with the fourth order (`policy.fourth_order`).
+the policy's configuration there with the fourth order and 4 contact substeps (as the policy
+took it when the results were written).
 
     git worktree add /tmp/before REF --detach
     .venv/bin/python benchmarks/bench_order4_program.py --before /tmp/before --repeats 2 \
@@ -25,13 +26,15 @@ from machine import describe
 ROOT = Path(__file__).resolve().parent.parent
 
 CHILD = """
-import json, time
+import dataclasses, json, time
 import jax
 from design_engine.physics.scenes import build_scene
 from design_engine.solve import run as run_mod
-from design_engine.solve.policy import choose_config, fourth_order
+from design_engine.solve.policy import choose_config
 scene = build_scene("protection-24x18", strain=0.08)
-config = fourth_order(choose_config(scene).config)
+config = choose_config(scene).config
+config = dataclasses.replace(config, solver=dataclasses.replace(
+    config.solver, order=4, contact_substeps=4, refined=False))
 value_and_grad = run_mod.make_objective(scene, config)[0]
 t = time.perf_counter(); jax.block_until_ready(value_and_grad(scene.design))
 first = time.perf_counter() - t

@@ -17,6 +17,7 @@ from design_engine.solve.driver import (CONTINUED, FALLBACK, REFERENCE_RETRY, RE
                                         PolicyFailed, decide, solve_with_policy)
 from design_engine.solve.fixed_step import FixedStepVerlet
 from design_engine.solve.policy import (CHECKPOINT_BYTES_PER_DOF, CONTACT_ENTRY_SUBSTEPS,
+                                        CONTACT_ORDER,
                                         ENERGY_TOLERANCE, GRADIENT_ATOL,
                                         GRADIENT_CHECKPOINT_BYTES, REFINE, contact_config,
                                         fallback_config, for_gradient, refined, start_config,
@@ -25,6 +26,10 @@ from design_engine.solve.run import config_summary
 from design_engine.solve.simulate import SimulationError, SolverConfig, StepBudgetError
 
 VERLET = SolverConfig(solver=FixedStepVerlet(max_dt=0.01), use_contact=False)
+# Verlet itself with contact (the policy's `with_contact` takes the fourth order): the
+# second-order step's own judge, at half and a quarter of its step
+VERLET_CONTACT = SolverConfig(solver=FixedStepVerlet(max_dt=0.01, contact_substeps=4),
+                              use_contact=True)
 
 
 @pytest.fixture(scope="module")
@@ -67,7 +72,9 @@ def test_voids_at_the_cutoff_are_re_solved_with_contact_at_the_same_step(scene):
     assert [s.kind for s in out.steps] == [START, RESOLVE] and seen == [out.steps[1]]
     assert out.config.use_contact and out.config.solver.max_dt == VERLET.solver.max_dt
     assert out.config.solver.contact_substeps == CONTACT_ENTRY_SUBSTEPS
-    assert "contact cutoff" in out.resolves[0] and out.result == "result 2"
+    assert out.config.solver.order == CONTACT_ORDER == 4 and out.config.dtype == VERLET.dtype
+    assert "contact cutoff" in out.resolves[0] and "fourth order" in out.resolves[0]
+    assert out.result == "result 2"
 
 
 def test_a_drifting_fixed_step_is_refined_then_handed_to_dopri8(scene):
@@ -264,7 +271,7 @@ def test_a_solve_in_contact_is_judged_at_half_its_step_too(scene):
 
     tol = STEP_ERROR_TOLERANCE
     span = float(scene.material.contact_cutoff - scene.material.contact_min)
-    contact = with_contact(VERLET)
+    contact = VERLET_CONTACT
     started = healthy(scene, void_margin=0.5 * span, start_void_margin=0.5 * span)
     assert needs_step_check(contact, started, scene)
     # contact entered under the pulse (the ledger alone let solves 2.6e-4 to 9.7e-4 off J stand
@@ -317,7 +324,7 @@ def test_the_driver_judges_a_solve_in_contact_at_half_its_step(scene):
 
     tol = STEP_ERROR_TOLERANCE
     span = float(scene.material.contact_cutoff - scene.material.contact_min)
-    contact = with_contact(VERLET)
+    contact = VERLET_CONTACT
     half, quarter = refined(contact), refined(refined(contact))
     started = healthy(scene, void_margin=0.5 * span, start_void_margin=0.5 * span)
 
@@ -384,10 +391,10 @@ def test_a_fourth_order_solve_in_contact_is_judged_at_a_coarser_step(scene):
 
     tol = STEP_ERROR_TOLERANCE
     span = float(scene.material.contact_cutoff - scene.material.contact_min)
-    fourth = with_contact(dataclasses.replace(VERLET, solver=dataclasses.replace(
-        VERLET.solver, order=4)))
+    fourth = with_contact(VERLET)
+    assert fourth.solver.order == 4
     coarse, half = check_config(fourth), refined(fourth)
-    assert check_config(with_contact(VERLET)) == refined(with_contact(VERLET))
+    assert check_config(VERLET_CONTACT) == refined(VERLET_CONTACT)
     assert coarse.solver.max_dt == pytest.approx(COARSE * fourth.solver.max_dt)
     assert coarse.solver.order == 4 and not coarse.solver.refined
     assert relative_step_error(1.0, 1.0 + 3e-4) == pytest.approx(4e-4)
@@ -432,31 +439,21 @@ def test_a_fourth_order_solve_in_contact_is_judged_at_a_coarser_step(scene):
     assert solve.calls == [fourth, coarse, half] and out.config == half
 
 
-def test_a_scene_that_starts_in_contact_goes_on_by_the_fourth_order(scene):
-    """`policy.start_config` where the pulse starts in contact (the solve's
-    "start_void_margin" past the cutoff: a static pre-compression in deep contact): after a
-    Verlet step that ended refined (its half-step check sent it there) or after Dopri8, the
-    next evaluation goes on by the fourth order at the choice's step, and the fourth order
-    then continues; where contact was entered under the pulse, the refined step climbs back
-    and Dopri8 gives Verlet its chance again, as before."""
-    from design_engine.solve.policy import fourth_order
-
+def test_a_run_in_contact_goes_on_by_the_fourth_order(scene):
+    """`policy.start_config` after an evaluation in contact: the fourth order (`with_contact`)
+    continues, after Dopri8 it gets its chance again at the choice's step, and a refined
+    fourth order (its half stood) climbs back one halving an evaluation, whether the pulse
+    started in contact or entered it."""
     span = float(scene.material.contact_cutoff - scene.material.contact_min)
-    choice = with_contact(VERLET)
-    deep = healthy(scene, void_margin=0.5 * span, start_void_margin=0.5 * span)
-    under = healthy(scene, void_margin=0.5 * span, start_void_margin=2.0 * span)
-    fourth = fourth_order(choice)
-    assert fourth.solver.order == 4 and fourth.solver.max_dt == choice.solver.max_dt
-    assert not fourth.solver.refined
-    half = refined(choice)
-    assert start_config(choice, half, deep, scene) == fourth
-    assert start_config(choice, refined(half), deep, scene) == fourth
-    assert start_config(choice, contact_config(), deep, scene) == fourth
-    assert start_config(choice, fourth, deep, scene) == fourth
-    assert start_config(choice, half, under, scene) == choice
-    assert start_config(choice, contact_config(), under, scene) == choice
-    # a refined fourth order (its half stood) climbs back as Verlet's does
-    assert start_config(choice, refined(fourth), deep, scene) == fourth
+    fourth = with_contact(VERLET)
+    assert fourth.solver.order == 4 and fourth.solver.max_dt == VERLET.solver.max_dt
+    assert not fourth.solver.refined and fourth.use_contact
+    for start in (0.5 * span, 2.0 * span):
+        health = healthy(scene, void_margin=0.5 * span, start_void_margin=start)
+        assert start_config(VERLET, fourth, health, scene) == fourth
+        assert start_config(VERLET, contact_config(), health, scene) == fourth
+        assert start_config(VERLET, refined(refined(fourth)), health, scene) == refined(fourth)
+        assert start_config(VERLET, refined(fourth), health, scene) == fourth
 
 
 class ByConfig:
@@ -492,7 +489,7 @@ def test_a_half_step_solve_started_ahead_changes_nothing_but_the_thread(scene):
 
     tol = STEP_ERROR_TOLERANCE
     span = float(scene.material.contact_cutoff - scene.material.contact_min)
-    contact = with_contact(VERLET)
+    contact = VERLET_CONTACT
     half, quarter = refined(contact), refined(refined(contact))
     started = healthy(scene, void_margin=0.5 * span, start_void_margin=0.5 * span)
     drift = dict(started, energy_error=2 * ENERGY_TOLERANCE)  # refining predicted to pass
@@ -543,7 +540,7 @@ def test_the_step_is_differentiated_while_the_half_step_solve_that_judges_it_run
 
     tol = STEP_ERROR_TOLERANCE
     span = float(scene.material.contact_cutoff - scene.material.contact_min)
-    contact = with_contact(VERLET)
+    contact = VERLET_CONTACT
     half, quarter = refined(contact), refined(refined(contact))
     started = healthy(scene, void_margin=0.5 * span, start_void_margin=0.5 * span)
     substepped = with_substeps(contact, CONTACT_SUBSTEPS_MAX)

@@ -136,7 +136,7 @@ def test_a_rejected_fixed_step_is_substepped_or_refined_once_when_that_can_pass_
     keeps the step and substeps the contact forces (2, 4, ... CONTACT_SUBSTEPS_MAX times); a
     drift past the tolerance re-solves once at REFINE x the step when that is predicted to pass
     (drift <= half the tolerance, Verlet being second order), else, and for a refined step
-    rejected again, with Dopri8."""
+    rejected again, with Dopri8. The fourth order is not held to the barrier's bound."""
     from design_engine.solve.policy import (CONTACT_STEP_LIMIT, CONTACT_SUBSTEPS_MAX,
                                             ENERGY_TOLERANCE, REFINE, contact_frequency,
                                             next_config, refined)
@@ -199,7 +199,10 @@ def test_a_rejected_fixed_step_is_substepped_or_refined_once_when_that_can_pass_
     # without contact terms any void past the cutoff asks for contact first
     cfg, why = next_config(SolverConfig(solver=verlet.solver, use_contact=False),
                            health(2.5 * CONTACT_STEP_LIMIT), scene)
-    assert cfg.use_contact and isinstance(cfg.solver, FixedStepVerlet)
+    assert cfg.use_contact and isinstance(cfg.solver, FixedStepVerlet) and cfg.solver.order == 4
+    # the fourth order is not held to the barrier (its step check judges it: `barrier_ratio`)
+    fourth = SolverConfig(solver=FixedStepVerlet(max_dt=dt, order=4))
+    assert next_config(fourth, health(7.9 * CONTACT_STEP_LIMIT), scene) is None
     # the frequency grows without bound toward the asymptote and is the rest value at the cutoff
     assert contact_frequency(span, mat, inertia) == pytest.approx(
         np.sqrt(2.0 * float(mat.k_contact) / inertia), rel=1e-12)
@@ -329,20 +332,22 @@ def test_a_forward_run_that_starts_in_contact_is_judged_at_half_its_step(jammed,
 
 def test_the_policy_objective_differentiates_only_the_solve_that_stands(jammed, jammed_choice,
                                                                          monkeypatch):
-    """`make_objective(scene)` under the policy, value and gradient: the small scene's fixed
-    step stands, with its half-step estimate; with the tolerance then set just below that
-    estimate, the step is rejected after its forward pass alone, the half-step solve that
-    judged it is judged in turn at a quarter of the step and stands (not solved again), and
-    the one reverse pass is the half step's: the value is that step's own objective, and the
-    gradient its central difference along a random direction. The call after it, the static
-    start being in contact, goes on by the fourth-order step, judged at 1.5 x its step, and
-    the same holds of its value and gradient."""
+    """`make_objective(scene)` under the policy, value and gradient: the small scene starts in
+    contact, so its fixed step is the fourth order (`policy.with_contact`), and it stands on its
+    estimate from the same start at 1.5 x its step (`policy.check_config`); with the tolerance
+    then set just below that estimate, the step is rejected after its forward pass alone, the
+    same start is solved at half the step, which stands on its error by the pair (not solved
+    again), and the one reverse pass is the half step's: the value is that step's own
+    objective, and the gradient its central difference along a random direction. The call
+    after it (tolerance restored) climbs back to the whole step, which stands and alone is
+    reversed."""
     from design_engine.solve import driver, policy
-    from design_engine.solve.policy import check_config, fourth_order, refined
+    from design_engine.solve.policy import check_config, refined
 
     x, config = jammed.design, jammed_choice.config
+    assert config.solver.order == 4 and config.use_contact
     passes, estimates = {"forward": [], "reverse": []}, []
-    split, estimate = run_mod._split_objective, driver.relative_step_error
+    split, estimate = run_mod._split_objective, driver.coarse_step_error
 
     def spy(scene, cfg, weights):
         forward, reverse = split(scene, cfg, weights)
@@ -350,42 +355,36 @@ def test_the_policy_objective_differentiates_only_the_solve_that_stands(jammed, 
                 (lambda *a: (passes["reverse"].append(cfg), reverse(*a))[1]))
 
     monkeypatch.setattr(run_mod, "_split_objective", spy)
-    monkeypatch.setattr(driver, "relative_step_error",
+    monkeypatch.setattr(driver, "coarse_step_error",
                         lambda *a: (estimates.append(estimate(*a)), estimates[-1])[1])
     value_and_grad = run_mod.make_objective(jammed)[0]
     value_and_grad(x)
-    assert passes == {"forward": [config, refined(config)], "reverse": [config]}
+    coarse, half = check_config(config), refined(config)
+    assert passes == {"forward": [config, coarse], "reverse": [config]}
     assert len(estimates) == 1
     passes["forward"].clear()
     passes["reverse"].clear()
     tolerance = policy.STEP_ERROR_TOLERANCE
     monkeypatch.setattr(policy, "STEP_ERROR_TOLERANCE", 0.9 * estimates[0])
     (value, _), grad = value_and_grad(x)
-    half = refined(config)
-    assert passes == {"forward": [config, half, refined(half)], "reverse": [half]}
-    assert estimates[1] == pytest.approx(estimates[0], rel=1e-9) and estimates[2] < estimates[1]
-    # the refined step's own value program (it compiles in 5.6 s cold, a value and gradient
-    # program in 14 s): its value, and its central difference along a random direction,
-    # which agrees within 2.6e-8 here: the difference's truncation error (h^2, h = 1e-4 mm) and
-    # the static solve's residual leave it well within 1e-5 on any machine
-    value_of = run_mod.make_objective(jammed, refined(config))[1]
+    assert passes == {"forward": [config, coarse, half], "reverse": [half]}
+    assert estimates[1] == pytest.approx(estimates[0], rel=1e-9)
+    # the half step's own value program; its central difference along a random direction at
+    # h = 3e-5 mm (the fourth order's truncation error: 1.5e-5 of the derivative at 1e-4 mm,
+    # 7e-7 at 3e-5 on this scene at half the step)
+    value_of = run_mod.make_objective(jammed, half)[1]
     assert float(value) == pytest.approx(float(value_of(x)[0]), rel=1e-12)
-    d, fd = central_difference(value_of, x, h=1e-4, seed=3)
+    d, fd = central_difference(value_of, x, h=3e-5, seed=3)
     assert float(np.dot(np.asarray(grad), d)) == pytest.approx(fd, rel=1e-5)
-    # the pulse starts in contact and the step ended refined: the next call goes on by the
-    # fourth order at the chosen step (`policy.start_config`), judged at 1.5 x that step
-    # (`policy.check_config`), where it stands (tolerance restored) and alone is reversed
+    # the next call climbs back to the chosen step (`policy.start_config`), judged at 1.5 x
+    # that step, where it stands (tolerance restored) and alone is reversed
     passes["forward"].clear()
     passes["reverse"].clear()
     monkeypatch.setattr(policy, "STEP_ERROR_TOLERANCE", tolerance)
     (value, _), grad = value_and_grad(x)
-    fourth = fourth_order(config)
-    assert fourth.solver.order == 4 and fourth.solver.max_dt == config.solver.max_dt
-    assert passes == {"forward": [fourth, check_config(fourth)], "reverse": [fourth]}
-    assert len(estimates) == 3  # the fourth order's estimate is not Verlet's
-    # its own value program; the central difference at h = 3e-5 mm (its truncation error:
-    # 1.5e-5 of the derivative at 1e-4 mm, 7e-7 at 3e-5 on the same scene at half the step)
-    value_of = run_mod.make_objective(jammed, fourth)[1]
+    assert passes == {"forward": [config, coarse], "reverse": [config]}
+    assert len(estimates) == 3
+    value_of = run_mod.make_objective(jammed, config)[1]
     assert float(value) == pytest.approx(float(value_of(x)[0]), rel=1e-12)
     d, fd = central_difference(value_of, x, h=3e-5, seed=3)
     assert float(np.dot(np.asarray(grad), d)) == pytest.approx(fd, rel=1e-5)

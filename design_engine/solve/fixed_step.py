@@ -183,8 +183,7 @@ class FixedStepVerlet(AbstractFixedStep):
             step (multiple time stepping, see `integrate`); 1 steps them with the rest.
         order: 2, velocity Verlet; 4, each step a symmetric composition of five Verlet steps
             (`SUZUKI_4`: fourth order, five force evaluations a step, stable to dt x omega_max
-            = 2.72; the policy's step for a scene whose pulse starts in contact once
-            Verlet's step check gave up on it, `policy.START_IN_CONTACT_ORDER`).
+            = 2.72; the policy's step wherever contact is on, `policy.CONTACT_ORDER`).
     """
 
     max_dt: float = eqx.field(static=True, default=0.05)

@@ -12,27 +12,23 @@ The default policy, read off the work-precision and speed-up charts (README, `me
   that all void angles stayed above the contact cutoff at every sample, in which case the
   contact energy was identically zero and the result equals the full model's;
 - a solve whose voids reached the cutoff is repeated with contact at the same step and
-  precision (from the first solve, in float64, when the static equilibrium already reaches
-  it; an optimiser's next evaluations there go on by the fourth-order composition of Verlet
-  steps, `FixedStepVerlet(order=4)`, once Verlet's step was refined or handed to Dopri8:
-  `start_config`), and that result stands
-  while the barrier's own frequency at the deepest void, omega_c (`contact_frequency`), keeps
-  h x omega_c <= CONTACT_STEP_LIMIT for the contact forces' step h and the solve's work-energy
-  drift stays within ENERGY_TOLERANCE (`next_config`), and its objective moves by at most
-  STEP_ERROR_TOLERANCE when the same start is solved at half the step (at COARSE x the step
-  for the fourth order: the driver, for a caller that gives its objective). A barrier past h
-  with the drift within the tolerance keeps the step and substeps the contact forces
-  (multiple time stepping,
-  `FixedStepVerlet.contact_substeps`, up to CONTACT_SUBSTEPS_MAX); a drift past the tolerance
-  repeats the solve once at REFINE x the step when that is predicted to pass, else with
-  adaptive Dopri8 at the reference tolerances with contact. A fixed step with contact that
-  failed is repeated once with CONTACT_SUBSTEPS_MAX substeps, then (as any other failed
-  fixed-step solve) with Dopri8. A fixed step takes the contact terms with
-  CONTACT_ENTRY_SUBSTEPS substeps from its first solve with them. An optimiser's next
+  precision by the fourth-order composition of Verlet steps (`FixedStepVerlet(order=4)`,
+  CONTACT_ORDER: five force evaluations a step, the contact forces with the rest; from the
+  first solve, in float64, when the static equilibrium already reaches the cutoff), and that
+  result stands while the solve's work-energy drift stays within ENERGY_TOLERANCE
+  (`next_config`) and its objective moves by at most STEP_ERROR_TOLERANCE when the same start
+  is solved at COARSE x the step (the driver, for a caller that gives its objective). A drift
+  past the tolerance repeats the solve once at REFINE x the step when that is predicted to
+  pass, else with adaptive Dopri8 at the reference tolerances with contact. A fixed step with
+  contact that failed is repeated once with its contact forces substepped
+  CONTACT_SUBSTEPS_MAX times, then (as any other failed fixed-step solve) with Dopri8. (Verlet
+  with contact, for a caller that asks for it, is also held to h x omega_c <= CONTACT_STEP_LIMIT,
+  omega_c the barrier's own frequency at the deepest void, `contact_frequency`, by substepping
+  the contact forces, and judged at half its step.) An optimiser's next
   evaluation starts where the last one ended while that was in contact, with a fixed step with
   contact for the rest of the run (a refined step climbing back one halving an evaluation
-  toward the chosen step unless its drift or the barrier predicts a failure), with the fixed
-  step if that was Dopri8 (`start_config`);
+  toward the chosen step unless its drift predicts a failure), with the fixed step if that was
+  Dopri8 (`start_config`);
 - the dynamic pre-compression ramp (`precompression="ramp"`, the reference's protocol):
   adaptive Dopri8 at the reference tolerances with contact (the ramp lasts 40-320 ms).
 `full_model=True` forces the reference configuration (Dopri5, spec tolerances).
@@ -56,8 +52,8 @@ from design_engine.solve.fixed_step import FixedStepVerlet, is_fixed_step
 from design_engine.solve.simulate import SolverConfig, static_state
 
 STABILITY_SAFETY = 0.6  # fraction of the Verlet stability limit 2 / omega_max
-# largest dt x omega_c (the contact barrier's own frequency at the deepest void) a fixed step
-# with contact may take: with dt x omega_max <= 1.2 it keeps dt x sqrt(omega_max^2 + omega_c^2)
+# largest dt x omega_c (the contact barrier's own frequency at the deepest void) a Verlet step
+# with contact may take (the fourth order's step check judges it instead: `barrier_ratio`): with dt x omega_max <= 1.2 it keeps dt x sqrt(omega_max^2 + omega_c^2)
 # within 0.8 x the stability limit 2 (measured: 0.45 on the 24x16 focusing design in contact and
 # 0.95 on 24x18 at 8 % pre-compression, both within 1e-4 of J)
 CONTACT_STEP_LIMIT = 1.0
@@ -77,16 +73,20 @@ REFINE = 0.5
 # a tenth of a force evaluation), where halving the step doubled every force evaluation
 CONTACT_SUBSTEPS_MAX = 8
 # a fixed step takes the contact terms with this many substeps from its first solve with them
-# (`with_contact`): on the focusing runs a solve in contact cost 10 % more with 4 substeps than
-# with none when run alone (3.0-3.5 against 2.6-2.9 s), up to 60 % beside another run, where
-# entering with none cost a rejected solve and one more compiled program (10-30 s) each time the
-# barrier outgrew the step (benchmarks/bench_focusing_run.py)
-CONTACT_ENTRY_SUBSTEPS = 4
+# (`with_contact`): none apart, the fourth order steps them with the rest. On a focus-vs-protect
+# design at 8 % the fourth order at the policy's step was within 4.3e-9 of J with none, 1.5e-5
+# and 1.4e-5 with 2 and 4 substeps, in 4.3 s against 6.7 and 8.3 s (the splitting's own error
+# and cost); on a focusing design and the 1 % scene, within 1.5e-5 and 4.6e-8 to 7.3e-6 in 0.5-0.6
+# x the time of 4 substeps (benchmarks/bench_order4_substeps.py ->
+# bench_order4_substeps_{8pct,focusing,1pct}_amd.json). (Verlet entered contact with 4: its
+# barrier criterion, CONTACT_STEP_LIMIT, then held at once)
+CONTACT_ENTRY_SUBSTEPS = 1
 # a fixed-step solve with contact whose voids reached the cutoff, at its start (a static
 # pre-compression past it) or under the pulse, is also judged on the objective itself: the
-# driver solves the same start at half the step (`driver.solve_with_policy(objective=...)`),
-# and a J that moves by more than this (x 4/3, Richardson: the error of the whole step) does
-# not stand. The half-step solve is then judged
+# driver solves the same start at half the step (`driver.solve_with_policy(objective=...)`;
+# the fourth order's, CONTACT_ORDER, at COARSE x the step, below), and a J that moves by more
+# than this (x 4/3, Richardson: the error of the whole step) does not stand. Verlet's
+# half-step solve is then judged
 # at its own half when the quarter of the step is predicted to pass (`after_half_step`): it
 # stands when its own estimate passes; else the quarter-step solve stands when its error by
 # that pair (a quarter of it) passes and the two changes shrink as a second-order step's
@@ -101,18 +101,19 @@ CONTACT_ENTRY_SUBSTEPS = 4
 # this estimate was 0.75-1.5x their error (README, "Contact under the pulse")
 STEP_ERROR_TOLERANCE = 1e-4
 STEP_CONVERGENCE_MIN = 2.0
-# an optimiser's scene whose pulse starts in contact (a static pre-compression past the
-# cutoff), once Verlet's step check has sent it to a refined step or to Dopri8, goes on with
-# the fourth-order composition of Verlet steps (`FixedStepVerlet(order=4)`, five force
-# evaluations a step) at the step Verlet would take (`start_config`). Not from the start:
-# where Verlet at that step stands (a focus-vs-protect run's evaluations 2-5) an evaluation
-# took 2.8-3.2 s, against 7.1-7.9 s with the fourth order from the first solve
-# (bench_fvp_run_order4_start_amd.json). In deep contact, on three designs of that run
-# at 8 % it was within 7.8e-6 to 1.4e-5 of J with the gradient at cosine >= 0.9999992, its
-# value and gradient in 1.0-1.2 x the time of Verlet at a quarter of the step (where Verlet's
-# half-step check sent them), which missed J by 1.6e-5 to 1.7e-4 with cosines down to
-# 0.9999873 (benchmarks/bench_order4_check.py -> bench_order4_check_amd.json)
-START_IN_CONTACT_ORDER = 4
+# a fixed step with contact goes by the fourth-order composition of Verlet steps
+# (`FixedStepVerlet(order=4)`, five force evaluations a step) at the step Verlet would take
+# (`with_contact`). Verlet's own gradient converges slowly in contact: on designs where the
+# pulse reaches the cutoff (a focusing run's evaluation 13, a focus-vs-protect run's 1 % scene)
+# Verlet at the policy's step gave cosines of 0.99987-0.99997 against Dopri8 at rtol 1e-10,
+# halving the step did not always help (0.99993 -> 0.99987), and float64 gave the same
+# (README, "Evaluation 13's gradient"), where the fourth order at the same step gave
+# 0.9999998-1.0000000 with J within 4.6e-8 (float64) to 1.5e-5 (float32) in 1.9-2.1 x
+# Verlet's time with one contact substep (benchmarks/bench_order4_substeps.py ->
+# bench_order4_substeps_{1pct,focusing,8pct}_amd.json). In deep static contact (8 %) it was
+# within 7.8e-6 to 1.4e-5 of J, cosine >= 0.9999992, where Verlet's half-step check sent
+# those designs to a quarter of the step (benchmarks/bench_order4_check.py)
+CONTACT_ORDER = 4
 # ... and its step check solves the same start at COARSE x the step, not half of it (0.7 x the
 # cost of the solve it judges, where half the step costs 2 x), taking the change as of order
 # COARSE_CHECK_ORDER: at 1.5 x the step (dt x omega_max = 1.8, the composition's stability
@@ -255,8 +256,8 @@ def choose_config(scene: Scene, *, full_model: bool = False,
         *(("forces by the native custom calls (physics.native): the same force to rounding, "
            "3-5x faster per evaluation",) if native else ()),
         "contact terms left out while every void stays above the contact cutoff (checked after "
-        "each solve; exact then, else re-solved with contact at the same step while the "
-        f"barrier's own frequency stays below {CONTACT_STEP_LIMIT:g} / dt, else with Dopri8)",
+        "each solve; exact then, else re-solved with contact by the fourth order at the same "
+        "step, judged at a coarser step, else with Dopri8)",
     )
     if ld.strain > 0.0:
         reasons += ("static pre-compression: the pulse starts from rest in the equilibrium under "
@@ -275,7 +276,7 @@ def choose_config(scene: Scene, *, full_model: bool = False,
         config = with_contact(dataclasses.replace(config, dtype="float64"))
         reasons += (f"the static pre-compression already closes voids past the contact cutoff "
                     f"({np.degrees(margin):.2f} deg above the asymptote): contact terms on, "
-                    "float64, from the first solve",)
+                    "by the fourth order, float64, from the first solve",)
     return Choice(config, reasons, omega)
 
 
@@ -371,8 +372,9 @@ def needs_contact(config: SolverConfig, min_void_margin: float, scene: Scene) ->
 
 def with_contact(config: SolverConfig) -> SolverConfig:
     """Configuration for a scene whose voids reached the contact cutoff: the same fixed step, in
-    the same precision, with the contact terms and CONTACT_ENTRY_SUBSTEPS contact substeps
-    (checked by `next_config`), or Dopri8 for an adaptive solve.
+    the same precision, by the fourth-order composition of Verlet steps (CONTACT_ORDER), with
+    the contact terms and at least CONTACT_ENTRY_SUBSTEPS contact substeps (checked by
+    `next_config`), or Dopri8 for an adaptive solve.
 
     The precision is kept: float32 for contact entered under the pulse (the default choice),
     float64 for a static pre-compression already in contact (`choose_config`). On the energy
@@ -380,12 +382,15 @@ def with_contact(config: SolverConfig) -> SolverConfig:
     where the step is right (the optimised 24x16 focusing design: 1.4e-5 of J; 12x10 at 5 and
     8 %: 5.1e-5 and 1.4e-4 against float64's 6.8e-5 and 1.2e-4) and its wrong solves drift as
     far past the tolerance (8x6 at 44 deg under 4 and 6 mm pulses: 3.1e-3 and 2.2e-3, J off by
-    37 % and 53 %), so the work-energy check rejects them in either precision."""
+    37 % and 53 %), so the work-energy check rejects them in either precision; with the fourth
+    order, float32 changed J by up to 1.5e-5 and the gradient's cosine by 1e-7
+    (bench_order4_substeps_*_amd.json)."""
     if is_fixed_step(config.solver) and config.solver.stability_limited:
         config = dataclasses.replace(config, use_contact=True)
         if hasattr(config.solver, "contact_substeps"):
-            config = with_substeps(config, max(config.solver.contact_substeps,
-                                               CONTACT_ENTRY_SUBSTEPS))
+            config = dataclasses.replace(config, solver=dataclasses.replace(
+                config.solver, order=CONTACT_ORDER,
+                contact_substeps=max(config.solver.contact_substeps, CONTACT_ENTRY_SUBSTEPS)))
         return config
     return contact_config()
 
@@ -407,6 +412,19 @@ def contact_step_ratio(solver, health: dict, scene: Scene) -> float:
     return (solver.max_dt / getattr(solver, "contact_substeps", 1)
             * contact_frequency(float(health["void_margin"]), scene.material,
                                 float(health["min_inertia"]), scene.model))
+
+
+def barrier_ratio(config: SolverConfig, health: dict, scene: Scene) -> float:
+    """The h x omega_c that `next_config` holds to CONTACT_STEP_LIMIT: Verlet's with contact
+    (`contact_step_ratio`); 0 for the fourth order, which its step check judges instead. There
+    the bound on omega_c came out at 1.4-4.2 / h with one contact substep (the stage's own
+    step 0.66 h) on solves within 4.3e-9 to 1.5e-5 of J, where substepping the contact
+    forces to bring it within 1 made J worse, 1.4e-5 to 7.6e-5 off, in 1.5-2.2 x the time
+    (bench_order4_substeps_{8pct,focusing}_amd.json): a bound, not the barrier's frequency,
+    and the composition is stable to dt x omega_max = 2.72 with the barrier in omega_max."""
+    if not (config.use_contact and is_fixed_step(config.solver)) or order_of(config.solver) != 2:
+        return 0.0
+    return contact_step_ratio(config.solver, health, scene)
 
 
 def relative_step_error(value: float, other: float, ratio: float = REFINE,
@@ -558,7 +576,8 @@ def next_config(config: SolverConfig, health: dict, scene: Scene) -> tuple[Solve
     margin = float(health["void_margin"])
     if needs_contact(config, margin, scene):
         nxt = with_contact(config)
-        how = ("Verlet at the same step" if is_fixed_step(nxt.solver) else "adaptive Dopri8")
+        how = ("the fourth order at the same step" if is_fixed_step(nxt.solver)
+               else "adaptive Dopri8")
         return nxt, f"a void reached the contact cutoff: re-solved with contact ({how})"
     solver = config.solver
     if not (is_fixed_step(solver) and solver.stability_limited):
@@ -569,7 +588,7 @@ def next_config(config: SolverConfig, health: dict, scene: Scene) -> tuple[Solve
         return contact_config(), f"{why}: re-solved with adaptive Dopri8"
     drift = float(health.get("energy_error", 0.0))
     substeps = getattr(solver, "contact_substeps", 1)
-    ratio = contact_step_ratio(solver, health, scene) if config.use_contact else 0.0
+    ratio = barrier_ratio(config, health, scene)
     faults = []
     if not drift <= ENERGY_TOLERANCE:
         faults.append(f"the work-energy balance drifted by {drift:.1e} of the energy the solve "
@@ -630,29 +649,17 @@ def start_config(choice: SolverConfig, last: SolverConfig | None, health: dict |
     design a step away may be accepted at it. A refined step (`refined`) climbs back one
     halving an evaluation toward the choice's step (marked refined while below it), unless the
     last solve predicts that step would be rejected again by the work-energy balance (its drift
-    x 1 / REFINE^2, Verlet being second order, above half the tolerance) or the barrier (past
-    the larger step). Its half-step estimate is not such a prediction: the step check solves
-    the same start at half and a quarter of the larger step, and a half that stands is that
-    solve (`after_quarter_step`), so a failed climb costs one forward solve at the larger step,
-    where a step that never climbed would stay halved for the rest of the run. Where the
-    pulse starts in contact (`health`'s "start_void_margin" past the cutoff: a static
-    pre-compression in deep contact), a Verlet step that ended refined, or Dopri8, is followed
-    instead by the fourth-order step at the choice's step (`fourth_order`), which then
-    continues as any fixed step with contact does (START_IN_CONTACT_ORDER). Either way
+    x 1 / REFINE^order above half the tolerance) or the barrier (past the larger step). Its
+    step estimate is not such a prediction: a failed climb costs one forward solve at the larger
+    step, where a step that never climbed would stay halved for the rest of the run. Either way
     `next_config` and the step check still judge the result, so this changes the cost, not the
     answer."""
     if last is None or health is None or last == choice or not last.use_contact:
         return choice
     if not past_cutoff(health["void_margin"], scene) and not is_fixed_step(last.solver):
         return choice
-    if is_fixed_step(choice.solver):
-        # Verlet's step check gave up on the last evaluation: Dopri8, or a refined Verlet step
-        gave_up = not is_fixed_step(last.solver) or (order_of(last.solver) == 2
-                                                     and getattr(last.solver, "refined", False))
-        if gave_up and past_cutoff(health.get("start_void_margin", np.inf), scene):
-            return fourth_order(with_contact(choice))
-        if not is_fixed_step(last.solver):
-            return with_contact(choice)
+    if is_fixed_step(choice.solver) and not is_fixed_step(last.solver):
+        return with_contact(choice)
     if is_fixed_step(last.solver) and getattr(last.solver, "refined", False):
         top = (choice.solver.max_dt if is_fixed_step(choice.solver)
                else last.solver.max_dt / REFINE)
@@ -660,16 +667,9 @@ def start_config(choice: SolverConfig, last: SolverConfig | None, health: dict |
         up = dataclasses.replace(last, solver=dataclasses.replace(last.solver, max_dt=dt,
                                                                   refined=dt < top))
         if passes(float(health.get("energy_error", 0.0)) / REFINE**order_of(last.solver),
-                  contact_step_ratio(up.solver, health, scene)):
+                  barrier_ratio(up, health, scene)):
             return up
     return last
-
-
-def fourth_order(config: SolverConfig) -> SolverConfig:
-    """The same fixed-step configuration by the fourth-order composition of Verlet steps
-    (START_IN_CONTACT_ORDER), not marked refined."""
-    return dataclasses.replace(config, solver=dataclasses.replace(
-        config.solver, order=START_IN_CONTACT_ORDER, refined=False))
 
 
 def fallback_config() -> tuple[SolverConfig, str]:

@@ -28,10 +28,9 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-from bench_step_convergence import TIGHT, _solve, _value_and_grad, policy_config
+from bench_step_convergence import TIGHT, _solve, _value_and_grad, against, policy_config
 from machine import describe
-from run_folder import run_designs
+from run_folder import add_run_arguments, run_designs
 
 HERE = Path(__file__).resolve().parent
 
@@ -95,10 +94,7 @@ def gradient_rows(scene) -> dict:
     for label, config in (("order 4 at h", at(base, 4, 1.0)),
                           ("Verlet at h/4", at(base, 2, 0.25))):
         j, g, wall, _ = _value_and_grad(scene, config)
-        out[label] = {"J_rel_err": abs(j - ref_j) / abs(ref_j),
-                      "grad_cosine": float(g @ ref_g / (np.linalg.norm(g)
-                                                        * np.linalg.norm(ref_g))),
-                      "value_and_grad_s": wall}
+        out[label] = {**against(j, g, ref_j, ref_g), "value_and_grad_s": wall}
         print(f"  {label}: value and gradient cosine {out[label]['grad_cosine']:.7f} in "
               f"{wall:.1f} s", flush=True)
     return out
@@ -106,10 +102,7 @@ def gradient_rows(scene) -> dict:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--task", default="focus-vs-protect")
-    p.add_argument("--scene", default="strain_8pct")
-    p.add_argument("--run", type=Path, required=True, help="a `metarig design` run folder")
-    p.add_argument("--evals", nargs="+", type=int, required=True)
+    add_run_arguments(p, "strain_8pct")
     p.add_argument("--gradients", action="store_true")
     p.add_argument("--name", default="bench_order4_check")
     p.add_argument("--out", type=Path, default=HERE / "results")
@@ -118,10 +111,7 @@ def main(argv=None) -> int:
 
     from design_engine.solve.simulate import SolverConfig
 
-    task, xs = run_designs(p, args.task, args.run, args.scene)
-    bad = [e for e in args.evals if not 1 <= e <= len(xs)]
-    if bad:
-        p.error(f"the run holds evaluations 1-{len(xs)}, not {bad}")
+    task, xs = run_designs(p, args.task, args.run, args.scene, args.evals)
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / f"{args.name}.json"
     doc = json.loads(path.read_text()) if path.exists() else {"designs": {}}

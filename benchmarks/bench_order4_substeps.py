@@ -26,18 +26,11 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from bench_step_convergence import TIGHT, _value_and_grad, policy_config
+from bench_step_convergence import TIGHT, _value_and_grad, against, policy_config
 from machine import describe
-from run_folder import run_designs
+from run_folder import add_run_arguments, run_designs
 
 HERE = Path(__file__).resolve().parent
-
-
-def compare(j: float, g: np.ndarray, ref_j: float, ref_g: np.ndarray) -> dict:
-    """J's relative error, the gradient's cosine and relative error against the reference's."""
-    return {"J_rel_err": abs(j - ref_j) / abs(ref_j),
-            "grad_cosine": float(g @ ref_g / (np.linalg.norm(g) * np.linalg.norm(ref_g))),
-            "grad_rel_err": float(np.linalg.norm(g - ref_g) / np.linalg.norm(ref_g))}
 
 
 def configurations(scene, factors, substeps, dtype=None):
@@ -57,10 +50,7 @@ def configurations(scene, factors, substeps, dtype=None):
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--task", default="focus-vs-protect")
-    p.add_argument("--scene", default="strain_1pct")
-    p.add_argument("--run", type=Path, required=True, help="a `metarig design` run folder")
-    p.add_argument("--evals", nargs="+", type=int, required=True)
+    add_run_arguments(p, "strain_1pct")
     p.add_argument("--factors", nargs="+", type=float, default=[1.0, 1.5])
     p.add_argument("--substeps", nargs="+", type=int, default=[1, 2, 4])
     p.add_argument("--dtype", choices=["float32", "float64"],
@@ -75,10 +65,7 @@ def main(argv=None) -> int:
     from design_engine.solve.policy import contact_step_ratio
     from design_engine.solve.simulate import SimulationError, SolverConfig
 
-    task, xs = run_designs(p, args.task, args.run, args.scene)
-    bad = [e for e in args.evals if not 1 <= e <= len(xs)]
-    if bad:
-        p.error(f"the run holds evaluations 1-{len(xs)}, not {bad}")
+    task, xs = run_designs(p, args.task, args.run, args.scene, args.evals)
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / f"{args.name}.json"
     doc = json.loads(path.read_text()) if path.exists() else {"designs": {}}
@@ -104,7 +91,7 @@ def main(argv=None) -> int:
                    "machine": describe()}
             try:
                 j, g, wall, health = _value_and_grad(scene, config)
-                row.update(compare(j, g, ref_j, ref_g), value_and_grad_s=wall,
+                row.update(against(j, g, ref_j, ref_g), value_and_grad_s=wall,
                            energy_error=health.get("energy_error"),
                            contact_step_ratio=contact_step_ratio(config.solver, health, scene))
             except SimulationError as exc:

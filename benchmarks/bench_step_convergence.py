@@ -119,6 +119,13 @@ def _value_and_grad(scene, config):
     return j, g, wall, health
 
 
+def against(j: float, g: np.ndarray, ref_j: float, ref_g: np.ndarray) -> dict:
+    """J's relative error, the gradient's cosine and relative error against a reference's."""
+    return {"J_rel_err": abs(j - ref_j) / abs(ref_j),
+            "grad_cosine": float(g @ ref_g / (np.linalg.norm(g) * np.linalg.norm(ref_g))),
+            "grad_rel_err": float(np.linalg.norm(g - ref_g) / np.linalg.norm(ref_g))}
+
+
 def adaptive_row(scene, rtols: list[float], atols: list[float] = (FALLBACK[1],),
                  solver: str = "Dopri8") -> dict:
     """Value and gradient by the adaptive `solver` (a diffrax class name) with contact at each
@@ -136,10 +143,7 @@ def adaptive_row(scene, rtols: list[float], atols: list[float] = (FALLBACK[1],),
         j, g, wall, health = _value_and_grad(scene, config)
         steps = health.get("num_steps")
         rows.append({"solver": solver, "rtol": rtol, "atol": atol, "steps": steps,
-                     "J_rel_err": abs(j - ref_j) / abs(ref_j),
-                     "grad_cosine": float(g @ ref_g / (np.linalg.norm(g)
-                                                       * np.linalg.norm(ref_g))),
-                     "value_and_grad_s": wall})
+                     **against(j, g, ref_j, ref_g), "value_and_grad_s": wall})
     return {"reference_value_and_grad_s": ref_s, "rows": rows}
 
 
@@ -177,12 +181,7 @@ def gradient_row(scene, halvings: int, order: int = 2, dtype: str | None = None,
         try:
             j, g, wall, _ = _value_and_grad(scene, config)
             steps.append({"dt_us": config.solver.max_dt * 1e3,
-                          "J_rel_err": abs(j - ref_j) / abs(ref_j),
-                          "grad_cosine": float(g @ ref_g / (np.linalg.norm(g)
-                                                            * np.linalg.norm(ref_g))),
-                          "grad_rel_err": float(np.linalg.norm(g - ref_g)
-                                                / np.linalg.norm(ref_g)),
-                          "value_and_grad_s": wall})
+                          **against(j, g, ref_j, ref_g), "value_and_grad_s": wall})
         except SimulationError as exc:
             steps.append({"dt_us": config.solver.max_dt * 1e3, "error": str(exc)})
         config = refined(config)

@@ -90,8 +90,8 @@ def test_a_drifting_fixed_step_is_refined_then_handed_to_dopri8(scene):
 
 def test_only_the_result_that_stands_is_finished_and_a_failed_finish_is_a_failed_solve(scene):
     """`finish` (an optimiser's reverse pass) runs once, on the result that stands, never on
-    one the policy rejected; when it fails, that solve counts as failed (here a fixed step
-    with contact: re-solved with its contact forces substepped)."""
+    one the policy rejected; when it fails, that solve counts as failed (here the fourth order
+    with contact: re-solved at half the step)."""
     finished = []
 
     def finish(result):
@@ -111,7 +111,7 @@ def test_only_the_result_that_stands_is_finished_and_a_failed_finish_is_a_failed
     assert finished == ["result 2", "result 3"] and out.result == "result 3 finished"
     assert out.steps[-1].error == "non-finite gradient" and "substep" not in out.steps[1].reason
     assert [s.kind for s in out.steps] == [START, RESOLVE, RESOLVE]
-    assert out.config.solver.contact_substeps > out.steps[1].config.solver.contact_substeps
+    assert out.config == refined(out.steps[1].config)
 
 
 def test_a_failed_solve_falls_back_once_and_the_fallback_result_stands(scene):
@@ -215,10 +215,10 @@ def test_an_evaluation_after_one_in_contact_starts_with_contact(scene):
 
 
 def test_a_failed_fixed_step_with_contact_is_substepped_once_before_dopri8(scene):
-    """A fixed step with contact that diverged most likely met a barrier that outgrew it: the
-    same step with the contact forces substepped CONTACT_SUBSTEPS_MAX times, once, then the
-    fallback (a fixed step without contact, or one already substepped as much, falls back at
-    once)."""
+    """A fixed step with contact that diverged most likely met a barrier that outgrew it:
+    Verlet's same step with the contact forces substepped CONTACT_SUBSTEPS_MAX times, once, the
+    fourth order's same start at half the step, once, then the fallback (a fixed step without
+    contact, or one already substepped as much, falls back at once)."""
     from design_engine.solve.policy import CONTACT_SUBSTEPS_MAX
 
     contact = SolverConfig(solver=VERLET.solver, use_contact=True, dtype="float64")
@@ -233,6 +233,14 @@ def test_a_failed_fixed_step_with_contact_is_substepped_once_before_dopri8(scene
     out = solve_with_policy(scene, contact, Script(SimulationError("x"), healthy(scene)))
     assert [s.kind for s in out.steps] == [START, RESOLVE] and not out.fell_back
     assert decide(VERLET, scene, error=SimulationError("x")).kind == FALLBACK
+    # the fourth order (its contact forces with the rest): once at half the step, then Dopri8
+    fourth = with_contact(VERLET)
+    solve = Script(SimulationError("through the barrier"), SimulationError("again"),
+                   healthy(scene))
+    out = solve_with_policy(scene, fourth, solve)
+    assert [s.kind for s in out.steps] == [START, RESOLVE, FALLBACK]
+    assert solve.calls[1] == refined(fourth) and solve.calls[1].solver.contact_substeps == 1
+    assert "0.5 x the step" in out.steps[1].reason and out.config == fallback_config()[0]
 
 
 def test_the_continued_configuration_is_read_after_the_check(scene):

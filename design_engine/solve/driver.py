@@ -17,8 +17,8 @@ through `decide` (what to do after a solve) and, for one solve at a time, `solve
    (`policy.after_half_step`, `policy.after_quarter_step`); a fourth-order one at COARSE x its
    step and, when it moved too much, at half its step, which stands where its error by that
    pair passes (`policy.check_config`, `policy.after_coarse_check`);
-3. after a fixed-step solve with contact that failed, the same step with its contact forces
-   substepped (`policy.after_failure`, once); after any other solve that failed
+3. after a fixed-step solve with contact that failed, the same start at half the step (the
+   fourth order) or with its contact forces substepped (Verlet; `policy.after_failure`, once); after any other solve that failed
    (`SimulationError`), the fallback solves once
    (`policy.fallback_config`; the reference Dopri5 when the fallback itself failed), except
    that an adaptive solve which used up its step budget fails at once when the caller asks so

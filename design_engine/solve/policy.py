@@ -20,8 +20,9 @@ The default policy, read off the work-precision and speed-up charts (README, `me
   is solved at COARSE x the step (the driver, for a caller that gives its objective). A drift
   past the tolerance repeats the solve once at REFINE x the step when that is predicted to
   pass, else with adaptive Dopri8 at the reference tolerances with contact. A fixed step with
-  contact that failed is repeated once with its contact forces substepped
-  CONTACT_SUBSTEPS_MAX times, then (as any other failed fixed-step solve) with Dopri8. (Verlet
+  contact that failed is repeated once at REFINE x the step (Verlet: with its contact forces
+  substepped CONTACT_SUBSTEPS_MAX times), then (as any other failed fixed-step solve) with
+  Dopri8. (Verlet
   with contact, for a caller that asks for it, is also held to h x omega_c <= CONTACT_STEP_LIMIT,
   omega_c the barrier's own frequency at the deepest void, `contact_frequency`, by substepping
   the contact forces, and judged at half its step.) An optimiser's next
@@ -616,13 +617,24 @@ def next_config(config: SolverConfig, health: dict, scene: Scene) -> tuple[Solve
 
 def after_failure(config: SolverConfig) -> tuple[SolverConfig, str] | None:
     """After a fixed-step solve with contact that failed (diverged, went non-finite or through
-    the barrier, most likely the barrier outgrowing its step): the same step with the contact
-    forces substepped CONTACT_SUBSTEPS_MAX times, and why; None when it had as many (then
-    `fallback_config`). A substepped solve costs about a tenth of Dopri8's."""
+    the barrier, most likely the barrier outgrowing its step): for Verlet, the same step with
+    the contact forces substepped CONTACT_SUBSTEPS_MAX times (a substepped solve costs about a
+    tenth of Dopri8's); for the fourth order, whose contact forces go with the rest, the same
+    start once at REFINE x the step (`refined`), which an optimiser's next evaluations climb
+    back from (`start_config`). Substeps there stayed for the rest of a focus-vs-protect run:
+    its 8 % evaluations took 13-29 s with 8 of them against 10-13 s before
+    (bench_fvp_run_order4_all_amd.json), where they also cost accuracy
+    (bench_order4_substeps_8pct_amd.json). And why; None when the step was refined, or
+    substepped as much, already (then `fallback_config`)."""
     solver = config.solver
-    if not (config.use_contact and is_fixed_step(solver) and solver.stability_limited
-            and getattr(solver, "contact_substeps", CONTACT_SUBSTEPS_MAX)
-            < CONTACT_SUBSTEPS_MAX):
+    if not (config.use_contact and is_fixed_step(solver) and solver.stability_limited):
+        return None
+    if order_of(solver) != 2:
+        if solver.refined:
+            return None
+        nxt = refined(config)
+        return nxt, f"re-solved once at {REFINE:g} x the step ({nxt.solver.max_dt * 1e3:.1f} us)"
+    if getattr(solver, "contact_substeps", CONTACT_SUBSTEPS_MAX) >= CONTACT_SUBSTEPS_MAX:
         return None
     n = CONTACT_SUBSTEPS_MAX
     nxt = with_substeps(config, n)

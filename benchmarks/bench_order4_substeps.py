@@ -1,14 +1,14 @@
 """The fourth-order step's contact substeps and step, by value and gradient: what the fourth
-order costs and buys where Verlet's gradient misses (contact entered under the pulse) and where
-the policy already takes it (a pulse that starts in contact).
+order costs and buys against Verlet, where contact is entered under the pulse and where the
+pulse starts in contact (`policy.CONTACT_ORDER`, `policy.CONTACT_ENTRY_SUBSTEPS`).
 
 For each design (evaluations `--evals` of a `metarig design` run folder of `--task`) and scene
 `--scene`, the policy's own configuration at that design (`policy.choose_config`, its precision,
 contact on) solves value and gradient by the fourth-order composition of Verlet steps
 (`FixedStepVerlet(order=4)`) at each of `--factors` x the policy's step h with each of
-`--substeps` contact substeps (in `--dtype` where given), and by Verlet at h with the policy's substeps (the row the
-policy takes today where contact enters under the pulse), against Dopri8 at rtol 1e-10 /
-atol 1e-8. Per row: J's relative error, the gradient's cosine and relative error, and the value
+`--substeps` contact substeps (in `--dtype` where given), and by Verlet at h with 4 contact
+substeps (the policy's configuration with contact before it took the fourth order), against
+Dopri8 at rtol 1e-10 / atol 1e-8. Per row: J's relative error, the gradient's cosine and relative error, and the value
 and gradient's wall time (compiled first), the work-energy drift and h x omega_c of the contact
 forces' step (`policy.contact_step_ratio`).
 
@@ -34,17 +34,21 @@ HERE = Path(__file__).resolve().parent
 
 
 def configurations(scene, factors, substeps, dtype=None):
-    """(label, configuration) of each row: Verlet at h with the policy's substeps, then the
-    fourth order at each factor and substep count; in `dtype` where given."""
+    """(label, configuration) of each row: Verlet at h with 4 contact substeps (the policy's
+    configuration with contact before the fourth order), then the fourth order at each factor
+    and substep count; in `dtype` where given."""
     from design_engine.solve.policy import with_contact
 
     base = with_contact(policy_config(scene, dtype))
-    out = [(f"Verlet at h, {base.solver.contact_substeps} substeps", base)]
+
+    def solver(**kw):
+        return dataclasses.replace(base, solver=dataclasses.replace(base.solver, **kw))
+
+    out = [("Verlet at h, 4 substeps", solver(order=2, contact_substeps=4))]
     for factor in factors:
         for n in substeps:
-            out.append((f"order 4 at {factor:g} h, {n} substeps", dataclasses.replace(
-                base, solver=dataclasses.replace(base.solver, order=4, contact_substeps=n,
-                                                 max_dt=base.solver.max_dt * factor))))
+            out.append((f"order 4 at {factor:g} h, {n} substeps", solver(
+                order=4, contact_substeps=n, max_dt=base.solver.max_dt * factor)))
     return out
 
 

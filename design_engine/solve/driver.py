@@ -18,8 +18,8 @@ through `decide` (what to do after a solve) and, for one solve at a time, `solve
    step and, when it moved too much, at half its step, which stands where its error by that
    pair passes (`policy.check_config`, `policy.after_coarse_check`);
 3. after a fixed-step solve with contact that failed, the same start at half the step (the
-   fourth order) or with its contact forces substepped (Verlet; `policy.after_failure`, once); after any other solve that failed
-   (`SimulationError`), the fallback solves once
+   fourth order) or with its contact forces substepped (Verlet; `policy.after_failure`,
+   once); after any other solve that failed (`SimulationError`), the fallback solves once
    (`policy.fallback_config`; the reference Dopri5 when the fallback itself failed), except
    that an adaptive solve which used up its step budget fails at once when the caller asks so
    (an optimiser steps back rather than grinding on a near-singular contact);

@@ -22,11 +22,10 @@ The default policy, read off the work-precision and speed-up charts (README, `me
   pass, else with adaptive Dopri8 at the reference tolerances with contact. A fixed step with
   contact that failed is repeated once at REFINE x the step (Verlet: with its contact forces
   substepped CONTACT_SUBSTEPS_MAX times), then (as any other failed fixed-step solve) with
-  Dopri8. (Verlet
-  with contact, for a caller that asks for it, is also held to h x omega_c <= CONTACT_STEP_LIMIT,
-  omega_c the barrier's own frequency at the deepest void, `contact_frequency`, by substepping
-  the contact forces, and judged at half its step.) An optimiser's next
-  evaluation starts where the last one ended while that was in contact, with a fixed step with
+  Dopri8. (Verlet with contact, for a caller that asks for it, is also held to h x omega_c <=
+  CONTACT_STEP_LIMIT, omega_c the barrier's own frequency at the deepest void,
+  `contact_frequency`, by substepping the contact forces, and judged at half its step.) An
+  optimiser's next evaluation starts where the last one ended while that was in contact, with a fixed step with
   contact for the rest of the run (a refined step climbing back one halving an evaluation
   toward the chosen step unless its drift predicts a failure), with the fixed step if that was
   Dopri8 (`start_config`);
@@ -54,7 +53,8 @@ from design_engine.solve.simulate import SolverConfig, static_state
 
 STABILITY_SAFETY = 0.6  # fraction of the Verlet stability limit 2 / omega_max
 # largest dt x omega_c (the contact barrier's own frequency at the deepest void) a Verlet step
-# with contact may take (the fourth order's step check judges it instead: `barrier_ratio`): with dt x omega_max <= 1.2 it keeps dt x sqrt(omega_max^2 + omega_c^2)
+# with contact may take (the fourth order's step check judges it instead: `barrier_ratio`):
+# with dt x omega_max <= 1.2 it keeps dt x sqrt(omega_max^2 + omega_c^2)
 # within 0.8 x the stability limit 2 (measured: 0.45 on the 24x16 focusing design in contact and
 # 0.95 on 24x18 at 8 % pre-compression, both within 1e-4 of J)
 CONTACT_STEP_LIMIT = 1.0
@@ -74,11 +74,11 @@ REFINE = 0.5
 # a tenth of a force evaluation), where halving the step doubled every force evaluation
 CONTACT_SUBSTEPS_MAX = 8
 # a fixed step takes the contact terms with this many substeps from its first solve with them
-# (`with_contact`): none apart, the fourth order steps them with the rest. On a focus-vs-protect
-# design at 8 % the fourth order at the policy's step was within 4.3e-9 of J with none, 1.5e-5
-# and 1.4e-5 with 2 and 4 substeps, in 4.3 s against 6.7 and 8.3 s (the splitting's own error
-# and cost); on a focusing design and the 1 % scene, within 1.5e-5 and 4.6e-8 to 7.3e-6 in 0.5-0.6
-# x the time of 4 substeps (benchmarks/bench_order4_substeps.py ->
+# (`with_contact`): none apart, the fourth order steps them with the rest. On a
+# focus-vs-protect design at 8 % the fourth order at the policy's step was within 4.3e-9 of J
+# with none, 1.5e-5 and 1.4e-5 with 2 and 4 substeps, in 4.3 s against 6.7 and 8.3 s (the
+# splitting's own error and cost); on a focusing design and the 1 % scene, within 1.5e-5 and
+# 4.6e-8 to 7.3e-6 in 0.4-0.6 x the time of 4 substeps (benchmarks/bench_order4_substeps.py ->
 # bench_order4_substeps_{8pct,focusing,1pct}_amd.json). (Verlet entered contact with 4: its
 # barrier criterion, CONTACT_STEP_LIMIT, then held at once)
 CONTACT_ENTRY_SUBSTEPS = 1
@@ -112,8 +112,9 @@ STEP_CONVERGENCE_MIN = 2.0
 # 0.9999998-1.0000000 with J within 4.6e-8 (float64) to 1.5e-5 (float32) in 1.9-2.1 x
 # Verlet's time with one contact substep (benchmarks/bench_order4_substeps.py ->
 # bench_order4_substeps_{1pct,focusing,8pct}_amd.json). In deep static contact (8 %) it was
-# within 7.8e-6 to 1.4e-5 of J, cosine >= 0.9999992, where Verlet's half-step check sent
-# those designs to a quarter of the step (benchmarks/bench_order4_check.py)
+# within 4.3e-9 to 1.1e-7 of J, cosine 1.0000000, where Verlet at the step missed J by 3.0e-4
+# to 3.0e-3 with cosines down to 0.9965 (same files) and its half-step check sent those
+# designs to a quarter of the step (benchmarks/bench_order4_check.py)
 CONTACT_ORDER = 4
 # ... and its step check solves the same start at COARSE x the step, not half of it (0.7 x the
 # cost of the solve it judges, where half the step costs 2 x), taking the change as of order
@@ -374,8 +375,8 @@ def needs_contact(config: SolverConfig, min_void_margin: float, scene: Scene) ->
 def with_contact(config: SolverConfig) -> SolverConfig:
     """Configuration for a scene whose voids reached the contact cutoff: the same fixed step, in
     the same precision, by the fourth-order composition of Verlet steps (CONTACT_ORDER), with
-    the contact terms and at least CONTACT_ENTRY_SUBSTEPS contact substeps (checked by
-    `next_config`), or Dopri8 for an adaptive solve.
+    the contact terms and the contact substeps it had (at least CONTACT_ENTRY_SUBSTEPS), or
+    Dopri8 for an adaptive solve.
 
     The precision is kept: float32 for contact entered under the pulse (the default choice),
     float64 for a static pre-compression already in contact (`choose_config`). On the energy
@@ -661,9 +662,10 @@ def start_config(choice: SolverConfig, last: SolverConfig | None, health: dict |
     design a step away may be accepted at it. A refined step (`refined`) climbs back one
     halving an evaluation toward the choice's step (marked refined while below it), unless the
     last solve predicts that step would be rejected again by the work-energy balance (its drift
-    x 1 / REFINE^order above half the tolerance) or the barrier (past the larger step). Its
-    step estimate is not such a prediction: a failed climb costs one forward solve at the larger
-    step, where a step that never climbed would stay halved for the rest of the run. Either way
+    x 1 / REFINE^order above half the tolerance) or, for Verlet, the barrier (past the larger
+    step, `barrier_ratio`). Its step estimate is not such a prediction: a failed climb costs one
+    forward solve at the larger step, where a step that never climbed would stay halved for the
+    rest of the run. Either way
     `next_config` and the step check still judge the result, so this changes the cost, not the
     answer."""
     if last is None or health is None or last == choice or not last.use_contact:

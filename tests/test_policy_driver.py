@@ -214,7 +214,7 @@ def test_an_evaluation_after_one_in_contact_starts_with_contact(scene):
     assert out.config == VERLET
 
 
-def test_a_failed_fixed_step_with_contact_is_substepped_once_before_dopri8(scene):
+def test_a_failed_fixed_step_with_contact_is_retried_once_before_dopri8(scene):
     """A fixed step with contact that diverged most likely met a barrier that outgrew it:
     Verlet's same step with the contact forces substepped CONTACT_SUBSTEPS_MAX times, once, the
     fourth order's same start at half the step, once, then the fallback (a fixed step without

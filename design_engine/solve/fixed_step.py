@@ -241,7 +241,8 @@ class FixedStepVerlet(AbstractFixedStep):
 # 4^(1/3)); symmetric, so fourth order from the second-order symmetric Verlet step
 _P = 1.0 / (4.0 - 4.0 ** (1.0 / 3.0))
 SUZUKI_4 = (_P, _P, 1.0 - 4.0 * _P, _P, _P)
-# where each of them starts within the step (Python floats, so a float32 solve stays float32)
+# where each of them starts within the step, fractions of it (`integrate` takes both in the
+# solve's precision)
 SUZUKI_4_STARTS = tuple(float(v) for v in np.cumsum((0.0,) + SUZUKI_4[:-1]))
 
 

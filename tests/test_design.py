@@ -746,33 +746,33 @@ def test_two_threads_evaluate_as_one_does(tmp_path, monkeypatch):
         TaskEvaluator(task, threads=0)
 
 
-def test_a_scene_that_starts_in_contact_is_judged_on_its_objective_at_a_coarser_step(tmp_path):
+def test_a_scene_that_starts_in_contact_is_judged_on_its_objective_at_verlets_step(tmp_path):
     """The protection scene of focus-vs-protect (8 %) alone, on 6x6 under a 1 mm pulse: its
     static pre-compression closes voids past the contact cutoff, so its fixed step is the
-    fourth order from the first solve, also judged at 1.5 x its step. The estimate (the
-    record's when the solve stands, else the event's) is the relative change of J between the
-    step and 1.5 x it over 1.5^3 - 1 (`policy.coarse_step_error`), the latter solved
-    independently here (static start included), and decides: half the step or Dopri8 above
-    STEP_ERROR_TOLERANCE (the rule itself, and that a scene clear of contact is not judged so:
-    test_policy_driver)."""
-    from design_engine.solve.policy import (STEP_ERROR_TOLERANCE, check_config,
+    fourth order from the first solve, at 1.5 x Verlet's step (`policy.STATIC_CONTACT_STEP`),
+    judged at Verlet's step. The estimate (the record's when the solve stands, else the
+    event's) is the relative change of J between the two steps over 1 - 1.5^-3
+    (`policy.coarse_step_error`), the finer solved independently here (static start
+    included), and decides: the finer solve or Dopri8 above STEP_ERROR_TOLERANCE (the rule
+    itself, and that a scene clear of contact is not judged so: test_policy_driver)."""
+    from design_engine.solve.policy import (STEP_ERROR_TOLERANCE, check_config, check_ratio,
                                             coarse_step_error)
     from design_engine.solve.run import make_objective
 
     task = _protect_task(tmp_path)
     evaluator = TaskEvaluator(task)
     config = evaluator._state["strain_8pct"].config  # its first solve's: contact terms on
-    assert config.use_contact and config.solver.order == 4
+    assert config.use_contact and config.solver.order == 4 and config.solver.finer_check
     out = evaluator.evaluate(task.initial_design)
     events = " ".join(out.events)
     scene = task.scenes["strain_8pct"]
     x = task.initial_design
-    j_coarse = float(make_objective(scene, check_config(config))[1](x)[0])
+    j_fine = float(make_objective(scene, check_config(config))[1](x)[0])
     rec = out.solver["strain_8pct"]
     if rec["config"]["solver"] == "FixedStepVerlet" and not rec["config"].get("refined"):
         # the solve stood: J is its own
         j = out.terms["protect"]
-        expected = coarse_step_error(j, j_coarse)
+        expected = coarse_step_error(j, j_fine, check_ratio(config))
         assert "strain_8pct: the objective" not in events
         assert rec["step_error"] == pytest.approx(expected, rel=1e-5)
         assert rec["step_error"] <= STEP_ERROR_TOLERANCE
@@ -781,7 +781,7 @@ def test_a_scene_that_starts_in_contact_is_judged_on_its_objective_at_a_coarser_
         assert evaluator._state["strain_8pct"].last_health["step_error"] == rec["step_error"]
     else:  # the estimate went over: the fixed-step J, solved here too, says by how much
         j = float(make_objective(scene, config)[1](x)[0])
-        expected = coarse_step_error(j, j_coarse)
+        expected = coarse_step_error(j, j_fine, check_ratio(config))
         moved = re.search(r"strain_8pct: the objective moved by ([0-9.e+-]+) of itself", events)
         assert moved and (rec["config"]["solver"] == "Dopri8" or rec["config"]["refined"]), events
         assert float(moved.group(1)) == pytest.approx(expected, rel=0.01)

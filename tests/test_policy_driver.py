@@ -447,6 +447,62 @@ def test_a_fourth_order_solve_in_contact_is_judged_at_a_coarser_step(scene):
     assert solve.calls == [fourth, coarse, half] and out.config == half
 
 
+def test_a_fourth_order_step_above_verlets_is_judged_at_verlets_and_that_solve_may_stand(scene):
+    """The fourth order of a static pre-compression in contact takes STATIC_CONTACT_STEP x
+    Verlet's step, marked `finer_check`: it is judged by the same start at 1 / COARSE of its
+    step (`policy.check_config`, marked refined), its estimate the change over
+    1 - COARSE^-3. Within the tolerance it stands; over it, the finer solve stands in its
+    place when its own error by the pair (the change over COARSE^3 - 1) passes, with no
+    half-step solve (`policy.after_coarse_check`); else Dopri8. A finer solve that stood is
+    climbed back from at the next evaluation (`policy.start_config`), to the marked step."""
+    from design_engine.solve.policy import (COARSE, COARSE_CHECK_ORDER, STATIC_CONTACT_STEP,
+                                            STEP_ERROR_TOLERANCE, after_coarse_check,
+                                            check_config, check_ratio)
+
+    tol = STEP_ERROR_TOLERANCE
+    span = float(scene.material.contact_cutoff - scene.material.contact_min)
+    fourth = with_contact(VERLET)
+    marked = dataclasses.replace(fourth, solver=dataclasses.replace(
+        fourth.solver, max_dt=STATIC_CONTACT_STEP * VERLET.solver.max_dt, finer_check=True))
+    fine = check_config(marked)
+    assert check_ratio(marked) == pytest.approx(1 / COARSE) and check_ratio(fourth) == COARSE
+    assert fine.solver.max_dt == pytest.approx(VERLET.solver.max_dt)
+    assert fine.solver.refined and fine.solver.order == 4 and fine.solver.finer_check
+    assert not after_coarse_check(float("inf"), marked)
+    # the mark changes no program: both steps' programs are those of the unmarked scheme
+    assert marked.solver.summary()["finer_check"] and "finer_check" not in fourth.solver.summary()
+    started = healthy(scene, void_margin=0.5 * span, start_void_margin=0.5 * span)
+    shrink = 1 - COARSE**-COARSE_CHECK_ORDER  # the coarse solve's error over the change
+    growth = COARSE**COARSE_CHECK_ORDER - 1  # the finer solve's
+
+    def run(values, *answers):
+        solve = Script(*answers)
+        out = solve_with_policy(scene, marked, solve, objective=lambda r: values[
+            int(r.split()[1]) - 1])
+        return solve, out
+
+    solve, out = run([1.0, 1.0 + 0.5 * tol * shrink], started, started)
+    assert solve.calls == [marked, fine] and out.result == "result 1" and out.resolves == ()
+    assert out.health["step_error"] == pytest.approx(0.5 * tol, rel=1e-6)
+    # over the tolerance, the finer solve's own error within it: the finer solve stands
+    change = 2 * tol * shrink
+    assert change / growth < tol
+    solve, out = run([1.0, 1.0 + change], started, started)
+    assert solve.calls == [marked, fine] and out.result == "result 2" and out.config == fine
+    assert "0.67 x the step" in out.resolves[0] and "finer solve" in out.resolves[0]
+    assert out.health["step_error"] == pytest.approx(change / growth, rel=1e-3)
+    # the finer solve's error over it too: Dopri8
+    solve, out = run([1.0, 1.0 + 2 * tol * growth, 1.0], started, started, started)
+    assert solve.calls == [marked, fine, contact_config()]
+    assert "finer solve's error by the pair" in out.resolves[0]
+    # the finer solve failed: the step's estimate is inf, and Dopri8 judges
+    solve, out = run([1.0, None, 1.0], started, SimulationError("diverged"), started)
+    assert solve.calls == [marked, fine, contact_config()]
+    # the next evaluation climbs back from the finer step to the marked one
+    up = start_config(marked, fine, dict(started, step_error=0.5 * tol), scene)
+    assert up == marked
+
+
 def test_a_run_in_contact_goes_on_by_the_fourth_order(scene):
     """`policy.start_config` after an evaluation in contact: the fourth order (`with_contact`)
     continues, after Dopri8 it gets its chance again at the choice's step, and a refined

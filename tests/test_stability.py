@@ -299,22 +299,22 @@ def jammed_reference(jammed):
     return simulate_scene(jammed, reference_method().config).metrics["target_ke_mean_J"]
 
 
-def test_a_forward_run_that_starts_in_contact_is_judged_at_a_coarser_step(jammed, jammed_choice,
-                                                                         monkeypatch):
+def test_a_forward_run_that_starts_in_contact_is_judged_at_verlets_step(jammed, jammed_choice,
+                                                                       monkeypatch):
     """`simulate_scene` under the policy: the small scene in contact from its static start
-    goes by the fourth order and is also solved at 1.5 x its step from the same equilibrium,
-    and `metrics["solver"]["step_error"]` is the relative change of J over 1.5^3 - 1, as
-    independent solves at both steps give it (static start included); below the tolerance the
-    fixed step stands."""
+    goes by the fourth order at 1.5 x Verlet's step (`policy.STATIC_CONTACT_STEP`) and is also
+    solved at Verlet's step from the same equilibrium, and `metrics["solver"]["step_error"]`
+    is the relative change of J over 1 - 1.5^-3, as independent solves at both steps give it
+    (static start included); below the tolerance the larger step stands."""
     from design_engine.solve import driver
     from design_engine.solve import run as run_mod
-    from design_engine.solve.policy import (COARSE, COARSE_CHECK_ORDER, STEP_ERROR_TOLERANCE,
-                                            check_config)
+    from design_engine.solve.policy import (COARSE, COARSE_CHECK_ORDER, STATIC_CONTACT_STEP,
+                                            STEP_ERROR_TOLERANCE, check_config)
 
     estimates, original = [], driver.coarse_step_error
 
-    def spy(value, coarse):
-        estimates.append(original(value, coarse))
+    def spy(value, other, ratio):
+        estimates.append(original(value, other, ratio))
         return estimates[-1]
 
     monkeypatch.setattr(driver, "coarse_step_error", spy)
@@ -323,11 +323,14 @@ def test_a_forward_run_that_starts_in_contact_is_judged_at_a_coarser_step(jammed
     assert solver["solver"] == "FixedStepVerlet" and solver["resolves"] == []
     assert solver["order"] == 4
     config = jammed_choice.config
+    fine = check_config(config)
+    assert config.solver.finer_check and fine.solver.max_dt == pytest.approx(
+        config.solver.max_dt / STATIC_CONTACT_STEP)
     j = simulate_scene(jammed, config).metrics["target_ke_mean_J"]
-    j_coarse = simulate_scene(jammed, check_config(config)).metrics["target_ke_mean_J"]
+    j_fine = simulate_scene(jammed, fine).metrics["target_ke_mean_J"]
     assert run.metrics["target_ke_mean_J"] == pytest.approx(j, rel=1e-9)
     assert solver["step_error"] == pytest.approx(
-        abs(j - j_coarse) / (COARSE**COARSE_CHECK_ORDER - 1) / abs(j), rel=1e-5)
+        abs(j - j_fine) / (1 - COARSE**-COARSE_CHECK_ORDER) / abs(j), rel=1e-5)
     assert estimates == [solver["step_error"]]
     assert 0.0 < solver["step_error"] <= STEP_ERROR_TOLERANCE
     # `make_objective` under the policy goes through the same check and keeps the fixed step
@@ -343,16 +346,16 @@ def test_a_forward_run_that_starts_in_contact_is_judged_at_a_coarser_step(jammed
 def test_the_policy_objective_differentiates_only_the_solve_that_stands(jammed, jammed_choice,
                                                                          monkeypatch):
     """`make_objective(scene)` under the policy, value and gradient: the small scene starts in
-    contact, so its fixed step is the fourth order (`policy.with_contact`), and it stands on its
-    estimate from the same start at 1.5 x its step (`policy.check_config`); with the tolerance
-    then set just below that estimate, the step is rejected after its forward pass alone, the
-    same start is solved at half the step, which stands on its error by the pair (not solved
-    again), and the one reverse pass is the half step's: the value is that step's own
-    objective, and the gradient its central difference along a random direction. The call
-    after it (tolerance restored) climbs back to the whole step, which stands and alone is
+    contact, so its fixed step is the fourth order (`policy.with_contact`) at 1.5 x Verlet's
+    step, and it stands on its estimate from the same start at Verlet's step
+    (`policy.check_config`); with the tolerance then set just below that estimate, the step is
+    rejected after its forward pass alone, the finer solve stands on its error by the pair
+    (not solved again), and the one reverse pass is the finer step's: the value is that step's
+    own objective, and the gradient its central difference along a random direction. The call
+    after it (tolerance restored) climbs back to the larger step, which stands and alone is
     reversed."""
     from design_engine.solve import driver, policy
-    from design_engine.solve.policy import check_config, refined
+    from design_engine.solve.policy import check_config
 
     x, config = jammed.design, jammed_choice.config
     assert config.solver.order == 4 and config.use_contact
@@ -369,30 +372,30 @@ def test_the_policy_objective_differentiates_only_the_solve_that_stands(jammed, 
                         lambda *a: (estimates.append(estimate(*a)), estimates[-1])[1])
     value_and_grad = run_mod.make_objective(jammed)[0]
     value_and_grad(x)
-    coarse, half = check_config(config), refined(config)
-    assert passes == {"forward": [config, coarse], "reverse": [config]}
+    fine = check_config(config)
+    assert passes == {"forward": [config, fine], "reverse": [config]}
     assert len(estimates) == 1
     passes["forward"].clear()
     passes["reverse"].clear()
     tolerance = policy.STEP_ERROR_TOLERANCE
     monkeypatch.setattr(policy, "STEP_ERROR_TOLERANCE", 0.9 * estimates[0])
     (value, _), grad = value_and_grad(x)
-    assert passes == {"forward": [config, coarse, half], "reverse": [half]}
+    assert passes == {"forward": [config, fine], "reverse": [fine]}
     assert estimates[1] == pytest.approx(estimates[0], rel=1e-9)
-    # the half step's own value program; its central difference along a random direction at
+    # the finer step's own value program; its central difference along a random direction at
     # h = 3e-5 mm (the fourth order's truncation error: 1.5e-5 of the derivative at 1e-4 mm,
     # 7e-7 at 3e-5 on this scene at half the step)
-    value_of = run_mod.make_objective(jammed, half)[1]
+    value_of = run_mod.make_objective(jammed, fine)[1]
     assert float(value) == pytest.approx(float(value_of(x)[0]), rel=1e-12)
     d, fd = central_difference(value_of, x, h=3e-5, seed=3)
     assert float(np.dot(np.asarray(grad), d)) == pytest.approx(fd, rel=1e-5)
-    # the next call climbs back to the chosen step (`policy.start_config`), judged at 1.5 x
-    # that step, where it stands (tolerance restored) and alone is reversed
+    # the next call climbs back to the chosen step (`policy.start_config`), judged at
+    # Verlet's step, where it stands (tolerance restored) and alone is reversed
     passes["forward"].clear()
     passes["reverse"].clear()
     monkeypatch.setattr(policy, "STEP_ERROR_TOLERANCE", tolerance)
     (value, _), grad = value_and_grad(x)
-    assert passes == {"forward": [config, coarse], "reverse": [config]}
+    assert passes == {"forward": [config, fine], "reverse": [config]}
     assert len(estimates) == 3
     value_of = run_mod.make_objective(jammed, config)[1]
     assert float(value) == pytest.approx(float(value_of(x)[0]), rel=1e-12)
@@ -474,9 +477,12 @@ def test_contact_substeps_match_the_reference_and_close_the_ledger(jammed, jamme
     drift below a tenth of the tolerance (measured 3.2e-6, as with 2 substeps and as plain
     Verlet's; a ledger that left out the contact energy drifted 2.4e-5); its gradient matches
     finite differences (measured within 1e-8)."""
-    config = jammed_choice.config
+    from design_engine.solve.policy import STATIC_CONTACT_STEP
+
+    config = jammed_choice.config  # the fourth order at STATIC_CONTACT_STEP x Verlet's step
     config = dataclasses.replace(config, solver=dataclasses.replace(
-        config.solver, order=2, contact_substeps=4))
+        config.solver, order=2, contact_substeps=4, finer_check=False,
+        max_dt=config.solver.max_dt / STATIC_CONTACT_STEP))
     assert config.use_contact
     got = simulate_scene(jammed, config)
     assert got.metrics["target_ke_mean_J"] == pytest.approx(jammed_reference, rel=1e-4)

@@ -12,7 +12,9 @@ that an optimisation needs:
   power iteration, `STEP_CHECK_ITERATIONS` Hessian-vector products, a few per cent of a solve)
   and
   when the step exceeds `STEP_RECHECK` x 2/omega_max a new step of `policy.STABILITY_SAFETY` x
-  2/omega_max is taken (one more compilation, recorded as an event), or, when that step would
+  2/omega_max is taken (both x `policy.STATIC_CONTACT_STEP` for the fourth order of a static
+  pre-compression in contact, whose step is that multiple of Verlet's, `finer_check`; one more
+  compilation, recorded as an event), or, when that step would
   be below `MIN_STEP_FRACTION` of the first one (the contact barrier of a design pressed deep
   into contact sets the frequency), adaptive Dopri8 from then on; a solve that still goes
   non-finite is caught and redone with the fallback configuration;
@@ -48,8 +50,9 @@ from design_engine.design.task_schema import Term
 from design_engine.solve.driver import PolicyFailed, solve_with_policy
 from design_engine.solve.fixed_step import is_fixed_step
 from design_engine.solve.objectives import objective_term
-from design_engine.solve.policy import (STABILITY_SAFETY, choose_config, contact_config,
-                                        for_gradient, initial_vector, make_frequency_estimator)
+from design_engine.solve.policy import (STABILITY_SAFETY, STATIC_CONTACT_STEP, choose_config,
+                                        contact_config, for_gradient, initial_vector,
+                                        make_frequency_estimator)
 from design_engine.solve.run import (cached_program, checked, compile_key, config_summary,
                                      prestressed_state, split_gradient, static_equilibrium,
                                      static_start)
@@ -344,11 +347,13 @@ class TaskEvaluator:
             raise SimulationError(f"the highest natural frequency of this design came out "
                                   f"{omega:g} rad/ms: no stable fixed step")
         st = dataclasses.replace(st, omega=omega, vector=vector)
+        # Verlet's stability limit, and the multiple of Verlet's step this one takes
         limit = 2.0 / omega
+        scale = STATIC_CONTACT_STEP if getattr(solver, "finer_check", False) else 1.0
         dt = solver.max_dt
-        if dt <= STEP_RECHECK * limit:
+        if dt <= STEP_RECHECK * scale * limit:
             return st, ""
-        new_dt = STABILITY_SAFETY * limit
+        new_dt = STABILITY_SAFETY * scale * limit
         hz = omega / (2 * np.pi) * 1e3
         if new_dt < MIN_STEP_FRACTION * st.first_dt:
             # the contact barrier sets that frequency: a fixed step would need many times the
@@ -362,8 +367,9 @@ class TaskEvaluator:
                 f"{new_dt * 1e3:.1f} us would be below {MIN_STEP_FRACTION:g} x the first one "
                 f"({st.first_dt * 1e3:.1f} us): adaptive Dopri8 from here on")
         # reasons[1] is the choice's line about the step (`policy.choose_config`)
-        step_reason = (f"fixed-step Verlet, dt = {new_dt * 1e3:.1f} us = {STABILITY_SAFETY:g} x "
-                       "the stability limit of the current design")
+        step_reason = (f"fixed-step Verlet, dt = {new_dt * 1e3:.1f} us = "
+                       f"{STABILITY_SAFETY * scale:g} x Verlet's stability limit of the current "
+                       "design")
         # the last configuration, in contact, continues at the new step with its contact
         # substeps (it would only be re-reached through a rejected solve and two compilations)
         last = st.last_config
@@ -377,7 +383,7 @@ class TaskEvaluator:
             last_config=last,
             reasons=st.reasons[:1] + (step_reason,) + st.reasons[2:]), (
             f"{name}: highest natural frequency rose to {hz:.0f} Hz; fixed step "
-            f"{dt * 1e3:.1f} us was {dt / limit:.2f} x the stability limit, re-chosen to "
+            f"{dt * 1e3:.1f} us was {dt / limit:.2f} x Verlet's stability limit, re-chosen to "
             f"{new_dt * 1e3:.1f} us")
 
     def _solve_scene(self, name: str, st: SceneState, x: np.ndarray):

@@ -50,9 +50,10 @@ from typing import Generic, TypeVar
 
 from design_engine.physics.scenes import Scene
 from design_engine.solve.fixed_step import is_fixed_step
-from design_engine.solve.policy import (HALF, REFINE, REJECT, STEP_ERROR_TOLERANCE,
-                                        after_coarse_check, after_failure, after_half_step,
-                                        after_quarter_step, check_config, coarse_step_error,
+from design_engine.solve.policy import (COARSE_CHECK_ORDER, HALF, REFINE, REJECT,
+                                        STEP_ERROR_TOLERANCE, after_coarse_check, after_failure,
+                                        after_half_step, after_quarter_step, check_config,
+                                        check_ratio, coarse_step_error,
                                         fallback_config, half_step_pair_error, moved,
                                         needs_step_check, next_config, order_of, refined,
                                         relative_step_error, start_config)
@@ -215,21 +216,40 @@ def _stands(steps: list, config: SolverConfig, reason: str, on_step, result, hea
 def _judged_at_a_coarser_step(scene: Scene, steps: list, result, health: dict, solve, objective,
                               on_step) -> tuple:
     """Judge a fourth-order fixed-step solve as `_judged_at_half_steps` judges Verlet's, by the
-    same start solved at COARSE x its step (`policy.check_config`; its estimate
-    `policy.coarse_step_error` into the health as "step_error", inf where that solve failed).
-    Where that does not pass and `policy.after_coarse_check` says so, the same start is solved
-    at half the step, which stands in its place (appended to `steps` as a RESOLVE) when its
-    error by the pair (`policy.half_step_pair_error`, its "step_error") passes, with its other
-    checks; else the result goes on with "half_step_error" set (then Dopri8)."""
+    same start solved at `policy.check_ratio` x its step (`policy.check_config`: COARSE, or
+    1 / COARSE where the step is marked `finer_check`; its estimate `policy.coarse_step_error`
+    into the health as "step_error", inf where that solve failed). Where that does not pass,
+    the solve that may stand in its place (appended to `steps` as a RESOLVE) is the finer
+    check itself, where the step was judged so, when its own error by the pair passes (the
+    change over COARSE^COARSE_CHECK_ORDER - 1); else, where `policy.after_coarse_check` says
+    so, the same start at half the step, when its error by the pair
+    (`policy.half_step_pair_error`, its "step_error") passes, with its other checks; else the
+    result goes on with "half_step_error" set (then Dopri8)."""
     cfg = steps[-1].config
     value = float(objective(result))
+    ratio = check_ratio(cfg)
+    check = check_config(cfg)
     try:
-        coarse_result, _ = solve(check_config(cfg))
-        error = coarse_step_error(value, float(objective(coarse_result)))
+        check_result, check_health = solve(check)
+        check_value = float(objective(check_result))
+        error = coarse_step_error(value, check_value, ratio)
     except SimulationError:
-        error = float("inf")
+        check_result, error = None, float("inf")
     health = dict(health, step_error=error)
-    if next_config(cfg, health, scene) is None or not after_coarse_check(error, cfg):
+    if next_config(cfg, health, scene) is None:
+        return result, health
+    why = moved(error, order=order_of(cfg.solver), ratio=ratio)
+    if ratio < 1.0:  # the finer solve is the candidate
+        if check_result is None:
+            return result, health
+        own = relative_step_error(check_value, value, 1.0 / ratio, COARSE_CHECK_ORDER)
+        check_health = dict(check_health, step_error=own)
+        if next_config(check, check_health, scene) is not None:
+            return result, dict(health, half_step_error=own)
+        return _stands(steps, check, (
+            f"{why}: the finer solve ({check.solver.max_dt * 1e3:.1f} us) stands, its error by "
+            f"that pair {own:.2e}"), on_step, check_result, check_health)
+    if not after_coarse_check(error, cfg):
         return result, health
     half = refined(cfg)
     try:
@@ -241,9 +261,8 @@ def _judged_at_a_coarser_step(scene: Scene, steps: list, result, health: dict, s
     if next_config(half, half_health, scene) is not None:
         return result, dict(health, half_step_error=half_error)
     return _stands(steps, half, (
-        f"{moved(error, order=order_of(cfg.solver))}: the half-step solve "
-        f"({half.solver.max_dt * 1e3:.1f} us) stands, its error by that pair {half_error:.2e}"),
-        on_step, half_result, half_health)
+        f"{why}: the half-step solve ({half.solver.max_dt * 1e3:.1f} us) stands, its error by "
+        f"that pair {half_error:.2e}"), on_step, half_result, half_health)
 
 
 def solve_with_policy(scene: Scene, config: SolverConfig,

@@ -179,6 +179,9 @@ class FixedStepVerlet(AbstractFixedStep):
             instead of storing its intermediates (less memory, one more forward pass).
         refined: the step is a refinement the policy took after a rejected solve
             (`policy.next_config`), which it does not refine again.
+        finer_check: the policy judges this step by the same start solved at a finer step,
+            not a coarser one (`policy.check_config`: the fourth order of a static
+            pre-compression already in contact, whose step is STATIC_CONTACT_STEP x Verlet's).
         contact_substeps: with contact, the contact forces are stepped this many times per
             step (multiple time stepping, see `integrate`); 1 steps them with the rest.
         order: 2, velocity Verlet; 4, each step a symmetric composition of five Verlet steps
@@ -189,6 +192,7 @@ class FixedStepVerlet(AbstractFixedStep):
     max_dt: float = eqx.field(static=True, default=0.05)
     remat: bool = eqx.field(static=True, default=False)
     refined: bool = eqx.field(static=True, default=False)
+    finer_check: bool = eqx.field(static=True, default=False)
     contact_substeps: int = eqx.field(static=True, default=1)
     order: int = eqx.field(static=True, default=2)
     stability_limited = True
@@ -220,11 +224,13 @@ class FixedStepVerlet(AbstractFixedStep):
         return num_steps * (len(SUZUKI_4) if self.order == 4 else 1) + 1
 
     def on_grid(self, grid: StepGrid) -> "FixedStepVerlet":
-        # the policy's mark of a refined step changes no program
-        return dataclasses.replace(self, max_dt=grid.dt_nominal, refined=False)
+        # the policy's marks of a refined step and of its check change no program
+        return dataclasses.replace(self, max_dt=grid.dt_nominal, refined=False,
+                                   finer_check=False)
 
     def summary(self) -> dict:
         return {"max_dt_s": self.max_dt * 1e-3, **({"refined": True} if self.refined else {}),
+                **({"finer_check": True} if self.finer_check else {}),
                 **({"order": self.order} if self.order != 2 else {}),
                 **({"remat": True} if self.remat else {}),
                 **({"contact_substeps": self.contact_substeps} if self.splits_contact else {})}

@@ -126,6 +126,18 @@ CONTACT_ORDER = 4
 # change from the whole step, as of the same order); else Dopri8
 COARSE = 1.5
 COARSE_CHECK_ORDER = 3
+# ... except where a static pre-compression already closes voids past the cutoff
+# (`choose_config`): there the barrier's stiffness at the start is in omega_max, and the fourth
+# order takes STATIC_CONTACT_STEP x Verlet's step (dt x omega_max = 1.8, two thirds of its
+# stability limit), judged by the same start at Verlet's step (1 / COARSE of its own,
+# `check_config`, marked `finer_check`), which stands in its place where the larger step
+# does not and its own error by the pair passes. On the focus-vs-protect runs' 8 % designs
+# the fourth order at 1.5 x the step was within 2.0e-7 to 2.2e-6 of J with cosines
+# 0.9999998-1.0000000 in 0.60-0.81 x the time of the step
+# (bench_order4_substeps_8pct_amd.json, bench_order4_substeps_8pct_task_amd.json); the
+# reverse pass, which the check does not need, shrinks with it. Where contact is entered under
+# the pulse the barrier's stiffness is not in omega_max, and the step stays Verlet's
+STATIC_CONTACT_STEP = COARSE
 # an adaptive solve whose gradient an optimiser takes (`for_gradient`) of a scene whose pulse
 # starts in contact (`start_in_contact`: a static pre-compression past the cutoff, a ramp)
 # controls its error to this absolute tolerance on mm and mm/s instead of the reference's 1e-4
@@ -276,9 +288,13 @@ def choose_config(scene: Scene, *, full_model: bool = False,
                           dtype="float32", native_force=native)
     if in_contact:
         config = with_contact(dataclasses.replace(config, dtype="float64"))
+        config = dataclasses.replace(config, solver=dataclasses.replace(
+            config.solver, max_dt=STATIC_CONTACT_STEP * dt, finer_check=True))
         reasons += (f"the static pre-compression already closes voids past the contact cutoff "
                     f"({np.degrees(margin):.2f} deg above the asymptote): contact terms on, "
-                    "by the fourth order, float64, from the first solve",)
+                    f"by the fourth order at {STATIC_CONTACT_STEP:g} x that step "
+                    f"({STATIC_CONTACT_STEP * dt * 1e3:.1f} us, judged at {dt * 1e3:.1f} us), "
+                    "float64, from the first solve",)
     return Choice(config, reasons, omega)
 
 
@@ -445,30 +461,40 @@ def order_of(solver) -> int:
     return getattr(solver, "order", 2)
 
 
+def check_ratio(config: SolverConfig) -> float:
+    """The step of a fourth-order solve's check over its own (`check_config`): COARSE, or
+    1 / COARSE where the step is marked `finer_check` (STATIC_CONTACT_STEP)."""
+    return 1.0 / COARSE if getattr(config.solver, "finer_check", False) else COARSE
+
+
 def check_config(config: SolverConfig) -> SolverConfig:
     """The configuration the step check solves a fixed-step solve's start with
-    (`needs_step_check`): half the step (`refined`) for Verlet, COARSE x the step for the
-    fourth order (marked refined as the step it judges is)."""
+    (`needs_step_check`): half the step (`refined`) for Verlet, `check_ratio` x the step for
+    the fourth order (COARSE, or 1 / COARSE where marked `finer_check`; then marked refined,
+    so that where it stands in place of the step it judges, the next evaluations climb back)."""
     if order_of(config.solver) == 2:
         return refined(config)
+    finer = getattr(config.solver, "finer_check", False)
     return dataclasses.replace(config, solver=dataclasses.replace(
-        config.solver, max_dt=config.solver.max_dt * COARSE))
+        config.solver, max_dt=config.solver.max_dt * check_ratio(config),
+        refined=config.solver.refined or finer))
 
 
-def coarse_step_error(value: float, coarse: float) -> float:
-    """A fourth-order solve's estimate from the same start solved at COARSE x its step
-    (`check_config`), taken as of order COARSE_CHECK_ORDER."""
-    return relative_step_error(value, coarse, COARSE, COARSE_CHECK_ORDER)
+def coarse_step_error(value: float, other: float, ratio: float = COARSE) -> float:
+    """A fourth-order solve's estimate from the same start solved at `ratio` x its step
+    (`check_config`, `check_ratio`), taken as of order COARSE_CHECK_ORDER."""
+    return relative_step_error(value, other, ratio, COARSE_CHECK_ORDER)
 
 
 def after_coarse_check(step_error: float, config: SolverConfig) -> bool:
     """After a fourth-order solve with `config` that passed its other checks and whose coarser
     check estimated `step_error` over STEP_ERROR_TOLERANCE (inf where that solve failed):
     whether to solve the same start at half the step (`refined`), to be judged by the pair
-    (`half_step_pair_error`). Not for a refined step; not where the half is not predicted to
-    pass (the estimate x REFINE^COARSE_CHECK_ORDER within half the tolerance; a failed check
-    predicts nothing, and the half is tried)."""
-    return not config.solver.refined and (
+    (`half_step_pair_error`). Not for a refined step; not for a step judged at a finer one
+    (`finer_check`: that solve is the candidate, `driver`); not where the half is not
+    predicted to pass (the estimate x REFINE^COARSE_CHECK_ORDER within half the tolerance; a
+    failed check predicts nothing, and the half is tried)."""
+    return not (config.solver.refined or getattr(config.solver, "finer_check", False)) and (
         not np.isfinite(step_error)
         or step_error_passes(step_error * REFINE**COARSE_CHECK_ORDER))
 
@@ -482,20 +508,22 @@ def half_step_pair_error(half: float, whole: float) -> float:
 DEEPER, HALF, QUARTER, REJECT = "deeper", "half", "quarter", "reject"
 
 
-def moved(step_error: float, half_error: float | None = None, order: int = 2) -> str:
+def moved(step_error: float, half_error: float | None = None, order: int = 2,
+          ratio: float = COARSE) -> str:
     """Why a fixed-step solve's half-step estimate `step_error` rejects it (with `half_error`,
     the half-step solve's own estimate at a quarter of the step, where it was judged so); of
-    a fourth-order solve (`order`), its estimate at COARSE x the step (and with `half_error`,
-    its half-step solve's by the pair, `half_step_pair_error`)."""
-    where = "half the step" if order == 2 else f"{COARSE:g} x the step"
+    a fourth-order solve (`order`), its estimate at `ratio` x the step (`check_ratio`; and
+    with `half_error`, that of the solve that could stand in its place: the half step's or the
+    finer check's, by the pair)."""
+    where = "half the step" if order == 2 else f"{ratio:.2g} x the step"
     why = (f"the objective moved by {float(step_error):.2e} of itself at {where} "
            f"(> {STEP_ERROR_TOLERANCE:g}; a solve in contact, where the work-energy "
            "balance does not bound it)")
     if half_error is None:
         return why
     if order != 2:
-        return (f"{why}, and its half-step solve's error by the pair was "
-                f"{float(half_error):.2e}")
+        which = "finer solve's" if ratio < 1.0 else "half-step solve's"
+        return f"{why}, and its {which} error by the pair was {float(half_error):.2e}"
     why = f"{why}, and by {float(half_error):.2e} between a half and a quarter of the step"
     if not float(half_error) > 0.0:
         return why
@@ -586,7 +614,8 @@ def next_config(config: SolverConfig, health: dict, scene: Scene) -> tuple[Solve
         return None
     step_error = health.get("step_error")
     if step_error is not None and not float(step_error) <= STEP_ERROR_TOLERANCE:
-        why = moved(step_error, health.get("half_step_error"), order_of(solver))
+        why = moved(step_error, health.get("half_step_error"), order_of(solver),
+                    check_ratio(config))
         return contact_config(), f"{why}: re-solved with adaptive Dopri8"
     drift = float(health.get("energy_error", 0.0))
     substeps = getattr(solver, "contact_substeps", 1)

@@ -14,10 +14,12 @@ The default policy, read off the work-precision and speed-up charts (README, `me
 - a solve whose voids reached the cutoff is repeated with contact at the same step and
   precision by the fourth-order composition of Verlet steps (`FixedStepVerlet(order=4)`,
   CONTACT_ORDER: five force evaluations a step, the contact forces with the rest; from the
-  first solve, in float64, when the static equilibrium already reaches the cutoff), and that
-  result stands while the solve's work-energy drift stays within ENERGY_TOLERANCE
-  (`next_config`) and its objective moves by at most STEP_ERROR_TOLERANCE when the same start
-  is solved at COARSE x the step (the driver, for a caller that gives its objective). A drift
+  first solve, in float64 and at STATIC_CONTACT_STEP x the step, when the static equilibrium
+  already reaches the cutoff), and that result stands while the solve's work-energy drift
+  stays within ENERGY_TOLERANCE (`next_config`) and its objective moves by at most
+  STEP_ERROR_TOLERANCE when the same start is solved at COARSE x the step (at Verlet's step
+  for STATIC_CONTACT_STEP, that solve standing in its place where its own error passes; the
+  driver, for a caller that gives its objective). A drift
   past the tolerance repeats the solve once at REFINE x the step when that is predicted to
   pass, else with adaptive Dopri8 at the reference tolerances with contact. A fixed step with
   contact that failed is repeated once at REFINE x the step (Verlet: with its contact forces

@@ -713,24 +713,44 @@ def test_a_static_start_taken_as_an_input_is_differentiated_through_the_equilibr
 
 
 def test_two_threads_evaluate_as_one_does(tmp_path, monkeypatch):
-    """`TaskEvaluator(threads=2)`: the two scenes of a task are solved side by side, and from
-    the second design on (whose previous solve started in contact) each scene's half-step
-    check is started beside its step; two designs evaluate to the same value, gradient, terms,
-    records and events as on one thread, bit for bit."""
+    """`TaskEvaluator(threads=2)`: the two scenes of a task are solved side by side, their
+    static equilibria first, one after the other on the calling thread
+    (`_equilibria_first`), and from the second design on (whose previous solve started in
+    contact) each scene's check is started beside its step; two designs evaluate to the same
+    value, gradient, terms, records and events as on one thread, bit for bit."""
     import threading
+
+    from design_engine.physics import statics
 
     task = _protect_task(tmp_path, second=True)
     x0 = np.asarray(task.initial_design, np.float64)
     xs = (x0, x0 + 0.05 * np.sin(np.arange(x0.size)))
     one, two = TaskEvaluator(task, threads=1), TaskEvaluator(task, threads=2)
-    threads = set()
-    solve = two._solve
-    monkeypatch.setattr(two, "_solve", lambda *a: (
-        threads.add(threading.current_thread().name.rsplit("_", 1)[0]), solve(*a))[1])
+    threads, calls = set(), []
+    solve, equilibrium = two._solve, two._equilibrium
+
+    def solved(*a):
+        threads.add(threading.current_thread().name.rsplit("_", 1)[0])
+        calls.append(("solve", threading.current_thread().name))
+        return solve(*a)
+
+    def found(*a):
+        calls.append(("equilibrium", threading.current_thread().name))
+        return equilibrium(*a)
+
+    monkeypatch.setattr(two, "_solve", solved)
+    monkeypatch.setattr(two, "_equilibrium", found)
     for x in xs:
-        a, b = one.evaluate(x), two.evaluate(x)
+        calls.clear()
+        statics.forget_equilibria()  # each side solves its own
+        a = one.evaluate(x)
+        statics.forget_equilibria()
+        b = two.evaluate(x)
         assert a.value == b.value and np.array_equal(a.grad, b.grad) and a.terms == b.terms
         assert a.solver == b.solver and a.events == b.events
+        first = calls.index(next(c for c in calls if c[0] == "solve"))
+        assert calls[:2] == [("equilibrium", threading.current_thread().name)] * 2
+        assert all(c[0] == "equilibrium" for c in calls[:first])
     assert set(a.terms) == {"protect", "protect_b"}
     assert threads == {"metarig-scene", "metarig-ahead"}
     # closed, the evaluator's threads end (none is under way here) and it evaluates no more
@@ -787,16 +807,18 @@ def test_a_scene_that_starts_in_contact_is_judged_on_its_objective_at_verlets_st
         assert float(moved.group(1)) == pytest.approx(expected, rel=0.01)
 
 
-def test_the_evaluator_phases_a_benchmark_times_exist():
-    """`benchmarks/bench_eval_phases.py` times the evaluator's phases by wrapping its methods by
-    name (`PHASES`): a renamed method fails here, not in a benchmark run hours later."""
+@pytest.mark.parametrize("bench", ["bench_eval_phases.py", "bench_eval_timeline.py"])
+def test_the_evaluator_phases_a_benchmark_times_exist(bench):
+    """`benchmarks/bench_eval_phases.py` and `bench_eval_timeline.py` time the evaluator's
+    phases by wrapping its methods by name (`PHASES`): a renamed method fails here, not in a
+    benchmark run hours later."""
     import ast
     from pathlib import Path
 
-    source = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_eval_phases.py"
+    source = Path(__file__).resolve().parents[1] / "benchmarks" / bench
     phases = next(ast.literal_eval(node.value) for node in ast.parse(source.read_text()).body
                   if isinstance(node, ast.Assign)
                   and any(getattr(t, "id", None) == "PHASES" for t in node.targets))
-    assert phases, "bench_eval_phases.py names no phase"
+    assert phases, f"{bench} names no phase"
     missing = [name for name in phases if not callable(getattr(TaskEvaluator, name, None))]
-    assert not missing, f"TaskEvaluator has no {missing}: bench_eval_phases.py would fail"
+    assert not missing, f"TaskEvaluator has no {missing}: {bench} would fail"

@@ -28,10 +28,12 @@ that an optimisation needs:
   spending an hour on it.
 Every such step is recorded with its reason.
 
-XLA runs each of these programs on one core. With `threads` above 1 (the default: the cores
-this process may use) an evaluation solves its scenes side by side, and a scene's half-step
-check starts beside its step (`driver.solve_with_policy(ahead=)`); the results, events and
-records are the same as on one thread. A Dask worker of a sweep, whose neighbours already fill
+XLA runs each dynamic solve on one core; the static solver's factorisations use every core
+that is free. With `threads` above 1 (the default: the cores this process may use) an
+evaluation solves its scenes' static equilibria first, one after the other
+(`_equilibria_first`), then its scenes side by side, and a scene's check starts beside its
+step (`driver.solve_with_policy(ahead=)`); the results, events and records are the same as
+on one thread. A Dask worker of a sweep, whose neighbours already fill
 the cores, evaluates on one (`threads=1`).
 """
 

@@ -243,12 +243,8 @@ def _judged_at_a_coarser_step(scene: Scene, steps: list, result, health: dict, s
         if check_result is None:
             return result, health
         own = relative_step_error(check_value, value, 1.0 / ratio, COARSE_CHECK_ORDER)
-        check_health = dict(check_health, step_error=own)
-        if next_config(check, check_health, scene) is not None:
-            return result, dict(health, half_step_error=own)
-        return _stands(steps, check, (
-            f"{why}: the finer solve ({check.solver.max_dt * 1e3:.1f} us) stands, its error by "
-            f"that pair {own:.2e}"), on_step, check_result, check_health)
+        return _in_its_place(scene, steps, result, health, (check, check_result, check_health),
+                             own, f"{why}: the finer solve", on_step)
     if not after_coarse_check(error, cfg):
         return result, health
     half = refined(cfg)
@@ -257,12 +253,22 @@ def _judged_at_a_coarser_step(scene: Scene, steps: list, result, health: dict, s
         half_error = half_step_pair_error(float(objective(half_result)), value)
     except SimulationError:
         return result, dict(health, half_step_error=float("inf"))
-    half_health = dict(half_health, step_error=half_error)
-    if next_config(half, half_health, scene) is not None:
-        return result, dict(health, half_step_error=half_error)
-    return _stands(steps, half, (
-        f"{why}: the half-step solve ({half.solver.max_dt * 1e3:.1f} us) stands, its error by "
-        f"that pair {half_error:.2e}"), on_step, half_result, half_health)
+    return _in_its_place(scene, steps, result, health, (half, half_result, half_health),
+                         half_error, f"{why}: the half-step solve", on_step)
+
+
+def _in_its_place(scene: Scene, steps: list, result, health: dict, candidate: tuple,
+                  own: float, what: str, on_step) -> tuple:
+    """The fourth-order solve judged (`result`, `health`, "half_step_error" set to `own`), or
+    `candidate` (configuration, result, health) standing in its place (`_stands`) where its
+    own error by the pair, `own`, and its other checks pass. `what` says which solve."""
+    config, candidate_result, candidate_health = candidate
+    candidate_health = dict(candidate_health, step_error=own)
+    if next_config(config, candidate_health, scene) is not None:
+        return result, dict(health, half_step_error=own)
+    return _stands(steps, config, (
+        f"{what} ({config.solver.max_dt * 1e3:.1f} us) stands, its error by that pair "
+        f"{own:.2e}"), on_step, candidate_result, candidate_health)
 
 
 def solve_with_policy(scene: Scene, config: SolverConfig,

@@ -468,7 +468,7 @@ class TaskEvaluator:
         # one after the other (lazily: a failed scene ends the evaluation), or side by side,
         # every scene waited for; either way taken in the task's order
         parallel = self._scenes is not None and len(names) > 1
-        if parallel:
+        if parallel and self.forced is None:  # (a forced configuration may need none)
             self._equilibria_first(names, x)
         outs = list(self._scenes.map(scene, names)) if parallel else map(scene, names)
         for name, out in zip(names, outs):
@@ -491,7 +491,7 @@ class TaskEvaluator:
         before the scenes' solves go side by side (each scene then finds its own kept,
         `run.prestressed_state`; a failure too, which the scene raises as it would have). A
         static solve's factorisations use every core that is free: on a focus-vs-protect run's
-        designs the 8 % equilibrium took 1.1-1.6 s alone and 2.3-3.1 s beside the 1 % scene's
+        designs the 8 % equilibrium took 0.8-1.8 s alone and 2.3-3.1 s beside the 1 % scene's
         solves (README, "The static equilibria first")."""
         for name in names:
             if self._static(name):

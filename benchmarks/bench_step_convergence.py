@@ -151,13 +151,14 @@ def policy_config(scene, dtype: str | None = None, order: int = 2,
                   contact_substeps: int | None = None):
     """The policy's own configuration at the design (`policy.choose_config`), in `dtype`, with
     the fixed step of `order` and `contact_substeps` (contact on) where given, at Verlet's
-    step h (the policy's fourth order in static contact takes STATIC_CONTACT_STEP x h)."""
-    from design_engine.solve.policy import STATIC_CONTACT_STEP, choose_config
+    step h (the policy's fourth order in static contact takes `policy.verlet_multiple` x h)."""
+    from design_engine.solve.policy import choose_config, verlet_multiple
 
     config = choose_config(scene).config
-    if getattr(config.solver, "finer_check", False):
+    if verlet_multiple(config.solver) > 1.0:
         config = dataclasses.replace(config, solver=dataclasses.replace(
-            config.solver, max_dt=config.solver.max_dt / STATIC_CONTACT_STEP, finer_check=False))
+            config.solver, max_dt=config.solver.max_dt / verlet_multiple(config.solver),
+            finer_check=False))
     if dtype is not None:
         config = dataclasses.replace(config, dtype=dtype)
     solver = {"order": order}  # the policy's own is 4 where the pulse starts in contact

@@ -12,8 +12,8 @@ that an optimisation needs:
   power iteration, `STEP_CHECK_ITERATIONS` Hessian-vector products, a few per cent of a solve)
   and
   when the step exceeds `STEP_RECHECK` x 2/omega_max a new step of `policy.STABILITY_SAFETY` x
-  2/omega_max is taken (both x `policy.STATIC_CONTACT_STEP` for the fourth order of a static
-  pre-compression in contact, whose step is that multiple of Verlet's, `finer_check`; one more
+  2/omega_max is taken (both x `policy.verlet_multiple`: STATIC_CONTACT_STEP for the fourth
+  order of a static pre-compression in contact, whose step is that multiple of Verlet's; one more
   compilation, recorded as an event), or, when that step would
   be below `MIN_STEP_FRACTION` of the first one (the contact barrier of a design pressed deep
   into contact sets the frequency), adaptive Dopri8 from then on; a solve that still goes
@@ -52,9 +52,9 @@ from design_engine.design.task_schema import Term
 from design_engine.solve.driver import PolicyFailed, solve_with_policy
 from design_engine.solve.fixed_step import is_fixed_step
 from design_engine.solve.objectives import objective_term
-from design_engine.solve.policy import (STABILITY_SAFETY, STATIC_CONTACT_STEP, choose_config,
-                                        contact_config, for_gradient, initial_vector,
-                                        make_frequency_estimator)
+from design_engine.solve.policy import (STABILITY_SAFETY, choose_config, contact_config,
+                                        for_gradient, initial_vector, make_frequency_estimator,
+                                        verlet_multiple)
 from design_engine.solve.run import (cached_program, checked, compile_key, config_summary,
                                      prestressed_state, split_gradient, static_equilibrium,
                                      static_start)
@@ -351,7 +351,7 @@ class TaskEvaluator:
         st = dataclasses.replace(st, omega=omega, vector=vector)
         # Verlet's stability limit, and the multiple of Verlet's step this one takes
         limit = 2.0 / omega
-        scale = STATIC_CONTACT_STEP if getattr(solver, "finer_check", False) else 1.0
+        scale = verlet_multiple(solver)
         dt = solver.max_dt
         if dt <= STEP_RECHECK * scale * limit:
             return st, ""

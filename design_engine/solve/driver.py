@@ -213,7 +213,7 @@ def _stands(steps: list, config: SolverConfig, reason: str, on_step, result, hea
     return result, health
 
 
-def _judged_at_a_coarser_step(scene: Scene, steps: list, result, health: dict, solve, objective,
+def _judged_at_another_step(scene: Scene, steps: list, result, health: dict, solve, objective,
                               on_step) -> tuple:
     """Judge a fourth-order fixed-step solve as `_judged_at_half_steps` judges Verlet's, by the
     same start solved at `policy.check_ratio` x its step (`policy.check_config`: COARSE, or
@@ -388,7 +388,7 @@ def _solve_with_policy(scene, config, solve, check, previous, budget_fails_at_on
                         # the check does not let it stand)
                         finished = (result, _attempt(finish, result))
                     judge = (_judged_at_half_steps if order_of(cfg.solver) == 2
-                             else _judged_at_a_coarser_step)
+                             else _judged_at_another_step)
                     result, health = judge(scene, steps, result, health, solve, objective,
                                            on_step)
                     cfg = steps[-1].config

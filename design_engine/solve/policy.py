@@ -463,10 +463,17 @@ def order_of(solver) -> int:
     return getattr(solver, "order", 2)
 
 
+def verlet_multiple(solver) -> float:
+    """A fixed step's multiple of Verlet's step at the same omega_max: STATIC_CONTACT_STEP
+    where marked `finer_check` (`choose_config`), else 1 (the evaluator re-chooses the step
+    by it, `TaskEvaluator._check_step`)."""
+    return STATIC_CONTACT_STEP if getattr(solver, "finer_check", False) else 1.0
+
+
 def check_ratio(config: SolverConfig) -> float:
     """The step of a fourth-order solve's check over its own (`check_config`): COARSE, or
-    1 / COARSE where the step is marked `finer_check` (STATIC_CONTACT_STEP)."""
-    return 1.0 / COARSE if getattr(config.solver, "finer_check", False) else COARSE
+    1 / COARSE where its step is above Verlet's (`verlet_multiple`, the mark `finer_check`)."""
+    return 1.0 / COARSE if verlet_multiple(config.solver) > 1.0 else COARSE
 
 
 def check_config(config: SolverConfig) -> SolverConfig:
@@ -476,10 +483,10 @@ def check_config(config: SolverConfig) -> SolverConfig:
     so that where it stands in place of the step it judges, the next evaluations climb back)."""
     if order_of(config.solver) == 2:
         return refined(config)
-    finer = getattr(config.solver, "finer_check", False)
+    ratio = check_ratio(config)
     return dataclasses.replace(config, solver=dataclasses.replace(
-        config.solver, max_dt=config.solver.max_dt * check_ratio(config),
-        refined=config.solver.refined or finer))
+        config.solver, max_dt=config.solver.max_dt * ratio,
+        refined=config.solver.refined or ratio < 1.0))
 
 
 def coarse_step_error(value: float, other: float, ratio: float = COARSE) -> float:
@@ -496,7 +503,7 @@ def after_coarse_check(step_error: float, config: SolverConfig) -> bool:
     (`finer_check`: that solve is the candidate, `driver`); not where the half is not
     predicted to pass (the estimate x REFINE^COARSE_CHECK_ORDER within half the tolerance; a
     failed check predicts nothing, and the half is tried)."""
-    return not (config.solver.refined or getattr(config.solver, "finer_check", False)) and (
+    return not (config.solver.refined or check_ratio(config) < 1.0) and (
         not np.isfinite(step_error)
         or step_error_passes(step_error * REFINE**COARSE_CHECK_ORDER))
 

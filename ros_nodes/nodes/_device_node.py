@@ -9,12 +9,19 @@ samples it every 1 / `rate_hz` on a timer. deactivate: the device is brought to 
 goes. cleanup: publishers destroyed, the device released (whatever it answers). `/rig/stop`
 brings the device to rest in any state. With `hardware` "lab" the lab file's limits hold:
 `device.*` parameter changes at run time do not reach the device. `close()` (the node going
-down) brings the device to rest and releases it, under the lock the timer's readings take.
+down) brings the device to rest and releases it.
+
+The timer has a callback group of its own, so a node that falls behind its sampling (a loaded
+machine: the timer is due again whenever it returns, and rclpy serves timers first) still
+answers its services, `/rig/stop` and lifecycle transitions, on the executor's other thread.
+Everything that touches the device runs under one lock, which the timer holds for each call:
+a request waits for at most one sampling call, and never runs beside one.
 """
 
 import threading
 
 import numpy as np
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.lifecycle import LifecycleNode, State, TransitionCallbackReturn
 from std_msgs.msg import Empty
 
@@ -37,21 +44,28 @@ class DeviceNode(LifecycleNode):
 
     def __init__(self, **kwargs):
         super().__init__(self.NAME, **kwargs)
-        self._params = TypedParams(self, self.CONFIG, on_change=self._reconfigured)
+        # the timer's readings vs requests, transitions and close() (other threads); reentrant:
+        # a failed configure and close() clean up under it
+        self._device_lock = threading.RLock()
+        self._sampling = MutuallyExclusiveCallbackGroup()  # the timer's own group
+        self._params = TypedParams(self, self.CONFIG, on_change=self._locked(self._reconfigured))
         self._active = False
         self._device = None
         self._timer = None
         self._pubs: dict = {}
-        self._device_lock = threading.Lock()  # the timer's readings vs close() (another thread)
-        self._create_services()
-        self.create_subscription(Empty, T.RIG_STOP.name, lambda _m: self._rig_stop(), COMMAND)
+        for srv_type, name, callback in self._device_services():
+            self.create_service(srv_type, name, self._locked(callback))
+        self.create_subscription(Empty, T.RIG_STOP.name, self._locked(lambda _m: self._rig_stop()),
+                                 COMMAND)
         if self._params.config.autostart and \
                 self.trigger_configure() == TransitionCallbackReturn.SUCCESS:
             self.trigger_activate()
 
     # hooks -------------------------------------------------------------------------------
-    def _create_services(self) -> None:
-        """Create the node's services (at construction)."""
+    def _device_services(self) -> list[tuple]:
+        """The node's services as (type, name, callback), created at construction; each is
+        answered under the device lock."""
+        return []
 
     def _create_publishers(self) -> dict:
         """The node's own publishers (configure), by key; "diag" (`/diagnostics`) is added."""
@@ -86,6 +100,10 @@ class DeviceNode(LifecycleNode):
 
     # lifecycle ---------------------------------------------------------------------------
     def on_configure(self, state: State) -> TransitionCallbackReturn:
+        with self._device_lock:
+            return self._configure(state)
+
+    def _configure(self, state: State) -> TransitionCallbackReturn:
         cfg = self._params.config
         self._rng = np.random.default_rng(cfg.seed)
         self._pubs = {**self._create_publishers(), "diag": self.create_publisher(
@@ -101,36 +119,41 @@ class DeviceNode(LifecycleNode):
         return TransitionCallbackReturn.SUCCESS
 
     def on_activate(self, state: State) -> TransitionCallbackReturn:
-        self._device.start(self._now_s())
-        self._timer = self.create_timer(1.0 / self._params.config.rate_hz, self._tick)
-        self._active = True
-        self._activated()
+        with self._device_lock:
+            self._device.start(self._now_s())
+            self._timer = self.create_timer(1.0 / self._params.config.rate_hz, self._tick,
+                                            callback_group=self._sampling)
+            self._active = True
+            self._activated()
         return super().on_activate(state)
 
     def on_deactivate(self, state: State) -> TransitionCallbackReturn:
-        self._active = False
-        self._halt()
-        if self._timer is not None:
-            self.destroy_timer(self._timer)
-            self._timer = None
-        self._deactivated()
+        with self._device_lock:
+            self._active = False
+            self._halt()
+            if self._timer is not None:
+                self.destroy_timer(self._timer)
+                self._timer = None
+            self._deactivated()
         return super().on_deactivate(state)
 
     def on_cleanup(self, state: State) -> TransitionCallbackReturn:
-        for p in self._pubs.values():
-            self.destroy_publisher(p)
-        self._pubs = {}
-        if self._device is not None:
-            try:  # released whatever: a device that stopped answering cannot be told more
-                self._device.close()
-            except (DeviceError, OSError) as e:
-                self.get_logger().error(f"{self.DEVICE} did not stop on release: {e}")
-            self._device = None
+        with self._device_lock:
+            for p in self._pubs.values():
+                self.destroy_publisher(p)
+            self._pubs = {}
+            if self._device is not None:
+                try:  # released whatever: a device that stopped answering cannot be told more
+                    self._device.close()
+                except (DeviceError, OSError) as e:
+                    self.get_logger().error(f"{self.DEVICE} did not stop on release: {e}")
+                self._device = None
         return TransitionCallbackReturn.SUCCESS
 
     def on_shutdown(self, state: State) -> TransitionCallbackReturn:
-        self._active = False
-        self._halt()
+        with self._device_lock:
+            self._active = False
+            self._halt()
         return TransitionCallbackReturn.SUCCESS
 
     # shared ------------------------------------------------------------------------------
@@ -145,6 +168,13 @@ class DeviceNode(LifecycleNode):
 
     def _now_s(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
+
+    def _locked(self, callback):
+        """`callback` run under the device lock."""
+        def locked(*args):
+            with self._device_lock:
+                return callback(*args)
+        return locked
 
     def _tick(self) -> None:
         with self._device_lock:

@@ -64,10 +64,12 @@ class ShakerNode(DeviceNode):
         return self._device
 
     # DeviceNode hooks --------------------------------------------------------------------
-    def _create_services(self) -> None:
-        self.create_service(FirePulse, T.SHAKER_FIRE.name, self._on_fire)
-        self.create_service(Trigger, T.SHAKER_STOP.name, self._on_stop)
-        self.create_service(FirePulse, T.SHAKER_COMPENSATE.name, self._on_compensate)
+    def _device_services(self) -> list[tuple]:
+        return [
+            (FirePulse, T.SHAKER_FIRE.name, self._on_fire),
+            (Trigger, T.SHAKER_STOP.name, self._on_stop),
+            (FirePulse, T.SHAKER_COMPENSATE.name, self._on_compensate),
+        ]
 
     def _create_publishers(self) -> dict:
         return {
@@ -157,6 +159,8 @@ class ShakerNode(DeviceNode):
         busy = self._busy()
         if busy:
             res.accepted, res.message = False, f"refused: {busy}"
+            self.get_logger().warning(res.message)
+            self._report("warn", res.message)
             return res
         request = _request(req)
         cfg = self._params.config

@@ -27,7 +27,7 @@ from devices.stage.port import StageCommand, StageMode, StagePair, check_strain
 from ros_nodes import convert
 from ros_nodes import topics as T
 from ros_nodes.hardware import stage_pair
-from ros_nodes.logic.sampling import due_samples
+from ros_nodes.logic.sampling import MAX_CATCH_UP, due_samples
 from ros_nodes.nodes._common import LATCHED, qos_profile, run_node
 from ros_nodes.nodes._device_node import DeviceNode
 from ros_nodes.nodes._guard import motion_refusal
@@ -48,10 +48,12 @@ class StageNode(DeviceNode):
         return self._device
 
     # DeviceNode hooks --------------------------------------------------------------------
-    def _create_services(self) -> None:
-        self.create_service(SetStrain, T.STAGE_SET_STRAIN.name, self._on_set_strain)
-        self.create_service(Trigger, T.STAGE_STOP.name, self._on_stop)
-        self.create_service(Trigger, T.STAGE_RESET.name, self._on_reset)
+    def _device_services(self) -> list[tuple]:
+        return [
+            (SetStrain, T.STAGE_SET_STRAIN.name, self._on_set_strain),
+            (Trigger, T.STAGE_STOP.name, self._on_stop),
+            (Trigger, T.STAGE_RESET.name, self._on_reset),
+        ]
 
     def _create_publishers(self) -> dict:
         return {
@@ -84,11 +86,10 @@ class StageNode(DeviceNode):
 
     def _sample(self) -> None:
         cfg = self._params.config
-        times = due_samples(self._stages.time_s, self._now_s(), 1.0 / cfg.rate_hz)
-        if self._stages.status.mode == StageMode.FAULT:
-            # in FAULT only the newest sample is taken: a controller that stopped answering
-            # costs a reply timeout per reading, and catching up would never end
-            times = times[-1:]
+        # in FAULT only the newest sample is taken: a controller that stopped answering costs a
+        # reply timeout per reading, and catching up would never end
+        newest = 1 if self._stages.status.mode == StageMode.FAULT else MAX_CATCH_UP
+        times = due_samples(self._stages.time_s, self._now_s(), 1.0 / cfg.rate_hz, newest)
         for t in times:
             try:  # a command acts once, at the first sample after it came
                 r = self._stages.read(t)

@@ -446,6 +446,37 @@ def test_the_fixed_step_follows_the_design(make_task):
         task.initial_design + 0.01)), rel=2e-3)
 
 
+
+def test_a_fourth_order_step_above_verlets_is_re_chosen_at_its_own_margin(make_task):
+    """The fourth order at 1.5 x Verlet's step (a static pre-compression in contact) is
+    re-chosen above STEP_RECHECK of its own stability limit, dt x omega_max = 0.8 x 2.72, and
+    not only past 0.8 x 1.5 x Verlet's (dt x omega_max = 2.4, where one such step had drifted
+    to 2.6 and diverged); the new step is 1.5 x 0.6 x Verlet's limit, still marked."""
+    from design_engine.solve.fixed_step import FixedStepVerlet
+    from design_engine.solve.policy import ORDER4_STABILITY
+    from design_engine.solve.simulate import SolverConfig
+
+    task = make_task(3)
+    evaluator = TaskEvaluator(task)
+    st = evaluator._state["pulse"]
+
+    def checked(dt_omega, **kw):
+        solver = FixedStepVerlet(max_dt=dt_omega / st.omega, **kw)
+        return evaluator._check_step("pulse", dataclasses.replace(st, config=SolverConfig(
+            solver=solver, dtype="float64")), task.initial_design)
+
+    at_own_margin = 0.8 * ORDER4_STABILITY  # 2.18
+    new, event = checked(1.04 * at_own_margin, order=4, finer_check=True)  # 2.26 < 2.4
+    assert "re-chosen" in event, event
+    assert new.config.solver.max_dt == pytest.approx(1.5 * 0.6 * 2.0 / new.omega, rel=1e-9)
+    assert new.config.solver.finer_check and new.config.solver.order == 4
+    kept, event = checked(0.96 * at_own_margin, order=4, finer_check=True)
+    assert event == "" and kept.config.solver.max_dt == pytest.approx(
+        0.96 * at_own_margin / st.omega)
+    # Verlet's own margin is unchanged: 0.8 x 2
+    assert "re-chosen" in checked(1.04 * 1.6)[1]
+    assert checked(0.96 * 1.6)[1] == ""
+
 def test_a_run_in_contact_continues_in_contact_at_the_re_chosen_step(make_task):
     """When the step is re-chosen while the run is in contact, the evaluation continues with
     the contact configuration (its substeps kept) at the new step: not at the old step, which

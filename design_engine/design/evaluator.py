@@ -11,9 +11,10 @@ that an optimisation needs:
   equilibrium by a program of its own, `run.static_start`) (a warm-started
   power iteration, `STEP_CHECK_ITERATIONS` Hessian-vector products, a few per cent of a solve)
   and
-  when the step exceeds `STEP_RECHECK` x 2/omega_max a new step of `policy.STABILITY_SAFETY` x
-  2/omega_max is taken (both x `policy.verlet_multiple`: STATIC_CONTACT_STEP for the fourth
-  order of a static pre-compression in contact, whose step is that multiple of Verlet's; one more
+  when the step exceeds `STEP_RECHECK` x the scheme's stability limit (`policy.stability_limit`:
+  2/omega_max, or 2.72/omega_max for the fourth order of a static pre-compression in contact,
+  whose step is STATIC_CONTACT_STEP x Verlet's) a new step is taken (`policy.fixed_step`:
+  `policy.STABILITY_SAFETY` x 2/omega_max x that multiple; one more
   compilation, recorded as an event), or, when that step would
   be below `MIN_STEP_FRACTION` of the first one (the contact barrier of a design pressed deep
   into contact sets the frequency), adaptive Dopri8 from then on; a solve that still goes
@@ -53,7 +54,8 @@ from design_engine.solve.driver import PolicyFailed, solve_with_policy
 from design_engine.solve.fixed_step import is_fixed_step
 from design_engine.solve.objectives import objective_term
 from design_engine.solve.policy import (STABILITY_SAFETY, choose_config, contact_config,
-                                        for_gradient, initial_vector, make_frequency_estimator,
+                                        fixed_step, for_gradient, initial_vector,
+                                        make_frequency_estimator, stability_limit,
                                         verlet_multiple)
 from design_engine.solve.run import (cached_program, checked, compile_key, config_summary,
                                      prestressed_state, split_gradient, static_equilibrium,
@@ -349,13 +351,12 @@ class TaskEvaluator:
             raise SimulationError(f"the highest natural frequency of this design came out "
                                   f"{omega:g} rad/ms: no stable fixed step")
         st = dataclasses.replace(st, omega=omega, vector=vector)
-        # Verlet's stability limit, and the multiple of Verlet's step this one takes
-        limit = 2.0 / omega
-        scale = verlet_multiple(solver)
+        limit = 2.0 / omega  # Verlet's stability limit
         dt = solver.max_dt
-        if dt <= STEP_RECHECK * scale * limit:
+        if dt <= STEP_RECHECK * stability_limit(omega, solver):
             return st, ""
-        new_dt = STABILITY_SAFETY * scale * limit
+        new_dt = fixed_step(omega, solver)
+        scale = verlet_multiple(solver)
         hz = omega / (2 * np.pi) * 1e3
         if new_dt < MIN_STEP_FRACTION * st.first_dt:
             # the contact barrier sets that frequency: a fixed step would need many times the

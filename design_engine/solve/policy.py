@@ -140,6 +140,9 @@ COARSE_CHECK_ORDER = 3
 # reverse pass, which the check does not need, shrinks with it. Where contact is entered under
 # the pulse the barrier's stiffness is not in omega_max, and the step stays Verlet's
 STATIC_CONTACT_STEP = COARSE
+# dt x omega_max the fourth-order composition is stable to (Verlet: 2); the evaluator re-chooses
+# a step at STEP_RECHECK of the stability limit of the scheme that takes it (`stability_limit`)
+ORDER4_STABILITY = 2.72
 # an adaptive solve whose gradient an optimiser takes (`for_gradient`) of a scene whose pulse
 # starts in contact (`start_in_contact`: a static pre-compression past the cutoff, a ramp)
 # controls its error to this absolute tolerance on mm and mm/s instead of the reference's 1e-4
@@ -262,7 +265,7 @@ def choose_config(scene: Scene, *, full_model: bool = False,
         margin = static_void_margin(scene, state)
         in_contact = past_cutoff(margin, scene)
     omega = max_angular_frequency(scene, state=state) if omega is None else omega
-    dt = safety * 2.0 / omega
+    dt = fixed_step(omega, FixedStepVerlet(), safety)
     native = scene.model == DEFAULT_MODEL and native_available()
     reasons = (
         f"highest natural frequency {where} {omega / (2 * np.pi) * 1e3:.0f} Hz",
@@ -465,9 +468,25 @@ def order_of(solver) -> int:
 
 def verlet_multiple(solver) -> float:
     """A fixed step's multiple of Verlet's step at the same omega_max: STATIC_CONTACT_STEP
-    where marked `finer_check` (`choose_config`), else 1 (the evaluator re-chooses the step
-    by it, `TaskEvaluator._check_step`)."""
+    where marked `finer_check` (`choose_config`), else 1."""
     return STATIC_CONTACT_STEP if getattr(solver, "finer_check", False) else 1.0
+
+
+def fixed_step(omega: float, solver, safety: float = STABILITY_SAFETY) -> float:
+    """The fixed step (ms) `solver`'s kind takes at highest natural frequency `omega` (rad/ms):
+    `safety` x Verlet's stability limit 2 / omega, x `verlet_multiple` (`choose_config`; the
+    evaluator's re-chosen step, `TaskEvaluator._check_step`)."""
+    return safety * verlet_multiple(solver) * 2.0 / omega
+
+
+def stability_limit(omega: float, solver) -> float:
+    """The largest stable step (ms) at `omega` (rad/ms) of the scheme `solver` takes its step
+    by: Verlet's 2 / omega; ORDER4_STABILITY / omega where the fourth order takes a multiple
+    of Verlet's step (`verlet_multiple`), whose margin is then its own. The evaluator
+    re-chooses a step above STEP_RECHECK of it: at 1.2 x Verlet's limit (0.88 of its own) a
+    1.5 x step had drifted to 1.3 x on a seeded focus-vs-protect run, dt x omega_max = 2.6,
+    and diverged (bench_fvp_run_session_seed1_amd.json, evaluation 18)."""
+    return (ORDER4_STABILITY if verlet_multiple(solver) > 1.0 else 2.0) / omega
 
 
 def check_ratio(config: SolverConfig) -> float:

@@ -9,11 +9,11 @@ run, which compiles, apart), with how often each scene counted a Dopri8 solve an
 reports for the scene; after the half-step check; otherwise), and the same times by how many of
 its scenes an evaluation solved with Dopri8 (`eval_s_by_dopri8_scenes`; `"0, no event"`: no
 Dopri8 and nothing re-solved, re-chosen or judged again). JSON in
-OUT/bench_front_evaluations.json, copied to benchmarks/results/.
+OUT/NAME.json (--name, default bench_front_evaluations), copied to benchmarks/results/.
 
     .venv/bin/python benchmarks/bench_front_evaluations.py [--task focus-vs-protect]
         [--weights 0,0.2,0.4,0.6,0.8,1] [--starts 20,30] [--max-evals 12] [--workers 2]
-        [--out runs/bench-front-evaluations] [--report-only]
+        [--out runs/bench-front-evaluations] [--name NAME] [--report-only]
 
 Ctrl-C stops the sweep and reports what its runs recorded so far (`"complete": false`);
 running the same command again resumes it. `--report-only` reports the runs in --out without
@@ -110,6 +110,8 @@ def main(argv=None) -> int:
     p.add_argument("--max-evals", type=int, default=12)
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--out", type=Path, default=Path("runs/bench-front-evaluations"))
+    p.add_argument("--name", default="bench_front_evaluations",
+                   help="the report's file name in --out and benchmarks/results/ (no .json)")
     p.add_argument("--report-only", action="store_true",
                    help="report the runs in --out, run nothing")
     args = p.parse_args(argv)
@@ -120,7 +122,7 @@ def main(argv=None) -> int:
     load_start = os.getloadavg()[0]
     start = time.perf_counter()
     complete = True
-    path = args.out / "bench_front_evaluations.json"
+    path = args.out / f"{args.name}.json"
     if args.report_only:  # complete when every run recorded its budget (below)
         # the wall time and load of the invocation that ran the sweep, if it wrote its report
         earlier = json.loads(path.read_text()) if path.exists() else {}

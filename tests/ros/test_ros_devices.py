@@ -7,6 +7,15 @@ import pytest
 from rostools import call, spin_until, stop_process
 
 
+def start_shaker(start_node, tmp_path, parameters: str):
+    """The shaker node with these YAML lines of parameters (indented under `ros__parameters`);
+    the test's client node may command motion (by default only the sequencer)."""
+    params = tmp_path / "shaker.yaml"
+    params.write_text("shaker:\n  ros__parameters:\n    allowed_callers: [/test_client]\n"
+                      + parameters)
+    return start_node("metarig-shaker", "--params-file", str(params))
+
+
 def test_shaker_refuses_out_of_limits_then_plays_a_pulse_and_stops(ros_node, start_node,
                                                                     tmp_path):
     from diagnostic_msgs.msg import DiagnosticArray
@@ -20,11 +29,8 @@ def test_shaker_refuses_out_of_limits_then_plays_a_pulse_and_stops(ros_node, sta
 
     # a deep reader queue: a node that stalls under load catches up in a burst of samples
     deep = qos_profile(T.SHAKER_JOINTS.qos, depth=5000)
-    params = tmp_path / "shaker.yaml"
-    # the test's client node may command motion (by default only the sequencer)
-    params.write_text("shaker:\n  ros__parameters:\n    allowed_callers: [/test_client]\n"
-                      "    device:\n      max_amplitude_m: 0.008\n      max_duration_s: 60.0\n")
-    proc = start_node("metarig-shaker", "--params-file", str(params))
+    proc = start_shaker(start_node, tmp_path, "    device:\n      max_amplitude_m: 0.008\n"
+                                              "      max_duration_s: 60.0\n")
     node, ex = ros_node
     try:
         states, cmds, diags = [], [], []
@@ -102,10 +108,7 @@ def test_a_shaker_behind_its_sampling_answers_and_stops_promptly(ros_node, start
 
     from ros_nodes import topics as T
 
-    params = tmp_path / "shaker.yaml"
-    params.write_text("shaker:\n  ros__parameters:\n    allowed_callers: [/test_client]\n"
-                      "    rate_hz: 10000.0\n")
-    proc = start_node("metarig-shaker", "--params-file", str(params))
+    proc = start_shaker(start_node, tmp_path, "    rate_hz: 10000.0\n")
     node, ex = ros_node
     try:
         newest = []  # the newest joint state only: this client must not fall behind itself
@@ -199,11 +202,8 @@ def test_shaker_compensates_its_drive_and_the_measured_peak_error_drops(ros_node
     from ros_nodes import topics as T
     from ros_nodes.nodes._common import COMMAND, qos_profile
 
-    params = tmp_path / "shaker.yaml"
-    params.write_text("shaker:\n  ros__parameters:\n    allowed_callers: [/test_client]\n"
-                      "    device:\n      natural_frequency_hz: 80.0\n"
-                      "      damping_ratio: 0.3\n")
-    proc = start_node("metarig-shaker", "--params-file", str(params))
+    proc = start_shaker(start_node, tmp_path, "    device:\n      natural_frequency_hz: 80.0\n"
+                                              "      damping_ratio: 0.3\n")
     node, ex = ros_node
     try:
         states, diags = [], []

@@ -21,14 +21,13 @@ folder is WORK/NAME-run (removed first). Ctrl-C stops the run and writes what it
 import argparse
 import collections
 import functools
-import json
 import os
 import shutil
 import sys
 import time
 from pathlib import Path
 
-from machine import cpu_model, source_checkout
+from machine import cpu_model, own_compile_cache, source_checkout, write_report
 
 HERE = Path(__file__).resolve().parent
 PHASES = {"_solve": "solve_s", "_gradient": "gradient_s", "_check_step": "step_check_s"}
@@ -56,11 +55,7 @@ def main(argv=None) -> int:
     from metarig.cores import pin_to_one_core
 
     core = pin_to_one_core(args.core)  # before XLA starts
-    cache = args.work / "jax-cache"
-    if not args.warm_cache:
-        shutil.rmtree(cache, ignore_errors=True)
-    os.environ["METARIG_JAX_CACHE"] = str(cache)
-    os.environ["METARIG_JAX_CACHE_MIN_S"] = "0"
+    own_compile_cache(args.work, args.warm_cache)
 
     import jax.monitoring
 
@@ -136,9 +131,7 @@ def main(argv=None) -> int:
                             "compile_and_trace_share": ((total["compile_s"] + total["trace_s"])
                                                         / total["wall_s"] if later else None)},
     }
-    args.out.mkdir(parents=True, exist_ok=True)
-    path = args.out / f"{args.name}.json"
-    path.write_text(json.dumps(report, indent=1) + "\n")
+    path = write_report(args.out, args.name, report)
     print(f"wrote {path}: after the first evaluation {total['wall_s']:.1f} s, of which "
           f"compiling {total['compile_s']:.1f} s and tracing {total['trace_s']:.1f} s")
     return 0

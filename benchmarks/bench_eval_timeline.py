@@ -18,7 +18,6 @@ WORK/NAME-run (removed first). Ctrl-C stops the run and writes what it has.
 
 import argparse
 import functools
-import json
 import os
 import shutil
 import sys
@@ -26,7 +25,7 @@ import threading
 import time
 from pathlib import Path
 
-from machine import cpu_model, source_checkout
+from machine import cpu_model, own_compile_cache, source_checkout, write_report
 
 HERE = Path(__file__).resolve().parent
 # the evaluator's methods timed, and their labels
@@ -53,11 +52,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     if args.evals < 1:
         p.error("--evals must be at least 1")
-    cache = args.work / "jax-cache"
-    if not args.warm_cache:
-        shutil.rmtree(cache, ignore_errors=True)
-    os.environ["METARIG_JAX_CACHE"] = str(cache)
-    os.environ["METARIG_JAX_CACHE_MIN_S"] = "0"
+    own_compile_cache(args.work, args.warm_cache)
 
     import design_engine  # noqa: F401  (x64, the cache)
     from design_engine.design import evaluator as evaluator_mod
@@ -133,9 +128,7 @@ def main(argv=None) -> int:
               "cache": "warm" if args.warm_cache else "empty",
               "machine": {"cpu": cpu_model(), "cores": os.cpu_count()}, "load_1min": load,
               "source": source_checkout(), "evaluations": evaluations}
-    args.out.mkdir(parents=True, exist_ok=True)
-    path = args.out / f"{args.name}.json"
-    path.write_text(json.dumps(report, indent=1) + "\n")
+    path = write_report(args.out, args.name, report)
     print(f"wrote {path}")
     return 0
 

@@ -21,7 +21,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from machine import describe
+from machine import describe, write_report
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -72,9 +72,7 @@ def main(argv=None) -> int:
     j = rows["before"][0]["J"], rows["after"][0]["J"]
     report = {"machine": describe(), "load_1min": load, "before": str(args.before),
               "rows": rows, "J_rel_diff": abs(j[0] - j[1]) / abs(j[0])}
-    args.out.mkdir(parents=True, exist_ok=True)
-    path = args.out / f"{args.name}.json"
-    path.write_text(json.dumps(report, indent=1) + "\n")
+    path = write_report(args.out, args.name, report)
     print(f"wrote {path}")
     return 0
 

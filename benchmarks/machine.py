@@ -1,6 +1,9 @@
-"""The machine a benchmark ran on, in words, for its results file (imported by the scripts here)."""
+"""The machine a benchmark ran on, in words, for its results file, and what the scripts here
+share around it: their own compile cache, their report written (imported by the scripts here)."""
 
+import json
 import os
+import shutil
 import platform
 from pathlib import Path
 
@@ -27,3 +30,22 @@ def source_checkout() -> str:
     import design_engine
 
     return str(Path(design_engine.__file__).resolve().parents[1])
+
+
+def own_compile_cache(work: Path, warm: bool) -> None:
+    """Point JAX's persistent compilation cache at `work`/jax-cache, emptied first unless
+    `warm`, every program stored (set before `design_engine` is imported)."""
+    cache = Path(work) / "jax-cache"
+    if not warm:
+        shutil.rmtree(cache, ignore_errors=True)
+    os.environ["METARIG_JAX_CACHE"] = str(cache)
+    os.environ["METARIG_JAX_CACHE_MIN_S"] = "0"
+
+
+def write_report(out: Path, name: str, report: dict) -> Path:
+    """`report` as `out`/`name`.json (the folder made); its path."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / f"{name}.json"
+    path.write_text(json.dumps(report, indent=1) + "\n")
+    return path

@@ -470,11 +470,17 @@ def test_a_fourth_order_step_above_verlets_is_re_chosen_at_its_own_margin(make_t
     assert "re-chosen" in event, event
     assert new.config.solver.max_dt == pytest.approx(1.5 * 0.6 * 2.0 / new.omega, rel=1e-9)
     assert new.config.solver.finer_check and new.config.solver.order == 4
+    # the record's step line says which scheme takes the new step, and at what it is judged
+    dt_us = new.config.solver.max_dt * 1e3
+    assert new.reasons[1].startswith(f"the fourth order, dt = {dt_us:.1f} us = 1.5 x 0.6 x "
+                                     "Verlet's stability limit of the current design")
+    assert f"judged at Verlet's step, {dt_us / 1.5:.1f} us" in new.reasons[1]
     kept, event = checked(0.96 * at_own_margin, order=4, finer_check=True)
     assert event == "" and kept.config.solver.max_dt == pytest.approx(
         0.96 * at_own_margin / st.omega)
     # Verlet's own margin is unchanged: 0.8 x 2
-    assert "re-chosen" in checked(1.04 * 1.6)[1]
+    verlet, event = checked(1.04 * 1.6)
+    assert "re-chosen" in event and verlet.reasons[1].startswith("fixed-step Verlet, dt = ")
     assert checked(0.96 * 1.6)[1] == ""
 
 def test_a_run_in_contact_continues_in_contact_at_the_re_chosen_step(make_task):

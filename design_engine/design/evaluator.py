@@ -53,10 +53,9 @@ from design_engine.design.task_schema import Term
 from design_engine.solve.driver import PolicyFailed, solve_with_policy
 from design_engine.solve.fixed_step import is_fixed_step
 from design_engine.solve.objectives import objective_term
-from design_engine.solve.policy import (STABILITY_SAFETY, choose_config, contact_config,
-                                        fixed_step, for_gradient, initial_vector,
-                                        make_frequency_estimator, stability_limit,
-                                        verlet_multiple)
+from design_engine.solve.policy import (choose_config, contact_config, fixed_step,
+                                        for_gradient, initial_vector, make_frequency_estimator,
+                                        stability_limit, step_reason)
 from design_engine.solve.run import (cached_program, checked, compile_key, config_summary,
                                      prestressed_state, split_gradient, static_equilibrium,
                                      static_start)
@@ -356,7 +355,6 @@ class TaskEvaluator:
         if dt <= STEP_RECHECK * stability_limit(omega, solver):
             return st, ""
         new_dt = fixed_step(omega, solver)
-        scale = verlet_multiple(solver)
         hz = omega / (2 * np.pi) * 1e3
         if new_dt < MIN_STEP_FRACTION * st.first_dt:
             # the contact barrier sets that frequency: a fixed step would need many times the
@@ -370,9 +368,7 @@ class TaskEvaluator:
                 f"{new_dt * 1e3:.1f} us would be below {MIN_STEP_FRACTION:g} x the first one "
                 f"({st.first_dt * 1e3:.1f} us): adaptive Dopri8 from here on")
         # reasons[1] is the choice's line about the step (`policy.choose_config`)
-        step_reason = (f"fixed-step Verlet, dt = {new_dt * 1e3:.1f} us = "
-                       f"{STABILITY_SAFETY * scale:g} x Verlet's stability limit of the current "
-                       "design")
+        line = step_reason(new_dt, solver, current=True)
         # the last configuration, in contact, continues at the new step with its contact
         # substeps (it would only be re-reached through a rejected solve and two compilations)
         last = st.last_config
@@ -384,7 +380,7 @@ class TaskEvaluator:
         return dataclasses.replace(
             st, config=dataclasses.replace(st.config, solver=solver.with_max_dt(new_dt)),
             last_config=last,
-            reasons=st.reasons[:1] + (step_reason,) + st.reasons[2:]), (
+            reasons=st.reasons[:1] + (line,) + st.reasons[2:]), (
             f"{name}: highest natural frequency rose to {hz:.0f} Hz; fixed step "
             f"{dt * 1e3:.1f} us was {dt / limit:.2f} x Verlet's stability limit, re-chosen to "
             f"{new_dt * 1e3:.1f} us")

@@ -278,8 +278,7 @@ def choose_config(scene: Scene, *, full_model: bool = False,
     native = scene.model == DEFAULT_MODEL and native_available()
     reasons = (
         f"highest natural frequency {where} {omega / (2 * np.pi) * 1e3:.0f} Hz",
-        f"fixed-step Verlet, dt = {dt * 1e3:.1f} us = {safety:g} x the stability limit (1 force "
-        "evaluation per step; within 0.5 % of J and 1 % of the gradient on the focusing chart)",
+        step_reason(dt, FixedStepVerlet(), safety),
         "float32: within 1e-5 of J and 3e-3 of the gradient on the focusing chart",
         *(("forces by the native custom calls (physics.native): the same force to rounding, "
            "3-5x faster per evaluation",) if native else ()),
@@ -304,11 +303,11 @@ def choose_config(scene: Scene, *, full_model: bool = False,
         config = with_contact(dataclasses.replace(config, dtype="float64"))
         config = dataclasses.replace(config, solver=dataclasses.replace(
             config.solver, max_dt=STATIC_CONTACT_STEP * dt, finer_check=True))
-        reasons += (f"the static pre-compression already closes voids past the contact cutoff "
-                    f"({np.degrees(margin):.2f} deg above the asymptote): contact terms on, "
-                    f"by the fourth order at {STATIC_CONTACT_STEP:g} x that step "
-                    f"({STATIC_CONTACT_STEP * dt * 1e3:.1f} us, judged at {dt * 1e3:.1f} us), "
-                    "float64, from the first solve",)
+        reasons = reasons[:1] + (step_reason(config.solver.max_dt, config.solver, safety),) + \
+            reasons[2:] + (f"the static pre-compression already closes voids past the contact "
+                           f"cutoff ({np.degrees(margin):.2f} deg above the asymptote): contact "
+                           f"terms on, by the fourth order at {STATIC_CONTACT_STEP:g} x Verlet's "
+                           "step, float64, from the first solve",)
     return Choice(config, reasons, omega)
 
 
@@ -486,6 +485,20 @@ def fixed_step(omega: float, solver, safety: float = STABILITY_SAFETY) -> float:
     `safety` x Verlet's stability limit 2 / omega, x `verlet_multiple` (`choose_config`; the
     evaluator's re-chosen step, `TaskEvaluator._check_step`)."""
     return safety * verlet_multiple(solver) * 2.0 / omega
+
+
+def step_reason(dt: float, solver, safety: float = STABILITY_SAFETY,
+                current: bool = False) -> str:
+    """The reasons' line about fixed step `dt` (ms) of `solver`'s kind (`choose_config`'s
+    second; the evaluator's after it re-chose the step, `current`: of the current design)."""
+    limit = "Verlet's stability limit" + (" of the current design" if current else "")
+    multiple = verlet_multiple(solver)
+    if multiple > 1.0:
+        return (f"the fourth order, dt = {dt * 1e3:.1f} us = {multiple:g} x {safety:g} x {limit} "
+                f"(5 force evaluations per step; judged at Verlet's step, "
+                f"{dt / multiple * 1e3:.1f} us)")
+    return (f"fixed-step Verlet, dt = {dt * 1e3:.1f} us = {safety:g} x {limit} (1 force "
+            "evaluation per step; within 0.5 % of J and 1 % of the gradient on the focusing chart)")
 
 
 def stability_limit(omega: float, solver) -> float:

@@ -14,7 +14,8 @@ Interfaces (node name `shaker`):
   nothing (a function generator: its readings are the commanded motion).
 - service `~/stop` (std_srvs/Trigger) and topic `/rig/stop` (std_msgs/Empty): drop the program
   (and a compensation under way), the actuator returns to rest at zero.
-- `~/command` (trajectory_msgs/JointTrajectory, latched): the accepted waveform, absolute start.
+- `~/command` (trajectory_msgs/JointTrajectory, latched): the accepted waveform, absolute start
+  (published after the request's answer, off the device lock: `DeviceNode._publish_later`).
 - `~/joint_states` (sensor_msgs/JointState): measured displacement and velocity at `rate_hz`.
 - `/diagnostics`: accepted / refused / stopped / finished events, and `fault: ...` (error) once
   when the drive reports a fault of its own (a function generator's watchdog: an instrument
@@ -184,8 +185,8 @@ class ShakerNode(DeviceNode):
         self._playing_until = start_ns * 1e-9 + drive.duration_s
         ts = np.arange(0.0, drive.duration_s + 0.5 / cfg.command_rate_hz,
                        1.0 / cfg.command_rate_hz)
-        self._pubs["cmd"].publish(convert.command_trajectory(
-            start_ns, ts, drive.displacement(ts), drive.velocity(ts)))
+        u, v = drive.displacement(ts), drive.velocity(ts)
+        self._publish_later("cmd", lambda: convert.command_trajectory(start_ns, ts, u, v))
         res.accepted = True
         res.message = (f"accepted: {wf.kind} A={wf.amplitude_m:g} m f={wf.frequency_hz:g} Hz, "
                        f"{wf.duration_s:.4g} s{note}")

@@ -65,9 +65,16 @@ def test_shaker_refuses_out_of_limits_then_plays_a_pulse_and_stops(ros_node, sta
         # loaded machine: a 7.5 s one had ended before the second request was taken, once.
         # The second request, refused while the burst plays, is repeated every 5 s: a repeat
         # is refused too, and one in CI went unanswered for 45 s
+        t_fire = time.monotonic()
         r = call(fire, FirePulse.Request(waveform="burst", amplitude_m=0.002, frequency_hz=20.0,
                                          cycles=1000.0), ex, resend_s=45.0)
         assert r.accepted, r.message
+        took = time.monotonic() - t_fire
+        print(f"the 50 s burst was answered in {took:.2f} s")
+        # its 100 000-point commanded waveform is built after the answer, off the device lock:
+        # built inside the request, the answer (and any stop) waited 14-15 s beside four busy
+        # loops, 0.06-0.07 s now
+        assert took < 5.0
         r2 = call(fire, FirePulse.Request(waveform="pulse", amplitude_m=0.002, frequency_hz=20.0),
                   ex, resend_s=5.0)
         assert not r2.accepted and "already playing" in r2.message, r2.message
@@ -91,6 +98,15 @@ def test_shaker_refuses_out_of_limits_then_plays_a_pulse_and_stops(ros_node, sta
 
         spin_until(ex, lambda: len(late()) >= 20, 30.0, "20 joint states from 0.25 s after stop")
         assert np.abs(late()).max() < 1e-4
+        # the burst's commanded waveform, built and published after the answer (off the lock
+        # a stop takes), arrives whole: 50 s at the default 2 kHz, from the burst's start
+        def burst():
+            return [m for m in cmds if (m.header.stamp.sec, m.header.stamp.nanosec)
+                    == (r.start.sec, r.start.nanosec)]
+
+        spin_until(ex, burst, 60.0, "the burst's commanded waveform")
+        u = np.array([p.positions[0] for p in burst()[-1].points])
+        assert u.size == 100_001 and u.max() == pytest.approx(0.002, rel=1e-3)
     finally:
         print(stop_process(proc))
 

@@ -361,6 +361,8 @@ def test_a_forward_run_that_starts_in_contact_is_judged_at_verlets_step(jammed, 
     fine = check_config(config)
     assert jammed_choice.reasons[1].startswith(  # the step line names the step taken
         f"the fourth order, dt = {config.solver.max_dt * 1e3:.1f} us = 1.5 x 0.6 x ")
+    # and no line speaks of the float32 solve without contact it is not
+    assert not [r for r in jammed_choice.reasons if "float32" in r or "left out" in r]
     assert config.solver.finer_check and fine.solver.max_dt == pytest.approx(
         config.solver.max_dt / STATIC_CONTACT_STEP)
     j = simulate_scene(jammed, config).metrics["target_ke_mean_J"]

@@ -276,19 +276,6 @@ def choose_config(scene: Scene, *, full_model: bool = False,
     omega = max_angular_frequency(scene, state=state) if omega is None else omega
     dt = fixed_step(omega, FixedStepVerlet(), safety)
     native = scene.model == DEFAULT_MODEL and native_available()
-    reasons = (
-        f"highest natural frequency {where} {omega / (2 * np.pi) * 1e3:.0f} Hz",
-        step_reason(dt, FixedStepVerlet(), safety),
-        "float32: within 1e-5 of J and 3e-3 of the gradient on the focusing chart",
-        *(("forces by the native custom calls (physics.native): the same force to rounding, "
-           "3-5x faster per evaluation",) if native else ()),
-        "contact terms left out while every void stays above the contact cutoff (checked after "
-        "each solve; exact then, else re-solved with contact by the fourth order at the same "
-        "step, judged at a coarser step, else with Dopri8)",
-    )
-    if ld.strain > 0.0:
-        reasons += ("static pre-compression: the pulse starts from rest in the equilibrium under "
-                    "the closed stages (float64 Newton continuation, implicit gradient)",)
     # remat: the reverse pass recomputes the steps instead of storing their intermediates; on
     # the 24x16 focusing design in contact (6965 steps) value-and-gradient took 13.1-13.4 s
     # CPU against 16.1-16.4 s, and 19 MB of residuals against 2.2 GB
@@ -303,11 +290,26 @@ def choose_config(scene: Scene, *, full_model: bool = False,
         config = with_contact(dataclasses.replace(config, dtype="float64"))
         config = dataclasses.replace(config, solver=dataclasses.replace(
             config.solver, max_dt=STATIC_CONTACT_STEP * dt, finer_check=True))
-        reasons = reasons[:1] + (step_reason(config.solver.max_dt, config.solver, safety),) + \
-            reasons[2:] + (f"the static pre-compression already closes voids past the contact "
-                           f"cutoff ({np.degrees(margin):.2f} deg above the asymptote): contact "
-                           f"terms on, by the fourth order at {STATIC_CONTACT_STEP:g} x Verlet's "
-                           "step, float64, from the first solve",)
+    # reasons[1] is the line about the step (the evaluator replaces it when it re-chooses it)
+    reasons = (
+        f"highest natural frequency {where} {omega / (2 * np.pi) * 1e3:.0f} Hz",
+        step_reason(config.solver.max_dt, config.solver, safety),
+        *(() if in_contact else
+          ("float32: within 1e-5 of J and 3e-3 of the gradient on the focusing chart",)),
+        *(("forces by the native custom calls (physics.native): the same force to rounding, "
+           "3-5x faster per evaluation",) if native else ()),
+        *(() if in_contact else (
+            "contact terms left out while every void stays above the contact cutoff (checked "
+            "after each solve; exact then, else re-solved with contact by the fourth order at "
+            "the same step, judged at a coarser step, else with Dopri8)",)),
+        *(("static pre-compression: the pulse starts from rest in the equilibrium under the "
+           "closed stages (float64 Newton continuation, implicit gradient)",)
+          if ld.strain > 0.0 else ()),
+        *((f"the static pre-compression already closes voids past the contact cutoff "
+           f"({np.degrees(margin):.2f} deg above the asymptote): contact terms on, by the fourth "
+           f"order at {STATIC_CONTACT_STEP:g} x Verlet's step, float64, from the first solve",)
+          if in_contact else ()),
+    )
     return Choice(config, reasons, omega)
 
 

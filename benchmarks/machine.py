@@ -3,8 +3,8 @@ share around it: their own compile cache, their report written (imported by the 
 
 import json
 import os
-import shutil
 import platform
+import shutil
 from pathlib import Path
 
 

@@ -76,7 +76,7 @@ REFINE = 0.5
 # off by up to 5.5e-5 at half the step against 6.3e-6 at the step), where float64 drifted by
 # orders of magnitude less and its drift shrank with the step
 # (bench_drift_floor_1pct_float32_amd.json, _float64_amd.json). So in float32 any drift the
-# balance accepts may be rounding, and predicts nothing of another step (`start_config`)
+# balance accepts may be rounding, and predicts nothing of another step (`predicted_drift`)
 DRIFT_FLOOR = {"float32": ENERGY_TOLERANCE, "float64": 0.0}
 # a fixed step with contact whose only fault is the barrier outgrowing it (its drift within the
 # tolerance) keeps its step and steps the contact forces by substeps instead (multiple time
@@ -288,8 +288,9 @@ def choose_config(scene: Scene, *, full_model: bool = False,
                           dtype="float32", native_force=native)
     if in_contact:
         config = with_contact(dataclasses.replace(config, dtype="float64"))
-        config = dataclasses.replace(config, solver=dataclasses.replace(
-            config.solver, max_dt=STATIC_CONTACT_STEP * dt, finer_check=True))
+        solver = dataclasses.replace(config.solver, finer_check=True)
+        config = dataclasses.replace(config, solver=solver.with_max_dt(
+            fixed_step(omega, solver, safety)))
     # reasons[1] is the line about the step (the evaluator replaces it when it re-chooses it)
     reasons = (
         f"highest natural frequency {where} {omega / (2 * np.pi) * 1e3:.0f} Hz",
@@ -627,6 +628,14 @@ def step_error_passes(step_error: float) -> bool:
     return step_error <= 0.5 * STEP_ERROR_TOLERANCE
 
 
+def predicted_drift(drift: float, config: SolverConfig, factor: float) -> float:
+    """The work-energy drift that a fixed-step solve of `config` which drifted by `drift`
+    predicts at another step, whose error is `factor` x its own (REFINE^order refining,
+    REFINE^-order climbing back): `factor` x `drift`, or 0 where the drift is within its
+    precision's rounding (`DRIFT_FLOOR`), which predicts nothing of another step."""
+    return 0.0 if drift <= DRIFT_FLOOR.get(config.dtype, 0.0) else factor * drift
+
+
 def passes(drift: float, ratio: float) -> bool:
     """Whether a fixed-step solve is predicted to pass `next_config` with this drift and
     h x omega_c, with the margin a prediction needs (the drift within half the tolerance)."""
@@ -690,7 +699,8 @@ def next_config(config: SolverConfig, health: dict, scene: Scene) -> tuple[Solve
             nxt = with_substeps(config, n)
             return nxt, (f"{what}: re-solved with the contact forces stepped {n} times per step "
                          f"({nxt.solver.max_dt / n * 1e3:.1f} us)")
-    if not solver.refined and passes(drift * REFINE**order_of(solver), ratio * REFINE):
+    if not solver.refined and passes(predicted_drift(drift, config, REFINE**order_of(solver)),
+                                     ratio * REFINE):
         nxt = refined(config)
         return nxt, (f"{what}: re-solved once at {REFINE:g} x the step "
                      f"({nxt.solver.max_dt * 1e3:.1f} us)")
@@ -762,10 +772,9 @@ def start_config(choice: SolverConfig, last: SolverConfig | None, health: dict |
         dt = min(last.solver.max_dt / REFINE, top)
         up = dataclasses.replace(last, solver=dataclasses.replace(last.solver, max_dt=dt,
                                                                   refined=dt < top))
-        drift = float(health.get("energy_error", 0.0))
-        if drift <= DRIFT_FLOOR.get(last.dtype, 0.0):  # rounding: no prediction
-            drift = 0.0
-        if passes(drift / REFINE**order_of(last.solver), barrier_ratio(up, health, scene)):
+        drift = predicted_drift(float(health.get("energy_error", 0.0)), last,
+                                REFINE**-order_of(last.solver))
+        if passes(drift, barrier_ratio(up, health, scene)):
             return up
     return last
 

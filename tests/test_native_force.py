@@ -209,6 +209,92 @@ def test_a_solve_in_contact_with_native_forces_gives_the_jax_solve_s_value_and_g
     assert np.linalg.norm(g1 - g0) <= g_tol * np.linalg.norm(g0)
 
 
+@pytest.mark.parametrize("order,dtype", [(4, "float64"), (2, "float64"), (4, "float32")])
+def test_a_solve_by_the_native_verlet_stages_is_the_jax_step_s(native, monkeypatch, order, dtype):
+    from design_engine.physics.scenes import build_scene
+    from design_engine.solve import simulate
+    from design_engine.solve.fixed_step import FixedStepVerlet
+    from design_engine.solve.run import make_objective
+    from design_engine.solve.simulate import SolverConfig
+
+    # 6x6 at 7 %: in contact from the static pre-compression on; the policy's schemes there
+    # (the fourth order) and at rest (Verlet, float32), each step one native call
+    scene = build_scene("protection-24x18", nx=6, ny=6, strain=0.07, amplitude_m=2e-3)
+    x = jnp.asarray(scene.design)
+    config = SolverConfig(solver=FixedStepVerlet(max_dt=0.015 if order == 4 else 0.006,
+                                                 order=order, remat=True),
+                          native_force=True, dtype=dtype)
+    made = []
+    native_stages = simulate.make_verlet_stages
+    monkeypatch.setattr(simulate, "make_verlet_stages",
+                        lambda *a, **k: made.append(1) or native_stages(*a, **k))
+    out = {}
+    for stages in (True, False):
+        if not stages:  # the JAX step around the same native force
+            monkeypatch.setattr(simulate, "make_verlet_stages", lambda *a, **k: None)
+        (j, aux), g = make_objective(scene, config)[0](x)
+        assert int(aux["result"]) == 0
+        out[stages] = (float(j), np.asarray(g), float(aux["energy_error"]))
+    assert made  # the first solve did run the native stages
+    (j1, g1, e1), (j0, g0, e0) = out[True], out[False]
+    assert j0 > 0.0 and 0.0 < e0 < 1e-3
+    if dtype == "float64":  # the same arithmetic to rounding
+        assert abs(j1 - j0) <= 1e-10 * j0
+        assert np.linalg.norm(g1 - g0) <= 1e-8 * np.linalg.norm(g0)
+        assert abs(e1 - e0) <= 1e-6 * e0
+    else:  # float32 rounding in another order: within float32's own error of the solve
+        assert abs(j1 - j0) <= 2e-4 * j0
+        assert np.linalg.norm(g1 - g0) <= 1e-2 * np.linalg.norm(g0)
+        assert abs(e1 - e0) <= 1e-5
+
+
+def test_the_native_verlet_stages_reverse_pass_is_their_derivative(native):
+    from jax.test_util import check_grads
+
+    from design_engine.physics.dynamics import make_dynamics_args
+    from design_engine.physics.loading import make_prescribed
+    from design_engine.physics.native.stages import make_verlet_stages
+    from design_engine.physics.scenes import build_scene
+    from design_engine.solve.fixed_step import SUZUKI_4
+    from design_engine.solve.simulate import static_state
+
+    # a state in contact (the 4x4 scene's static pre-compression at 7 %), moving: the
+    # derivative of a fourth-order step in every input it differentiates, against central
+    # differences
+    scene = build_scene("protection-24x18", nx=4, ny=4, strain=0.07, amplitude_m=2e-3)
+    lattice, supports = scene.lattice, scene.supports
+    free = np.asarray(supports.free)
+    state = np.asarray(static_state(scene)).reshape(-1)
+    args = make_dynamics_args(lattice, supports, block_geometry(lattice, jnp.asarray(scene.design)),
+                              scene.material, scene.loading)
+    packed = native.make_energy_and_gradient(lattice).pack(args.bonds, args.material, jnp.float64)
+    step = make_verlet_stages(lattice, supports)
+    rng = np.random.default_rng(4)
+    n_free = free.size
+    q = jnp.asarray(state[free])
+    v = jnp.asarray(rng.normal(scale=0.05, size=n_free))
+    f = jnp.asarray(rng.normal(scale=0.1, size=n_free))
+    dt = 0.01
+    h = jnp.asarray(SUZUKI_4) * dt
+    ends = jnp.cumsum(h)
+    _, prescribed = make_prescribed(supports)
+    qc, qcd = jax.vmap(lambda t: prescribed(t, scene.loading))(0.3 + ends)
+    damping = args.damping + 0.2  # some damping, so that its terms count
+    ledger = jnp.zeros(6)
+
+    def f_step(q, v, f, arms, vref, lig, con, inv_mass, damping, qc):
+        q1, v1, f1, _ = step(q, v, f, ledger, (arms, vref, lig, con), inv_mass, damping, qc,
+                             qcd, h)
+        return q1, v1, f1
+
+    inputs = (q, v, f, *packed, args.inv_mass, damping, qc)
+    for i in range(len(inputs)):  # one input at a time, so that no term hides behind another
+        def f_one(a, i=i):
+            return f_step(*inputs[:i], a, *inputs[i + 1:])
+
+        check_grads(f_one, (inputs[i],), order=1, modes=["rev"], eps=1e-5, atol=1e-7, rtol=1e-6)
+
+
 def test_forward_mode_solves_keep_the_jax_force():
     import diffrax
 

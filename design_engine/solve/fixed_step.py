@@ -213,9 +213,9 @@ class FixedStepVerlet(AbstractFixedStep):
 
     def make_integrator(self, grid: StepGrid, bond_blocks: np.ndarray, free: np.ndarray,
                         n_dof: int) -> Integrator:
-        def run(force, inv_mass, damping, y0, ts, fast_force=None, fast_index=None):
+        def run(force, inv_mass, damping, y0, ts, fast_force=None, fast_index=None, stages=None):
             qs, vs, led = integrate(self, force, inv_mass, damping, y0, ts, 0.0, grid.n_pre,
-                                    grid.n_sub, fast_force, fast_index)
+                                    grid.n_sub, fast_force, fast_index, stages)
             return qs, vs, jnp.asarray(True), energy_error(led)
 
         return run
@@ -306,7 +306,7 @@ def march(step, carry, ts, t0: float, n_pre: int, n_sub: int, remat: bool = Fals
 
 
 def integrate(method: FixedStepVerlet, force, inv_mass, damping, y0, ts, t0: float, n_pre: int,
-              n_sub: int, fast_force=None, fast_index=None):
+              n_sub: int, fast_force=None, fast_index=None, stages=None):
     """Integrate from t0 through the sample times.
 
     With `fast_force` (and `method.contact_substeps` = n > 1) the step is split by multiple
@@ -329,6 +329,10 @@ def integrate(method: FixedStepVerlet, force, inv_mass, damping, y0, ts, t0: flo
         n_sub: steps between consecutive samples (static).
         fast_force: None, or `fast_force(q[fast_index], t) -> (F [n_fast], (V, P))` of the
             contact terms alone, which act on the DOFs `fast_index` only (static indices).
+        stages: None, or `stages(q, v, f, ledger [6], t_ends [m], h [m]) -> (q1, v1, f1,
+            ledger1)`: a step's m Verlet stages of lengths h ending at t_ends, the same
+            arithmetic as this function's own step, in one native custom call
+            (`physics.native.stages`; not with `fast_force`).
 
     Returns:
         (q [n_t, n], v [n_t, n]) at the sample times and the final `Ledger`.
@@ -382,18 +386,29 @@ def integrate(method: FixedStepVerlet, force, inv_mass, damping, y0, ts, t0: flo
             aux1 = (aux1[0] + ff1[1][0], aux1[1])
         return (q1, v1, f1, ff1, ledger_step(led, dt, v, v1, mass, damping, aux1, fast_work))
 
+    fractions = SUZUKI_4 if method.order == 4 else (1.0,)
+    ends = tuple(s + h for s, h in zip(SUZUKI_4_STARTS, SUZUKI_4)) if method.order == 4 else (1.0,)
+
+    def native_step(carry, t, dt):
+        q, v, f, ff, led = carry
+        q1, v1, f1, led1 = stages(q, v, f, jnp.stack(led), t + jnp.asarray(ends, dt.dtype) * dt,
+                                  jnp.asarray(fractions, dt.dtype) * dt)
+        return q1, v1, f1, ff, Ledger(*(led1[i] for i in range(len(Ledger._fields))))
+
     def step(carry, t, dt):
+        if stages is not None:
+            return native_step(carry, t, dt)
         if method.order == 2:
             return verlet_step(carry, t, dt)
         # the five Verlet steps as a loop, not unrolled: one copy of the step (and of its
         # reverse) in the program. Value and gradient of the 24x18 protection scene at 8 %:
         # first call 16.0-16.3 s against 18.7-21.4 s, the second the same, 5.4-5.8 against
         # 5.3-5.5 s (benchmarks/bench_order4_program.py -> bench_order4_program_amd.json)
-        fractions = jnp.asarray(SUZUKI_4, dt.dtype)
+        lengths = jnp.asarray(SUZUKI_4, dt.dtype)
         starts = jnp.asarray(SUZUKI_4_STARTS, dt.dtype)
         return jax.lax.fori_loop(
             0, len(SUZUKI_4),
-            lambda k, c: verlet_step(c, t + starts[k] * dt, fractions[k] * dt), carry)
+            lambda k, c: verlet_step(c, t + starts[k] * dt, lengths[k] * dt), carry)
 
     q0, v0 = y0
     t_start = jnp.asarray(t0, ts.dtype)

@@ -298,7 +298,8 @@ def choose_config(scene: Scene, *, full_model: bool = False,
         *(() if in_contact else
           ("float32: within 1e-5 of J and 3e-3 of the gradient on the focusing chart",)),
         *(("forces by the native custom calls (physics.native): the same force to rounding, "
-           "3-5x faster per evaluation",) if native else ()),
+           "3-5x faster per evaluation; each step one native call (its Verlet stages)",)
+          if native else ()),
         *(() if in_contact else (
             "contact terms left out while every void stays above the contact cutoff (checked "
             "after each solve; exact then, else re-solved with contact by the fourth order at "

@@ -22,6 +22,7 @@ from design_engine.physics.lattice import Lattice
 from design_engine.physics.loading import Loading, Supports, make_prescribed
 from design_engine.physics.material import Material
 from design_engine.physics.native.build import available as native_available
+from design_engine.physics.native.stages import make_verlet_stages
 from design_engine.physics.native.force import (make_contact_energy_and_gradient,
                                                 make_energy_and_gradient)
 from design_engine.physics.statics import (EquilibriumError, check_equilibrium, equilibrium_state,
@@ -172,6 +173,9 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
     contact_fn = fast_contact_force(lattice, config, model, theta_order) if split else None
     bb = np.asarray(lattice.bond_blocks)
     fixed = is_fixed_step(config.solver)
+    # a fixed step's Verlet stages in one native call each, where the native force runs it
+    stages = (make_verlet_stages(lattice, supports, use_contact=config.use_contact)
+              if fixed and not split and _native(config, model) else None)
     if fixed:
         if time_grid is None:
             raise ValueError("the fixed-step solver needs the time grid (time_grid=) up front")
@@ -217,9 +221,14 @@ def make_simulator(lattice: Lattice, supports: Supports, config: SolverConfig = 
             g_f, g_c = g[:free_rotations.size], g[free_rotations.size:]
             return -g_f, (potential, jnp.dot(g_c, qc_dot[fixed_theta]))
 
+        def native_stages(q, v, f, ledger, t_ends, h):
+            qc, qcd = jax.vmap(lambda t: prescribed(t, args.loading))(t_ends)
+            return stages(q, v, f, ledger, packed, args.inv_mass, args.damping, qc, qcd, h)
+
         q0, v0 = y0[:n_free], y0[n_free:] / VELOCITY_SCALE
         n = jnp.asarray(grid.n_steps)
-        fast = {"fast_force": fast_force, "fast_index": free_rotations} if split else {}
+        fast = ({"fast_force": fast_force, "fast_index": free_rotations} if split else
+                {"stages": native_stages} if stages is not None else {})
         qs, vs, converged, drift = integrate(force, args.inv_mass, args.damping,
                                              (q0, v0), ts, **fast)
         result = jnp.where(converged, 0, NOT_CONVERGED).astype(jnp.int32)

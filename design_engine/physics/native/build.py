@@ -1,6 +1,7 @@
-"""Build and register the native bond force (`bond_force.cc`) as XLA CPU custom calls.
+"""Build and register the native bond force (`bond_force.cc`) and the native Verlet stages
+(`verlet_stages.cc`, both on `bond_kernels.h`) as XLA CPU custom calls.
 
-The source is compiled once per machine by the C++ compiler (`$CXX`, default `g++`) against
+The sources are compiled once per machine by the C++ compiler (`$CXX`, default `g++`) against
 the XLA FFI headers that jaxlib ships, into `$METARIG_NATIVE_CACHE` (default
 `~/.cache/metarig/native`), keyed by the source, the flags, the compiler, jax's version and the
 CPU (the code is built for the CPU it runs on, `-march=native`). Where there is no compiler, or
@@ -21,7 +22,9 @@ from pathlib import Path
 
 log = logging.getLogger(__name__)
 
-SOURCE = Path(__file__).with_name("bond_force.cc")
+HERE = Path(__file__).parent
+SOURCES = (HERE / "bond_force.cc", HERE / "verlet_stages.cc")
+HEADERS = (HERE / "bond_kernels.h",)
 FLAGS = ("-O3", "-march=native", "-std=c++17", "-shared", "-fPIC", "-fno-math-errno",
          "-fno-trapping-math")
 # custom-call target name -> symbol of its handler in the library
@@ -34,6 +37,10 @@ TARGETS = {
     "metarig_contact_force_f32": "MetarigContactForceF32",
     "metarig_contact_force_vjp_f64": "MetarigContactForceVjpF64",
     "metarig_contact_force_vjp_f32": "MetarigContactForceVjpF32",
+    "metarig_verlet_stages_f64": "MetarigVerletStagesF64",
+    "metarig_verlet_stages_f32": "MetarigVerletStagesF32",
+    "metarig_verlet_stages_vjp_f64": "MetarigVerletStagesVjpF64",
+    "metarig_verlet_stages_vjp_f32": "MetarigVerletStagesVjpF32",
 }
 
 _lock = threading.Lock()
@@ -66,7 +73,7 @@ def _key(compiler_version: str) -> str:
     import jax
 
     h = hashlib.sha256()
-    for part in (SOURCE.read_bytes(), " ".join(FLAGS).encode(), compiler_version.encode(),
+    for part in (*(p.read_bytes() for p in SOURCES + HEADERS), " ".join(FLAGS).encode(), compiler_version.encode(),
                  jax.__version__.encode(), _cpu().encode()):
         h.update(part)
         h.update(b"\0")
@@ -101,7 +108,7 @@ def _compile(cxx: str, out: Path) -> Path:
     # once (test workers) never load a half-written library
     fd, tmp = tempfile.mkstemp(suffix=".so", dir=out.parent)
     os.close(fd)
-    cmd = [cxx, *FLAGS, f"-I{jax.ffi.include_dir()}", str(SOURCE), "-o", tmp]
+    cmd = [cxx, *FLAGS, f"-I{jax.ffi.include_dir()}", *map(str, SOURCES), "-o", tmp]
     log.info("building the native bond force: %s", " ".join(cmd))
     try:
         done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)

@@ -7,8 +7,10 @@ policy's configuration on the scenes a design loop solves in contact.
 Variants, each in a fresh process (its peak memory measured), taken in turn `--repeats` times:
 - `jax`: the JAX step around the native force, recomputed in the reverse pass (the policy's
   `remat`), as before the native stages;
-- `native-remat`: the native stages, recomputed in the reverse pass;
-- `native`: the native stages keeping their stage forces (what the engine runs).
+- `native-remat`: the native stages, recomputed in the reverse pass (what the engine runs: the
+  policy's configuration);
+- `native`: the native stages not recomputed, the reverse pass reading the stage forces each
+  forward step kept.
 
 Scenes (`--scenes`): the focus-vs-protect task's 8 % and 1 % scenes and the focusing scene, at
 the task's start or, with `--run DIR --eval K`, at evaluation K's design of a design run's

@@ -64,7 +64,9 @@ def step_grid(time_grid, max_dt: float) -> StepGrid:
 # energy_error)`: force(q, t) -> (F, (V, P)) with F = -dV/dq ([n] -> [n]), V the potential energy
 # and P = dV/dt at fixed q (the power the prescribed motion puts in); inv_mass, damping: [n]
 # diagonals; ts: [n_t] sample times (ms) of the step grid; converged: bool scalar, False when the
-# solve must be reported failed; energy_error: the ledger's verdict (`energy_error`)
+# solve must be reported failed; energy_error: the ledger's verdict (`energy_error`). Optional
+# keywords: a split step's fast force (`integrate`'s fast_force, fast_index), or the step's
+# stages in one native call (`integrate`'s stages)
 Integrator = Callable[..., tuple]
 
 
@@ -386,12 +388,12 @@ def integrate(method: FixedStepVerlet, force, inv_mass, damping, y0, ts, t0: flo
             aux1 = (aux1[0] + ff1[1][0], aux1[1])
         return (q1, v1, f1, ff1, ledger_step(led, dt, v, v1, mass, damping, aux1, fast_work))
 
-    fractions = SUZUKI_4 if method.order == 4 else (1.0,)
-    ends = tuple(s + h for s, h in zip(SUZUKI_4_STARTS, SUZUKI_4)) if method.order == 4 else (1.0,)
+    fractions = SUZUKI_4 if method.order == 4 else (1.0,)  # the stages' lengths, of the step
 
     def native_step(carry, t, dt):
         q, v, f, ff, led = carry
-        q1, v1, f1, led1 = stages(q, v, f, jnp.stack(led), t + jnp.asarray(ends, dt.dtype) * dt,
+        q1, v1, f1, led1 = stages(q, v, f, jnp.stack(led),
+                                  t + jnp.asarray(np.cumsum(fractions), dt.dtype) * dt,
                                   jnp.asarray(fractions, dt.dtype) * dt)
         return q1, v1, f1, ff, Ledger(*(led1[i] for i in range(len(Ledger._fields))))
 

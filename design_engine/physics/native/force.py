@@ -18,7 +18,8 @@ from design_engine.physics.lattice import Lattice
 from design_engine.physics.native.build import library
 
 
-def _suffix(dtype) -> str:
+def dtype_suffix(dtype) -> str:
+    """The custom calls' name suffix of a state's dtype."""
     if dtype == jnp.float64:
         return "f64"
     if dtype == jnp.float32:
@@ -47,7 +48,7 @@ def _custom_call(name: str, constants, attrs=None):
     @jax.custom_vjp
     def core(x, *params):
         call = jax.ffi.ffi_call(
-            f"metarig_{name}_{_suffix(x.dtype)}",
+            f"metarig_{name}_{dtype_suffix(x.dtype)}",
             (jax.ShapeDtypeStruct((), x.dtype), jax.ShapeDtypeStruct(x.shape, x.dtype)),
             vmap_method="sequential")
         return call(*constants(x.dtype), x, *params, **attrs)
@@ -59,7 +60,7 @@ def _custom_call(name: str, constants, attrs=None):
         x = inputs[0]
         ebar, gbar = cotangents
         call = jax.ffi.ffi_call(
-            f"metarig_{name}_vjp_{_suffix(x.dtype)}",
+            f"metarig_{name}_vjp_{dtype_suffix(x.dtype)}",
             tuple(jax.ShapeDtypeStruct(a.shape, x.dtype) for a in inputs),
             vmap_method="sequential")
         return call(*constants(x.dtype), *inputs, jnp.asarray(ebar, x.dtype),
@@ -67,6 +68,14 @@ def _custom_call(name: str, constants, attrs=None):
 
     core.defvjp(forward, backward)
     return core
+
+
+def bond_constants(lattice: Lattice):
+    """(b1, b2 [n_bonds] int32, r0 [n_bonds, 2]): the lattice's constants every bond-map call
+    takes first (the units each bond joins, its rest vector)."""
+    return (np.ascontiguousarray(lattice.bond_blocks[:, 0], np.int32),
+            np.ascontiguousarray(lattice.bond_blocks[:, 1], np.int32),
+            np.ascontiguousarray(lattice.bond_r0))
 
 
 def make_energy_and_gradient(lattice: Lattice, *, use_contact: bool = True) -> Force:
@@ -77,9 +86,7 @@ def make_energy_and_gradient(lattice: Lattice, *, use_contact: bool = True) -> F
     line) where they cannot be had. Material fields may be scalars or [n_bonds] arrays.
     """
     library()
-    b1 = np.ascontiguousarray(lattice.bond_blocks[:, 0], np.int32)
-    b2 = np.ascontiguousarray(lattice.bond_blocks[:, 1], np.int32)
-    r0 = np.ascontiguousarray(lattice.bond_r0)
+    b1, b2, r0 = bond_constants(lattice)
     n = b1.size
     core = _custom_call("bond_force", lambda dtype: (b1, b2, jnp.asarray(r0, dtype)),
                         {"l0": np.float64(lattice.ligament_length),

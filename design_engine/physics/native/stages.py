@@ -15,7 +15,7 @@ import numpy as np
 from design_engine.physics.lattice import Lattice
 from design_engine.physics.loading import Supports
 from design_engine.physics.native.build import library
-from design_engine.physics.native.force import _suffix
+from design_engine.physics.native.force import bond_constants, dtype_suffix
 
 
 def make_verlet_stages(lattice: Lattice, supports: Supports, *, use_contact: bool = True):
@@ -36,9 +36,7 @@ def make_verlet_stages(lattice: Lattice, supports: Supports, *, use_contact: boo
     line) where they cannot be had.
     """
     library()
-    b1 = np.ascontiguousarray(lattice.bond_blocks[:, 0], np.int32)
-    b2 = np.ascontiguousarray(lattice.bond_blocks[:, 1], np.int32)
-    r0 = np.ascontiguousarray(lattice.bond_r0)
+    b1, b2, r0 = bond_constants(lattice)
     # every global DOF's index in [q_free, q_prescribed] (`dynamics.make_full_state`)
     slot = np.ascontiguousarray(supports.assemble_index, np.int32)
     attrs = {"l0": np.float64(lattice.ligament_length), "contact": np.int32(bool(use_contact))}
@@ -49,7 +47,7 @@ def make_verlet_stages(lattice: Lattice, supports: Supports, *, use_contact: boo
     def call(inputs):
         q = inputs[0]
         out = jax.ffi.ffi_call(
-            f"metarig_verlet_stages_{_suffix(q.dtype)}",
+            f"metarig_verlet_stages_{dtype_suffix(q.dtype)}",
             (jax.ShapeDtypeStruct(q.shape, q.dtype), jax.ShapeDtypeStruct(q.shape, q.dtype),
              jax.ShapeDtypeStruct((6,), q.dtype),
              jax.ShapeDtypeStruct(inputs[11].shape + q.shape, q.dtype)),  # h: [m]
@@ -71,7 +69,7 @@ def make_verlet_stages(lattice: Lattice, supports: Supports, *, use_contact: boo
         qb1, vb1, fb1, _ = cotangents
         q = inputs[0]
         out = jax.ffi.ffi_call(
-            f"metarig_verlet_stages_vjp_{_suffix(q.dtype)}",
+            f"metarig_verlet_stages_vjp_{dtype_suffix(q.dtype)}",
             tuple(jax.ShapeDtypeStruct(a.shape, q.dtype) for a in inputs[:10]),
             vmap_method="sequential")
         grads = out(*constants(q.dtype), *inputs, fs, qb1, vb1, fb1, **attrs)

@@ -419,5 +419,9 @@ def integrate(method: FixedStepVerlet, force, inv_mass, damping, y0, ts, t0: flo
     if ff0 is not None:
         aux0 = (aux0[0] + ff0[1][0], aux0[1])
     carry = (q0, v0, f0, ff0, ledger_start(v0, mass, aux0))
-    last, qs, vs = march(step, carry, ts, t0, n_pre, n_sub, method.remat)
+    # the native step is not recomputed in the reverse pass (`remat` is for the JAX step): it
+    # keeps its stage forces, 5 vectors a step, and its reverse reads them. Value and gradient
+    # of the 8 % design 13: 2.78-2.83 s against 3.29-3.40 s recomputed, 0.94 against 0.70 GB
+    # at the peak (benchmarks/bench_native_stages.py -> bench_native_stages_fvp13_amd.json)
+    last, qs, vs = march(step, carry, ts, t0, n_pre, n_sub, method.remat and stages is None)
     return qs, vs, last[4]

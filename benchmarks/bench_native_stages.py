@@ -7,10 +7,10 @@ policy's configuration on the scenes a design loop solves in contact.
 Variants, each in a fresh process (its peak memory measured), taken in turn `--repeats` times:
 - `jax`: the JAX step around the native force, recomputed in the reverse pass (the policy's
   `remat`), as before the native stages;
-- `native-remat`: the native stages, recomputed in the reverse pass (what the engine runs: the
-  policy's configuration);
+- `native-remat`: the native stages, recomputed in the reverse pass (measurable only where
+  `fixed_step.integrate` lets a native step be recomputed; from 35da3f9 on it never does);
 - `native`: the native stages not recomputed, the reverse pass reading the stage forces each
-  forward step kept.
+  forward step kept (what the engine runs).
 
 Scenes (`--scenes`): the focus-vs-protect task's 8 % and 1 % scenes and the focusing scene, at
 the task's start or, with `--run DIR --eval K`, at evaluation K's design of a design run's

@@ -267,53 +267,20 @@ ffi::Error StagesVjp(Buf<ffi::S32> b1, Buf<ffi::S32> b2, Buf<DT> r0, Buf<ffi::S3
 
 }  // namespace
 
-#define STAGES_ARGS(DT)                                                                       \
-  ffi::Ffi::Bind()                                                                            \
-      .Arg<Buf<ffi::S32>>()                                                                   \
-      .Arg<Buf<ffi::S32>>()                                                                   \
-      .Arg<Buf<DT>>()                                                                         \
-      .Arg<Buf<ffi::S32>>()                                                                   \
-      .Arg<Buf<DT>>()                                                                         \
-      .Arg<Buf<DT>>()                                                                         \
-      .Arg<Buf<DT>>()                                                                         \
-      .Arg<Buf<DT>>()                                                                         \
-      .Arg<Buf<DT>>()                                                                         \
-      .Arg<Buf<DT>>()                                                                         \
-      .Arg<Buf<DT>>()                                                                         \
-      .Arg<Buf<DT>>()                                                                         \
-      .Arg<Buf<DT>>()                                                                         \
-      .Arg<Buf<DT>>()                                                                         \
-      .Arg<Buf<DT>>()                                                                         \
-      .Arg<Buf<DT>>()                                                                         \
-      .Arg<Buf<DT>>()
-
-#define STAGES(DT)                                                                            \
-  STAGES_ARGS(DT)                                                                             \
-      .Ret<Buf<DT>>()                                                                         \
-      .Ret<Buf<DT>>()                                                                         \
-      .Ret<Buf<DT>>()                                                                         \
-      .Ret<Buf<DT>>()                                                                         \
-      .Attr<double>("l0")                                                                     \
-      .Attr<int32_t>("contact")
-
+// the bindings: the lattice's constants (b1, b2, r0, slot), then the 13 inputs (q, v, f, arms,
+// vref, lig, con, inverse mass, damping, qc, qcd, h, ledger)
+#define ARG(T) .Arg<Buf<T>>()
+#define RET(DT) .Ret<Buf<DT>>()
+#define ARGS4(DT) ARG(DT) ARG(DT) ARG(DT) ARG(DT)
+#define STAGES_ARGS(DT) \
+  ffi::Ffi::Bind() ARG(ffi::S32) ARG(ffi::S32) ARG(DT) ARG(ffi::S32) ARGS4(DT) ARGS4(DT) ARGS4(DT) ARG(DT)
+#define STAGE_ATTRS .Attr<double>("l0").Attr<int32_t>("contact")
+// -> q1, v1, ledger1, stage forces
+#define STAGES(DT) STAGES_ARGS(DT) RET(DT) RET(DT) RET(DT) RET(DT) STAGE_ATTRS
+// with the stage forces and the cotangents of q1, v1, f1 -> the cotangents of the first 10 inputs
 #define STAGES_VJP(DT)                                                                        \
-  STAGES_ARGS(DT)                                                                             \
-      .Arg<Buf<DT>>()                                                                         \
-      .Arg<Buf<DT>>()                                                                         \
-      .Arg<Buf<DT>>()                                                                         \
-      .Arg<Buf<DT>>()                                                                         \
-      .Ret<Buf<DT>>()                                                                         \
-      .Ret<Buf<DT>>()                                                                         \
-      .Ret<Buf<DT>>()                                                                         \
-      .Ret<Buf<DT>>()                                                                         \
-      .Ret<Buf<DT>>()                                                                         \
-      .Ret<Buf<DT>>()                                                                         \
-      .Ret<Buf<DT>>()                                                                         \
-      .Ret<Buf<DT>>()                                                                         \
-      .Ret<Buf<DT>>()                                                                         \
-      .Ret<Buf<DT>>()                                                                         \
-      .Attr<double>("l0")                                                                     \
-      .Attr<int32_t>("contact")
+  STAGES_ARGS(DT) ARGS4(DT) RET(DT) RET(DT) RET(DT) RET(DT) RET(DT) RET(DT) RET(DT) RET(DT)    \
+      RET(DT) RET(DT) STAGE_ATTRS
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(MetarigVerletStagesF64, Stages<ffi::F64>, STAGES(ffi::F64));
 XLA_FFI_DEFINE_HANDLER_SYMBOL(MetarigVerletStagesF32, Stages<ffi::F32>, STAGES(ffi::F32));

@@ -22,9 +22,9 @@ from design_engine.physics.lattice import Lattice
 from design_engine.physics.loading import Loading, Supports, make_prescribed
 from design_engine.physics.material import Material
 from design_engine.physics.native.build import available as native_available
-from design_engine.physics.native.stages import make_verlet_stages
 from design_engine.physics.native.force import (make_contact_energy_and_gradient,
                                                 make_energy_and_gradient)
+from design_engine.physics.native.stages import make_verlet_stages
 from design_engine.physics.statics import (EquilibriumError, check_equilibrium, equilibrium_state,
                                            make_static_solver)
 from design_engine.solve.fixed_step import AbstractFixedStep, is_fixed_step, step_grid

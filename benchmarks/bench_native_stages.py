@@ -7,10 +7,11 @@ policy's configuration on the scenes a design loop solves in contact.
 Variants, each in a fresh process (its peak memory measured), taken in turn `--repeats` times:
 - `jax`: the JAX step around the native force, recomputed in the reverse pass (the policy's
   `remat`), as before the native stages;
-- `native-remat`: the native stages, recomputed in the reverse pass (measurable only where
-  `fixed_step.integrate` lets a native step be recomputed; from 35da3f9 on it never does);
-- `native`: the native stages not recomputed, the reverse pass reading the stage forces each
-  forward step kept (what the engine runs).
+- `native`: the native stages, whose reverse pass reads the stage forces each forward step
+  kept (what the engine runs).
+`bench_native_stages_fvp13_amd.json` also holds `native-remat`, the native stages recomputed
+in the reverse pass: measured at 6eecee7, the one commit that let a native step be recomputed
+(this script there, with its third variant).
 
 Scenes (`--scenes`): the focus-vs-protect task's 8 % and 1 % scenes and the focusing scene, at
 the task's start or, with `--run DIR --eval K`, at evaluation K's design of a design run's
@@ -30,10 +31,10 @@ import numpy as np
 from machine import describe, write_report
 
 ROOT = Path(__file__).resolve().parent.parent
-VARIANTS = ("jax", "native-remat", "native")
+VARIANTS = ("jax", "native")
 
 CHILD = """
-import dataclasses, json, resource, sys, time
+import json, resource, sys, time
 import jax, numpy as np
 import design_engine.solve.simulate as simulate
 from design_engine.design.task import load_task
@@ -48,8 +49,6 @@ if run:
     x = np.load(run + "/checkpoint.npz")["x"][int(k) - 1]
     scene = scene.with_design(task.embed(x))
 config = choose_config(scene).config
-config = dataclasses.replace(config, solver=dataclasses.replace(
-    config.solver, remat=variant != "native"))
 value_and_grad, value = make_objective(scene, config)
 x = jax.numpy.asarray(scene.design)
 jax.block_until_ready(value(x)); jax.block_until_ready(value_and_grad(x))

@@ -178,7 +178,8 @@ class FixedStepVerlet(AbstractFixedStep):
     Attributes:
         max_dt: largest step, ms. Stability needs max_dt < 2 / omega_max (omega in rad/ms).
         remat: store each step's start state only and recompute the step in the backward pass
-            instead of storing its intermediates (less memory, one more forward pass).
+            instead of storing its intermediates (less memory, one more forward pass). For the
+            JAX step only: a native step (`integrate`'s stages) keeps its stage forces instead.
         refined: the step is a refinement the policy took after a rejected solve
             (`policy.next_config`), which it does not refine again.
         finer_check: the policy judges this step by the same start solved at a finer step,
@@ -390,12 +391,12 @@ def integrate(method: FixedStepVerlet, force, inv_mass, damping, y0, ts, t0: flo
 
     fractions = SUZUKI_4 if method.order == 4 else (1.0,)  # the stages' lengths, of the step
 
-    def native_step(carry, t, dt):
+    def native_step(carry, t, dt):  # its ledger an array [6] from step to step
         q, v, f, ff, led = carry
-        q1, v1, f1, led1 = stages(q, v, f, jnp.stack(led),
+        q1, v1, f1, led1 = stages(q, v, f, led,
                                   t + jnp.asarray(np.cumsum(fractions), dt.dtype) * dt,
                                   jnp.asarray(fractions, dt.dtype) * dt)
-        return q1, v1, f1, ff, Ledger(*(led1[i] for i in range(len(Ledger._fields))))
+        return q1, v1, f1, ff, led1
 
     def step(carry, t, dt):
         if stages is not None:
@@ -418,10 +419,11 @@ def integrate(method: FixedStepVerlet, force, inv_mass, damping, y0, ts, t0: flo
     ff0 = fast_force(q0[fast_index], t_start) if fast_force is not None else None
     if ff0 is not None:
         aux0 = (aux0[0] + ff0[1][0], aux0[1])
-    carry = (q0, v0, f0, ff0, ledger_start(v0, mass, aux0))
+    led0 = ledger_start(v0, mass, aux0)
+    carry = (q0, v0, f0, ff0, led0 if stages is None else jnp.stack(led0))
     # the native step is not recomputed in the reverse pass (`remat` is for the JAX step): it
     # keeps its stage forces, 5 vectors a step, and its reverse reads them. Value and gradient
     # of the 8 % design 13: 2.78-2.83 s against 3.29-3.40 s recomputed, 0.94 against 0.70 GB
     # at the peak (benchmarks/bench_native_stages.py -> bench_native_stages_fvp13_amd.json)
     last, qs, vs = march(step, carry, ts, t0, n_pre, n_sub, method.remat and stages is None)
-    return qs, vs, last[4]
+    return qs, vs, last[4] if stages is None else Ledger(*last[4])

@@ -280,7 +280,8 @@ def choose_config(scene: Scene, *, full_model: bool = False,
     # the 24x16 focusing design in contact (6965 steps) value-and-gradient took 13.1-13.4 s
     # CPU against 16.1-16.4 s, and 19 MB of residuals against 2.2 GB
     # (benchmarks/bench_contact_step.py --profile): memory traffic, not arithmetic, was the cost.
-    # Since then a step at a time, from its stored start state (`fixed_step.march`)
+    # Since then a step at a time, from its stored start state (`fixed_step.march`); a native
+    # step (`physics.native.stages`) is not recomputed whatever this says
     # native_force: the forces by the native custom calls where they can be built (the same
     # force to rounding, a force evaluation 3.7x and its reverse 4-5x faster than XLA's,
     # benchmarks/bench_force_pieces.py -> bench_force_pieces_native_amd.json)

@@ -18,6 +18,34 @@
 
 namespace {
 
+// the bond map's inputs: unit indices of both ends [n], state [nb, 3], arms [n, 4], void_ref
+// [n, 2], r0 [n, 2], ligament stiffnesses [n, 3] (k_stretch, k_shear, k_bend) and contact
+// constants [n, 3] (k_contact, contact_min, contact_cutoff); the sizes checked once per call
+template <ffi::DataType DT>
+struct Inputs {
+  const int32_t *i1, *i2;
+  const ffi::NativeType<DT>*x, *arms, *vref, *r0, *lig, *con;
+  int64_t nb, n;
+};
+
+template <ffi::DataType DT>
+ffi::Error Read(Buf<ffi::S32> b1, Buf<ffi::S32> b2, Buf<DT> q, Buf<DT> arms, Buf<DT> vref,
+                Buf<DT> r0, Buf<DT> lig, Buf<DT> con, Inputs<DT>* in) {
+  const int64_t n = b1.element_count();
+  if (b2.element_count() != n || arms.element_count() != 4 * n ||
+      vref.element_count() != 2 * n || r0.element_count() != 2 * n ||
+      lig.element_count() != 3 * n || con.element_count() != 3 * n ||
+      q.element_count() % 3 != 0) {
+    return ffi::Error::InvalidArgument("bond_force: inconsistent bond array sizes");
+  }
+  *in = {b1.typed_data(), b2.typed_data(), q.typed_data(), arms.typed_data(),
+         vref.typed_data(), r0.typed_data(), lig.typed_data(), con.typed_data(),
+         static_cast<int64_t>(q.element_count() / 3), n};
+  if (!BondsInRange(n, in->nb, in->i1, in->i2))
+    return ffi::Error::InvalidArgument("bond_force: a bond's unit index is out of range");
+  return ffi::Error::Success();
+}
+
 // energy and gradient [nb, 3] of the bond map at q
 template <ffi::DataType DT>
 ffi::Error Force(Buf<ffi::S32> b1, Buf<ffi::S32> b2, Buf<DT> r0, Buf<DT> q, Buf<DT> arms,

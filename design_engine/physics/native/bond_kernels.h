@@ -202,34 +202,12 @@ using Buf = ffi::Buffer<DT>;
 template <ffi::DataType DT>
 using Res = ffi::ResultBuffer<DT>;
 
-// the bond map's inputs: unit indices of both ends [n], state [nb, 3], arms [n, 4], void_ref
-// [n, 2], r0 [n, 2], ligament stiffnesses [n, 3] (k_stretch, k_shear, k_bend) and contact
-// constants [n, 3] (k_contact, contact_min, contact_cutoff); the sizes checked once per call
-template <ffi::DataType DT>
-struct Inputs {
-  const int32_t *i1, *i2;
-  const ffi::NativeType<DT>*x, *arms, *vref, *r0, *lig, *con;
-  int64_t nb, n;
-};
-
-template <ffi::DataType DT>
-ffi::Error Read(Buf<ffi::S32> b1, Buf<ffi::S32> b2, Buf<DT> q, Buf<DT> arms, Buf<DT> vref,
-                Buf<DT> r0, Buf<DT> lig, Buf<DT> con, Inputs<DT>* in) {
-  const int64_t n = b1.element_count();
-  if (b2.element_count() != n || arms.element_count() != 4 * n ||
-      vref.element_count() != 2 * n || r0.element_count() != 2 * n ||
-      lig.element_count() != 3 * n || con.element_count() != 3 * n ||
-      q.element_count() % 3 != 0) {
-    return ffi::Error::InvalidArgument("bond_force: inconsistent bond array sizes");
-  }
-  *in = {b1.typed_data(), b2.typed_data(), q.typed_data(), arms.typed_data(),
-         vref.typed_data(), r0.typed_data(), lig.typed_data(), con.typed_data(),
-         static_cast<int64_t>(q.element_count() / 3), n};
+// whether every bond joins two units of the nb there are (each call checks its indices once)
+INLINE bool BondsInRange(int64_t n, int64_t nb, const int32_t* i1, const int32_t* i2) {
   for (int64_t k = 0; k < n; ++k) {
-    if (in->i1[k] < 0 || in->i2[k] < 0 || in->i1[k] >= in->nb || in->i2[k] >= in->nb)
-      return ffi::Error::InvalidArgument("bond_force: a bond's unit index is out of range");
+    if (i1[k] < 0 || i2[k] < 0 || i1[k] >= nb || i2[k] >= nb) return false;
   }
-  return ffi::Error::Success();
+  return true;
 }
 
 // the per-bond state gathered from the units into contiguous arrays g [10, n] (u1, v1, th1,

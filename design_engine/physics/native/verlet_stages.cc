@@ -54,10 +54,8 @@ ffi::Error ReadStages(Buf<ffi::S32> b1, Buf<ffi::S32> b2, Buf<DT> r0, Buf<ffi::S
          arms.typed_data(), vref.typed_data(), lig.typed_data(), con.typed_data(),
          im.typed_data(), c.typed_data(), qc.typed_data(), qcd.typed_data(), h.typed_data(),
          ndof / 3, n, nf, ndof - nf, m, ffi::NativeType<DT>(l0), contact != 0};
-  for (int64_t k = 0; k < n; ++k) {
-    if (in->i1[k] < 0 || in->i2[k] < 0 || in->i1[k] >= in->nb || in->i2[k] >= in->nb)
-      return ffi::Error::InvalidArgument("verlet_stages: a bond's unit index is out of range");
-  }
+  if (!BondsInRange(n, in->nb, in->i1, in->i2))
+    return ffi::Error::InvalidArgument("verlet_stages: a bond's unit index is out of range");
   for (int64_t g = 0; g < ndof; ++g) {
     if (in->slot[g] < 0 || in->slot[g] >= ndof)
       return ffi::Error::InvalidArgument("verlet_stages: a DOF's slot is out of range");
@@ -72,6 +70,18 @@ void Assemble(int64_t ndof, int64_t nf, const int32_t* slot, const T* q, const T
     const int64_t s = slot[g];
     x[g] = s < nf ? q[s] : qc[s - nf];
   }
+}
+
+// a stage's two half kicks (`fixed_step.integrate`'s Verlet step), one home for the forward
+// call and the reverse's rebuilt stages: the first with damping explicit, v_half = v + h/2
+// M^-1 (f - C v); the second implicit, v1 = (v_half + h/2 M^-1 f1) / (1 + h/2 M^-1 C)
+template <class T>
+INLINE T KickStart(T v, T f, T im, T c, T half) {
+  return v + half * im * (f - c * v);
+}
+template <class T>
+INLINE T KickEnd(T vh, T f1, T im, T c, T half) {
+  return (vh + half * im * f1) / (T(1) + half * im * c);
 }
 
 // stage k's force on the free units f [nf] at q; returns the potential energy, and through
@@ -129,7 +139,7 @@ ffi::Error Stages(Buf<ffi::S32> b1, Buf<ffi::S32> b2, Buf<DT> r0, Buf<ffi::S32> 
     T diss = T(0);
     for (int64_t i = 0; i < nf; ++i) {
       diss += vo[i] * in.c[i] * vo[i];
-      vh[i] = vo[i] + half * in.im[i] * (fk[i] - in.c[i] * vo[i]);
+      vh[i] = KickStart(vo[i], fk[i], in.im[i], in.c[i], half);
       qo[i] += hk * vh[i];
     }
     T* f1 = fo + k * nf;
@@ -137,7 +147,7 @@ ffi::Error Stages(Buf<ffi::S32> b1, Buf<ffi::S32> b2, Buf<DT> r0, Buf<ffi::S32> 
     const T energy = StageForce(in, k, qo, f1, &power);
     T kinetic = T(0), diss1 = T(0);
     for (int64_t i = 0; i < nf; ++i) {
-      vo[i] = (vh[i] + half * in.im[i] * f1[i]) / (T(1) + hk * (T(0.5) * in.im[i] * in.c[i]));
+      vo[i] = KickEnd(vh[i], f1[i], in.im[i], in.c[i], half);
       kinetic += vo[i] * (T(1) / in.im[i]) * vo[i];
       diss1 += vo[i] * in.c[i] * vo[i];
     }
@@ -189,9 +199,9 @@ ffi::Error StagesVjp(Buf<ffi::S32> b1, Buf<ffi::S32> b2, Buf<DT> r0, Buf<ffi::S3
     T *qn = qs.data() + (k + 1) * nf, *vn = vs.data() + (k + 1) * nf;
     #pragma GCC ivdep  // distinct arrays: vectorised without alias checks
     for (int64_t i = 0; i < nf; ++i) {
-      const T vh = vk[i] + half * im_[i] * (fk[i] - c_[i] * vk[i]);
+      const T vh = KickStart(vk[i], fk[i], im_[i], c_[i], half);
       qn[i] = qk[i] + hk * vh;
-      vn[i] = (vh + half * im_[i] * f1[i]) / (T(1) + hk * (T(0.5) * im_[i] * c_[i]));
+      vn[i] = KickEnd(vh, f1[i], im_[i], c_[i], half);
     }
   }
   T *qbo = qb->typed_data(), *vbo = vb->typed_data(), *fbo = fb->typed_data();
@@ -222,7 +232,7 @@ ffi::Error StagesVjp(Buf<ffi::S32> b1, Buf<ffi::S32> b2, Buf<DT> r0, Buf<ffi::S3
     // v1 = (vh + h/2 im f1) / den: fbo becomes f1's whole cotangent, vbo vh's
     #pragma GCC ivdep  // distinct arrays: vectorised without alias checks
     for (int64_t i = 0; i < nf; ++i) {
-      const T den = T(1) + hk * (T(0.5) * im_[i] * c_[i]);
+      const T den = T(1) + half * im_[i] * c_[i];  // KickEnd's denominator
       const T numb = vbo[i] / den, denb = -vbo[i] * vn[i] / den;
       fbo[i] += numb * half * im_[i];
       imo[i] += numb * half * f1[i] + denb * half * c_[i];

@@ -246,6 +246,18 @@ def test_small_focusing_run_improves_and_stays_feasible(tmp_path, focus_run):
     assert ev[0]["objective"] == pytest.approx(ref, rel=0.05)
 
 
+def test_a_run_killed_in_its_first_save_starts_afresh(tmp_path, make_task):
+    # the record's save writes checkpoint.npz, then run.json: a process killed between the two
+    # in the first save leaves a checkpoint that cannot be resumed (`resumable`); a sweep's
+    # retry of that run (tests/test_pareto.py's killed worker) must start it again, not refuse
+    out = tmp_path / "cut"
+    out.mkdir()
+    (out / "checkpoint.npz").write_bytes(b"partial")
+    res = run_design(make_task(2), out, progress=False)
+    assert res.status == "complete" and len(res.evaluations) == 2
+    assert (out / "run.json").exists()
+
+
 def test_resume_after_an_interrupt_repeats_the_uninterrupted_run(tmp_path, monkeypatch,
                                                                 make_task, focus_run):
     _, straight, straight_out = focus_run

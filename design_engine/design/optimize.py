@@ -219,7 +219,7 @@ def run_design(task: Task, out: Path, *, resume: bool = False, progress: bool = 
         record.load()
         log.info("resuming %s: %d evaluations on record (replayed without simulation)",
                  out, len(record.evaluations))
-    elif (out / "checkpoint.npz").exists():
+    elif resumable(out):  # (a checkpoint alone, a first save cut short, starts afresh)
         raise ResumeError(f"{out} already holds a design run; pass --resume to continue it or "
                           "choose another --out folder")
     own_evaluator = evaluator is None

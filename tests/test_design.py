@@ -159,13 +159,52 @@ def test_sparse_constraint_jacobian_equals_the_dense_one():
     x = periodic_design(lat, 0.4) + np.random.default_rng(1).uniform(-0.8, 0.8, lat.n_design)
     free = np.arange(10, lat.n_design - 7)
     g, jac = make_sparse_constraints(lat, limits, x, free)(x[free])
-    ang, edge = make_constraints(lat, limits)
-    (ga, ja), (ge, je) = ang(jnp.asarray(x)), edge(jnp.asarray(x))
-    dense = np.vstack([np.asarray(ja), np.asarray(je)])[:, free]
-    assert np.allclose(g, np.concatenate([ga, ge]), atol=1e-14)
+    parts = [fn(jnp.asarray(x)) for fn in make_constraints(lat, limits)]
+    dense = np.vstack([np.asarray(j) for _, j in parts])[:, free]
+    assert np.allclose(g, np.concatenate([v for v, _ in parts]), atol=1e-14)
     assert np.allclose(jac.toarray(), dense, atol=1e-13) and jac.nnz < dense.size / 4
     masks = active_constraint_masks(lat, g, tol=np.inf)
     assert masks["counts"]["edge_length"] == lat.n_blocks * lat.n_vertices
+    # the outer corners of the boundary units: 2 (nx + ny) on a quads lattice
+    assert masks["counts"]["free_vertex_angle"] == 2 * (6 + 5)
+    assert masks["vertices"].all()  # every corner of every unit is bounded
+
+
+def test_a_boundary_units_outer_corner_is_bounded_before_it_swings_across():
+    """The spec bounds the vertex angle at bonded vertices only: closing a boundary unit's outer
+    corner to 0 (next, across the opposite edge: a self-intersecting unit, which is not simulated)
+    passed every constraint, and MMA stalled against that wall. The free-vertex constraint draws
+    it at the same bound b_min, smoothly, while the unit is still valid."""
+    from design_engine.design.constraints import free_vertex_constraints, free_vertices
+    from design_engine.physics.geometry import InvalidDesignError, check_design, vertex_offsets
+
+    lat = quads(4, 3)
+    limits = ConstraintLimits.for_lattice(lat)
+    x = periodic_design(lat, math.radians(20))
+    fv = free_vertices(lat)
+    assert len(fv) == 2 * (4 + 3) and np.all(np.asarray(free_vertex_constraints(
+        lat, jnp.asarray(x), limits)) < 0)
+    b, k = (int(i) for i in fv[0])
+    r = np.asarray(vertex_offsets(lat, jnp.asarray(x)))[b]
+    nxt, prv = r[(k + 1) % lat.n_vertices], r[(k - 1) % lat.n_vertices]
+
+    # the corner moved toward a point on the line through its neighbours, past the next one:
+    # there its angle is 0, and beyond it the unit's edges cross
+    target = nxt + 0.5 * (nxt - prv)
+
+    def with_corner_at(t):
+        y = x.copy()
+        idx = int(np.asarray(lat.shift_index)[b, k])
+        y[2 * idx:2 * idx + 2] += t * (target - r[k])
+        return y
+
+    g_row = lambda y: float(free_vertex_constraints(lat, jnp.asarray(y), limits)[0])  # noqa: E731
+    values = [g_row(with_corner_at(t)) for t in (0.0, 0.5, 0.9, 0.97)]
+    assert np.all(np.diff(values) > 0)  # the corner closes smoothly
+    assert values[1] < 0 < values[2]  # feasible at 76 deg, infeasible at 5 deg ...
+    check_design(lat, with_corner_at(0.97))  # ... while the unit is still valid
+    with pytest.raises(InvalidDesignError, match="self-intersecting"):
+        check_design(lat, with_corner_at(1.05))  # past 0: the wall MMA met blind
 
 
 def test_wide_voids_are_not_taken_for_units_through_the_barrier():

@@ -100,11 +100,10 @@ def test_constraint_jacobians_match_finite_differences():
     lat = quads(4, 3)
     rng = np.random.default_rng(1)
     x = periodic_design(lat, math.radians(20)) + rng.uniform(-0.5, 0.5, lat.n_design)
-    ang_fn, edge_fn = make_constraints(lat, ConstraintLimits.for_lattice(lat))
     d = rng.normal(size=lat.n_design)
     d /= np.linalg.norm(d)
     h = 1e-5
-    for fn in (ang_fn, edge_fn):
+    for fn in make_constraints(lat, ConstraintLimits.for_lattice(lat)):
         g, jac = fn(jnp.asarray(x))
         fd = (fn(jnp.asarray(x + h * d))[0] - fn(jnp.asarray(x - h * d))[0]) / (2 * h)
         np.testing.assert_allclose(jac @ d, fd, rtol=1e-6, atol=1e-8)

@@ -1,8 +1,14 @@
 """Manufacturability constraints g(x) <= 0 and their Jacobians (spec 3.2).
 
-Two vector constraints, as NLopt takes them:
+Three vector constraints, as NLopt takes them:
 - angles: [4 n_bonds] = [a_min - void1, a_min - void2, b_min - vertex1, b_min - vertex2] (rad);
-- edges: [n_blocks * n_vertices] = e_min - edge length (mm), block-major.
+- edges: [n_blocks * n_vertices] = e_min - edge length (mm), block-major;
+- free vertices: [n_free_vertices] = b_min - vertex angle (rad) at the vertices no ligament joins
+  (a boundary unit's outer corners, `free_vertices`). The spec bounds the vertex angle at bonded
+  vertices only; at an outer corner nothing did, and MMA closed one to 0 and swung it across the
+  unit's opposite edge (a self-intersecting unit, not simulated: focusing runs from seeded starts
+  stalled against that wall, README "The optimisation-level charts with the native Verlet
+  stages"). The same bound b_min holds every corner of a unit.
 
 Void angles are wrapped onto [-b_min, 2 pi - b_min) before the check. A feasible void lies in
 [0, 2 pi - 2 b_min], so the branch cut sits in the impossible range and an overlapping (negative)
@@ -19,7 +25,7 @@ import numpy as np
 from scipy import sparse
 
 from design_engine._types import Array, DesignVector, Float
-from design_engine.physics.angles import bond_angles
+from design_engine.physics.angles import bond_angles, edge_vectors, signed_angle
 from design_engine.physics.geometry import block_geometry
 from design_engine.physics.lattice import Lattice
 
@@ -67,18 +73,47 @@ def edge_constraints(lattice: Lattice, x: DesignVector, limits: ConstraintLimits
     return (limits.min_edge_length - edges).reshape(-1)
 
 
+def free_vertices(lattice: Lattice) -> np.ndarray:
+    """[n_free_vertices, 2] (block, vertex) of the vertices no ligament joins, block-major."""
+    bonded = np.zeros((lattice.n_blocks, lattice.n_vertices), bool)
+    bb, bv = np.asarray(lattice.bond_blocks), np.asarray(lattice.bond_vertices)
+    bonded[bb[:, 0], bv[:, 0]] = True
+    bonded[bb[:, 1], bv[:, 1]] = True
+    return np.argwhere(~bonded)
+
+
+def free_vertex_constraints(lattice: Lattice, x: DesignVector,
+                            limits: ConstraintLimits) -> Float[Array, " m"]:
+    """Vertex-angle constraint values at the free vertices [n_free_vertices], rad; feasible where
+    <= 0 (the angle measured as at a bonded vertex, angle(e+ -> e-) on [0, 2 pi))."""
+    fv = free_vertices(lattice)
+    e_plus, e_minus = edge_vectors(block_geometry(lattice, x).arms)
+    beta = signed_angle(e_plus[fv[:, 0], fv[:, 1]], e_minus[fv[:, 0], fv[:, 1]])
+    return limits.min_vertex_angle - jnp.mod(beta, TWO_PI)
+
+
+def all_constraints(lattice: Lattice, x: DesignVector, limits: ConstraintLimits):
+    """The stacked constraint values [angles (rad); edges (mm); free vertices (rad)]."""
+    return jnp.concatenate([angle_constraints(lattice, x, limits),
+                            edge_constraints(lattice, x, limits),
+                            free_vertex_constraints(lattice, x, limits)])
+
+
 def make_constraints(lattice: Lattice, limits: ConstraintLimits):
-    """Jitted value-and-Jacobian functions `(x) -> (g [m], dg/dx [m, n])` for both constraints."""
+    """Jitted value-and-Jacobian functions `(x) -> (g [m], dg/dx [m, n])` for the three
+    constraints (angles, edges, free vertices)."""
 
     def with_jac(fn):
         f = lambda x: fn(lattice, x, limits)  # noqa: E731
         return jax.jit(lambda x: (f(x), jax.jacrev(f)(x)))
 
-    return with_jac(angle_constraints), with_jac(edge_constraints)
+    return (with_jac(angle_constraints), with_jac(edge_constraints),
+            with_jac(free_vertex_constraints))
 
 
 def constraint_pattern(lattice: Lattice) -> tuple[np.ndarray, np.ndarray]:
-    """Structural non-zeros (rows, cols) of the stacked [angles; edges] Jacobian over x.
+    """Structural non-zeros (rows, cols) of the stacked [angles; edges; free vertices] Jacobian
+    over x.
 
     Every constraint is a function of the vertices of at most two units (the two ends of a
     ligament, or one unit's edges), and a unit's vertices move with its `shift_index` rows of x.
@@ -96,6 +131,10 @@ def constraint_pattern(lattice: Lattice) -> tuple[np.ndarray, np.ndarray]:
         for k in range(lattice.n_vertices):
             rows.append(np.full(per_block[b].size, n_angle + b * lattice.n_vertices + k))
             cols.append(per_block[b])
+    first = n_angle + lattice.n_blocks * lattice.n_vertices
+    for r, (b, _) in enumerate(free_vertices(lattice)):
+        rows.append(np.full(per_block[b].size, first + r))
+        cols.append(per_block[b])
     return np.concatenate(rows), np.concatenate(cols)
 
 
@@ -121,7 +160,7 @@ def make_sparse_constraints(lattice: Lattice, limits: ConstraintLimits, x_base, 
 
     Returns:
         `fn(x_free [n_free]) -> (g [m] numpy, J scipy.sparse.csr_matrix [m, n_free])` with g the
-        stacked [angles (rad); edges (mm)] constraints. The Jacobian is exact: forward-mode
+        stacked [angles (rad); edges (mm); free vertices (rad)] constraints. The Jacobian is exact: forward-mode
         products along one seed per column colour (columns that share no constraint share a
         seed), about 40 products instead of one reverse pass per constraint.
     """
@@ -133,14 +172,13 @@ def make_sparse_constraints(lattice: Lattice, limits: ConstraintLimits, x_base, 
     where[free] = np.arange(n_free)
     keep = where[cols] >= 0
     rows, cols = rows[keep], where[cols[keep]]
-    m = 4 * lattice.n_bonds + lattice.n_blocks * lattice.n_vertices
+    m = (4 * lattice.n_bonds + lattice.n_blocks * lattice.n_vertices
+         + len(free_vertices(lattice)))
     colour = _colour_columns(rows, cols, m, n_free)
     seeds = jnp.asarray(np.eye(int(colour.max()) + 1)[colour])  # [n_free, n_colours]
 
     def g(xf):
-        x = base.at[free].set(xf)
-        return jnp.concatenate([angle_constraints(lattice, x, limits),
-                                edge_constraints(lattice, x, limits)])
+        return all_constraints(lattice, base.at[free].set(xf), limits)
 
     @jax.jit
     def value_and_compressed(xf):
@@ -158,10 +196,11 @@ def make_sparse_constraints(lattice: Lattice, limits: ConstraintLimits, x_base, 
 
 
 def active_constraint_masks(lattice: Lattice, g: np.ndarray, tol: float = 1e-3) -> dict:
-    """Which constraints are active (g >= -tol, rad or mm) in the stacked [angles; edges] values.
+    """Which constraints are active (g >= -tol, rad or mm) in the stacked [angles; edges; free
+    vertices] values.
 
     Returns dict with `voids` [n_bonds] bool (either void angle of a ligament), `vertices`
-    [n_blocks, n_vertices] bool (vertex-angle constraint at a bonded vertex), `edges`
+    [n_blocks, n_vertices] bool (vertex-angle constraint, at a bonded or a free vertex), `edges`
     [n_blocks, n_vertices] bool (edge k joins vertex k-1 and vertex k), and `counts`.
     """
     g = np.asarray(g)
@@ -172,8 +211,12 @@ def active_constraint_masks(lattice: Lattice, g: np.ndarray, tol: float = 1e-3) 
     bb, bv = lattice.bond_blocks, lattice.bond_vertices
     vertices[bb[b1, 0], bv[b1, 0]] = True
     vertices[bb[b2, 1], bv[b2, 1]] = True
-    edges = act[4 * n_bonds:].reshape(nb, nv)
+    edges = act[4 * n_bonds:4 * n_bonds + nb * nv].reshape(nb, nv)
+    fv = free_vertices(lattice)
+    free_act = act[4 * n_bonds + nb * nv:]
+    vertices[fv[free_act, 0], fv[free_act, 1]] = True
     voids = a1 | a2
     return {"voids": voids, "vertices": vertices, "edges": edges,
             "counts": {"void_angle": int(a1.sum() + a2.sum()),
-                       "vertex_angle": int(b1.sum() + b2.sum()), "edge_length": int(edges.sum())}}
+                       "vertex_angle": int(b1.sum() + b2.sum()), "edge_length": int(edges.sum()),
+                       "free_vertex_angle": int(free_act.sum())}}

@@ -68,6 +68,7 @@ def design_main(argv: list[str] | None = None) -> int:
     logging.getLogger("metarig").setLevel(logging.INFO)
 
     import design_engine  # noqa: F401  (x64, cache)
+    from design_engine.design.constraints import constraint_count
     from design_engine.design.optimize import ResumeError, read_record, run_design
     from design_engine.design.task import TaskError, load_task
     from design_engine.physics.geometry import InvalidDesignError
@@ -85,7 +86,7 @@ def design_main(argv: list[str] | None = None) -> int:
         log.info("task %s (%s): %s lattice %dx%d, %d design variables, %d constraints, "
                  "%d scene(s), budget %d evaluations / %.0f s, optimiser %s",
                  task.name, task.source, task.lattice.kind, *task.lattice.shape, task.free.size,
-                 4 * task.lattice.n_bonds + task.lattice.n_blocks * task.lattice.n_vertices,
+                 constraint_count(task.lattice),
                  len(task.scenes), task.budget.max_evals, task.budget.max_time_s,
                  task.optimizer.algorithm)
         result = run_design(task, out, resume=args.resume, progress=not args.quiet,

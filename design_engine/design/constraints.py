@@ -82,6 +82,12 @@ def free_vertices(lattice: Lattice) -> np.ndarray:
     return np.argwhere(~bonded)
 
 
+def constraint_count(lattice: Lattice) -> int:
+    """How many components the stacked constraints have (`all_constraints`)."""
+    return (4 * lattice.n_bonds + lattice.n_blocks * lattice.n_vertices
+            + len(free_vertices(lattice)))
+
+
 def free_vertex_constraints(lattice: Lattice, x: DesignVector,
                             limits: ConstraintLimits) -> Float[Array, " m"]:
     """Vertex-angle constraint values at the free vertices [n_free_vertices], rad; feasible where
@@ -172,8 +178,7 @@ def make_sparse_constraints(lattice: Lattice, limits: ConstraintLimits, x_base, 
     where[free] = np.arange(n_free)
     keep = where[cols] >= 0
     rows, cols = rows[keep], where[cols[keep]]
-    m = (4 * lattice.n_bonds + lattice.n_blocks * lattice.n_vertices
-         + len(free_vertices(lattice)))
+    m = constraint_count(lattice)
     colour = _colour_columns(rows, cols, m, n_free)
     seeds = jnp.asarray(np.eye(int(colour.max()) + 1)[colour])  # [n_free, n_colours]
 

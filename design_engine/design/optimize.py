@@ -1,7 +1,8 @@
 """The design loop (the one owner of nlopt): MMA on a task, recorded, checkpointed, resumable.
 
-`run_design(task, out)` minimises -sign * objective (spec 9) under both vector constraints
-(angles, edges: spec 3.2, tolerance 1e-8 per component) with exact JAX gradients and sparse
+`run_design(task, out)` minimises -sign * objective (spec 9) under the vector constraints
+(angles, edges: spec 3.2; the free vertices' angles, `constraints.free_vertex_constraints`;
+tolerance 1e-8 per component) with exact JAX gradients and sparse
 Jacobians, from the task's initial design with an initial move limit of 1 mm (spec 9.1).
 
 Optimisers (`[optimizer] algorithm` of the task):
@@ -265,7 +266,7 @@ def run_design(task: Task, out: Path, *, resume: bool = False, progress: bool = 
         event, terms, solver, unused = None, None, None, 0
         try:
             # a trial may leave the constraint set; a unit that is inverted or self-intersecting
-            # (a free-edge vertex swung across, which the spec's constraints allow) is no design
+            # (beyond a constraint's bound: a free corner closed past 0) is no design
             check_design(task.lattice, x)
             ev = evaluator.evaluate(x)
             f, grad = -task.sign * ev.value, -task.sign * ev.grad[free]

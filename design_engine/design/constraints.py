@@ -8,7 +8,9 @@ Three vector constraints, as NLopt takes them:
   vertices only; at an outer corner nothing did, and MMA closed one to 0 and swung it across the
   unit's opposite edge (a self-intersecting unit, not simulated: focusing runs from seeded starts
   stalled against that wall, README "The optimisation-level charts with the native Verlet
-  stages"). The same bound b_min holds every corner of a unit.
+  stages"). The same bound b_min holds every corner of a unit. With every corner at b_min or
+  more, no corner can close from the reflex side either: a simple unit's corners sum to
+  (n - 2) pi, so each stays at most (n - 2) pi - (n - 1) b_min (quads: 270 deg at 30 deg).
 
 Void angles are wrapped onto [-b_min, 2 pi - b_min) before the check. A feasible void lies in
 [0, 2 pi - 2 b_min], so the branch cut sits in the impossible range and an overlapping (negative)

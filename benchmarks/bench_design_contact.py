@@ -16,11 +16,13 @@ Dopri8 at the reference tolerances) and with the static model (same solver). `--
 tolerances. With `--recheck-at K ...` the best feasible design after evaluation K is also
 re-evaluated so (`true_history`: [wall time after K, K, objective]): the "true" objective
 against the run's wall time. Runs live in OUT/<label>/ and resume when the script is re-run
-(`metarig design` run folders). Writes OUT/bench_design_contact[_<task>].json and .png (no
-suffix for focus-vs-protect) and copies both to benchmarks/results/.
+(`metarig design` run folders). Writes OUT/NAME.json and .png, NAME by default
+bench_design_contact[_<task>] (no suffix for focus-vs-protect), and copies both to
+benchmarks/results/ (`--name` keeps a new measurement from overwriting a committed one).
 
     .venv/bin/python benchmarks/bench_design_contact.py [--task focus-vs-protect|focusing]
         [--evals 20] [--runs default,baseline] [--recheck-at 10 20 40 60] [--cold] [--out DIR]
+        [--name NAME]
 
 `--cold`: each run in a process of its own with an empty compilation cache of its own, so that
 its wall time includes what a fresh machine compiles.
@@ -73,6 +75,8 @@ def main(argv=None) -> int:
     p.add_argument("--cold", action="store_true",
                    help="each run in a process of its own, compiling into an empty cache of its "
                         "own (OUT/jax-cache-<run>), as on a fresh machine")
+    p.add_argument("--name", help="the report's file name without its extension, in OUT and "
+                                  "benchmarks/results/ (default bench_design_contact[_<task>])")
     args = p.parse_args(argv)
     labels = [r for r in args.runs.split(",") if r]
     unknown = set(labels) - set(RUNS)
@@ -80,7 +84,7 @@ def main(argv=None) -> int:
         raise SystemExit(f"unknown runs {sorted(unknown)}; choose from {RUNS}")
     suffix = "" if args.task == "focus-vs-protect" else f"_{args.task}"
     args.out = args.out or Path("runs/bench-design-contact" + suffix.replace("_", "-"))
-    name = f"bench_design_contact{suffix}"
+    name = args.name or f"bench_design_contact{suffix}"
     if args.cold:
         for label in labels:  # one after the other; each merges its run into the report
             cache = args.out / f"jax-cache-{label}"
@@ -88,7 +92,8 @@ def main(argv=None) -> int:
                 shutil.rmtree(cache, ignore_errors=True)  # a resumed run keeps what it compiled
             # this run alone, with every other option as parsed here
             child = ["--task", args.task, "--evals", str(args.evals), "--runs", label,
-                     "--out", str(args.out), "--recheck-at", *map(str, args.recheck_at)]
+                     "--out", str(args.out), "--name", name,
+                     "--recheck-at", *map(str, args.recheck_at)]
             rc = subprocess.call([sys.executable, __file__, *child],
                                  env=dict(os.environ, METARIG_JAX_CACHE=str(cache.resolve())))
             if rc:

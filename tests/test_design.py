@@ -191,10 +191,10 @@ def test_a_boundary_units_outer_corner_is_bounded_before_it_swings_across():
     # the corner moved toward a point on the line through its neighbours, past the next one:
     # there its angle is 0, and beyond it the unit's edges cross
     target = nxt + 0.5 * (nxt - prv)
+    idx = int(np.asarray(lat.shift_index)[b, k])  # the row of x that moves this corner
 
     def with_corner_at(t):
         y = x.copy()
-        idx = int(np.asarray(lat.shift_index)[b, k])
         y[2 * idx:2 * idx + 2] += t * (target - r[k])
         return y
 

@@ -22,7 +22,7 @@ benchmarks/results/ (`--name` keeps a new measurement from overwriting a committ
 
     .venv/bin/python benchmarks/bench_design_contact.py [--task focus-vs-protect|focusing]
         [--evals 20] [--runs default,baseline] [--recheck-at 10 20 40 60] [--cold] [--out DIR]
-        [--name NAME]
+        [--seed N] [--name NAME]
 
 `--cold`: each run in a process of its own with an empty compilation cache of its own, so that
 its wall time includes what a fresh machine compiles.
@@ -75,6 +75,8 @@ def main(argv=None) -> int:
     p.add_argument("--cold", action="store_true",
                    help="each run in a process of its own, compiling into an empty cache of its "
                         "own (OUT/jax-cache-<run>), as on a fresh machine")
+    p.add_argument("--seed", type=int, help="every run starts from the seeded random design of "
+                                            "`metarig design --seed N` (default the task's start)")
     p.add_argument("--name", help="the report's file name without its extension, in OUT and "
                                   "benchmarks/results/ (default bench_design_contact[_<task>])")
     args = p.parse_args(argv)
@@ -93,6 +95,7 @@ def main(argv=None) -> int:
             # this run alone, with every other option as parsed here
             child = ["--task", args.task, "--evals", str(args.evals), "--runs", label,
                      "--out", str(args.out), "--name", name,
+                     *(["--seed", str(args.seed)] if args.seed is not None else []),
                      "--recheck-at", *map(str, args.recheck_at)]
             rc = subprocess.call([sys.executable, __file__, *child],
                                  env=dict(os.environ, METARIG_JAX_CACHE=str(cache.resolve())))
@@ -116,7 +119,7 @@ def main(argv=None) -> int:
         files["ramp"] = files["static"]
     report_path = args.out / f"{name}.json"
     report = json.loads(report_path.read_text()) if report_path.exists() else {"runs": {}}
-    report.update(task=args.task, evals=args.evals, machine={
+    report.update(task=args.task, evals=args.evals, seed=args.seed, machine={
         "platform": platform.platform(), "cpu": cpu_model(), "cpus": os.cpu_count(),
         "load_before": os.getloadavg()})
     setups = {"default": ("static", None, None), "default-1thread": ("static", None, 1),
@@ -124,7 +127,7 @@ def main(argv=None) -> int:
               "baseline": ("ramp", baseline_method().config, None)}
     for label in labels:
         model, config, threads = setups[label]
-        task = load_task(files[model], max_evals=args.evals)
+        task = load_task(files[model], max_evals=args.evals, seed=args.seed)
         folder = args.out / label
         print(f"{label}: {args.evals} evaluations"
               + (f" ({model} pre-compression)" if ramps else "") + " ...", flush=True)

@@ -84,10 +84,23 @@ def free_vertices(lattice: Lattice) -> np.ndarray:
     return np.argwhere(~bonded)
 
 
+def constraint_rows(lattice: Lattice) -> dict[str, slice]:
+    """The rows of each constraint in the stacked values (`all_constraints`), in their order:
+    "angles" ([void 1; void 2; vertex 1; vertex 2], each over the ligaments), "edges"
+    (block-major, [n_blocks, n_vertices]), "free_vertices" (in `free_vertices` order): the
+    one home of the layout that `constraint_pattern` and `active_constraint_masks` read."""
+    sizes = {"angles": 4 * lattice.n_bonds, "edges": lattice.n_blocks * lattice.n_vertices,
+             "free_vertices": len(free_vertices(lattice))}
+    rows, start = {}, 0
+    for name, size in sizes.items():
+        rows[name] = slice(start, start + size)
+        start += size
+    return rows
+
+
 def constraint_count(lattice: Lattice) -> int:
     """How many components the stacked constraints have (`all_constraints`)."""
-    return (4 * lattice.n_bonds + lattice.n_blocks * lattice.n_vertices
-            + len(free_vertices(lattice)))
+    return constraint_rows(lattice)["free_vertices"].stop
 
 
 def free_vertex_constraints(lattice: Lattice, x: DesignVector,
@@ -128,21 +141,19 @@ def constraint_pattern(lattice: Lattice) -> tuple[np.ndarray, np.ndarray]:
     """
     per_block = [np.sort(np.concatenate([2 * r, 2 * r + 1])) for r in lattice.shift_index]
     bb = lattice.bond_blocks
+    layout = constraint_rows(lattice)
     rows, cols = [], []
-    n_angle = 4 * lattice.n_bonds
-    for r in range(n_angle):
+    for r in range(layout["angles"].stop):
         b1, b2 = bb[r % lattice.n_bonds]
         c = np.union1d(per_block[b1], per_block[b2])
         rows.append(np.full(c.size, r))
         cols.append(c)
-    for b in range(lattice.n_blocks):
-        for k in range(lattice.n_vertices):
-            rows.append(np.full(per_block[b].size, n_angle + b * lattice.n_vertices + k))
+    edge_blocks = np.repeat(np.arange(lattice.n_blocks), lattice.n_vertices)
+    free_blocks = free_vertices(lattice)[:, 0]
+    for name, blocks in (("edges", edge_blocks), ("free_vertices", free_blocks)):
+        for r, b in zip(range(layout[name].start, layout[name].stop), blocks):
+            rows.append(np.full(per_block[b].size, r))
             cols.append(per_block[b])
-    first = n_angle + lattice.n_blocks * lattice.n_vertices
-    for r, (b, _) in enumerate(free_vertices(lattice)):
-        rows.append(np.full(per_block[b].size, first + r))
-        cols.append(per_block[b])
     return np.concatenate(rows), np.concatenate(cols)
 
 
@@ -213,14 +224,15 @@ def active_constraint_masks(lattice: Lattice, g: np.ndarray, tol: float = 1e-3) 
     g = np.asarray(g)
     nb, nv, n_bonds = lattice.n_blocks, lattice.n_vertices, lattice.n_bonds
     act = g >= -tol
-    a1, a2, b1, b2 = (act[i * n_bonds:(i + 1) * n_bonds] for i in range(4))
+    layout = constraint_rows(lattice)
+    a1, a2, b1, b2 = act[layout["angles"]].reshape(4, n_bonds)
     vertices = np.zeros((nb, nv), bool)
     bb, bv = lattice.bond_blocks, lattice.bond_vertices
     vertices[bb[b1, 0], bv[b1, 0]] = True
     vertices[bb[b2, 1], bv[b2, 1]] = True
-    edges = act[4 * n_bonds:4 * n_bonds + nb * nv].reshape(nb, nv)
+    edges = act[layout["edges"]].reshape(nb, nv)
     fv = free_vertices(lattice)
-    free_act = act[4 * n_bonds + nb * nv:]
+    free_act = act[layout["free_vertices"]]
     vertices[fv[free_act, 0], fv[free_act, 1]] = True
     voids = a1 | a2
     return {"voids": voids, "vertices": vertices, "edges": edges,

@@ -10,8 +10,11 @@ design's largest constraint value under today's constraints (`max_constraint_now
 recorded before a constraint was added may hold a design that breaks it); per configuration,
 the median over the starts and how many reach `--target`.
 
-    .venv/bin/python benchmarks/bench_design_starts.py REPORT.json [REPORT.json ...]
+    .venv/bin/python benchmarks/bench_design_starts.py [TAG=]REPORT.json [[TAG=]REPORT.json ...]
         [--target 0.01] [--name NAME] [--out DIR]
+
+`TAG=` names the reports' configurations "<label> (TAG)", so that reports of two versions
+(a configuration before and after a change) stay apart.
 
 Writes OUT/NAME.json and .png (default benchmarks/results/bench_design_starts.*): the best
 feasible objective against the evaluation (left) and against the wall time (right), one
@@ -58,8 +61,9 @@ def constraint_now(out: Path, report: dict, folder: Path, evaluation: int) -> fl
     return float(np.max(np.asarray(all_constraints(task.lattice, x, task.limits))))
 
 
-def read_start(path: Path) -> dict:
-    """One report: its start and, per configuration, its curve and figures."""
+def read_start(path: Path, tag: str | None = None) -> dict:
+    """One report: its start and, per configuration ("<label> (tag)" with a tag), its curve
+    and figures."""
     try:
         report = json.loads(path.read_text())
     except (OSError, ValueError) as exc:
@@ -78,7 +82,7 @@ def read_start(path: Path) -> dict:
         walls = np.cumsum([h["wall_s"] for h in history]).tolist()
         best = curve[-1]
         best_eval = None if best is None else curve.index(best) + 1
-        start["runs"][label] = {
+        start["runs"][label if tag is None else f"{label} ({tag})"] = {
             "evaluations": len(history), "wall_s": walls[-1] if walls else 0.0,
             "best_feasible": best,
             "best_eval": best_eval,
@@ -87,6 +91,20 @@ def read_start(path: Path) -> dict:
             "true_objective": (run.get("true_ramp") or {}).get("objective"),
             "load_1min": run.get("load_1min"), "curve": curve, "wall_after": walls}
     return start
+
+
+def merge_starts(starts: list[dict]) -> list[dict]:
+    """Reports of the same start (the same seed) as one start, their configurations together
+    (a configuration in two reports of one start: the later one's)."""
+    merged: dict = {}
+    for start in starts:
+        key = (start["task"], start["seed"])
+        if key in merged:
+            merged[key]["runs"].update(start["runs"])
+            merged[key]["report"] += f", {start['report']}"
+        else:
+            merged[key] = {**start, "runs": dict(start["runs"])}
+    return list(merged.values())
 
 
 def summarise(starts: list[dict], target: float | None) -> dict:
@@ -138,17 +156,20 @@ def plot(starts: list[dict], path: Path) -> None:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("reports", nargs="+", type=Path, help="bench_design_contact.py reports")
+    p.add_argument("reports", nargs="+", help="bench_design_contact.py reports, each as PATH "
+                                              "or TAG=PATH")
     p.add_argument("--target", type=float, help="an objective to reach (the task's units, "
                                                  "SI: 0.01 for the focusing task's 10 mJ)")
     p.add_argument("--name", default="bench_design_starts")
     p.add_argument("--out", type=Path, default=HERE / "results")
     args = p.parse_args(argv)
     try:
-        starts = [read_start(path) for path in args.reports]
+        read = [read_start(Path(arg.split("=", 1)[1]), arg.split("=", 1)[0]) if "=" in arg
+                else read_start(Path(arg)) for arg in args.reports]
     except StartsError as exc:
         print(f"bench_design_starts: error: {exc}", file=sys.stderr)
         return 2
+    starts = merge_starts(read)
     tasks = {s["task"] for s in starts}
     if len(tasks) > 1:
         print(f"bench_design_starts: error: the reports are of different tasks {sorted(tasks)}",

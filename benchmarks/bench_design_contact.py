@@ -22,7 +22,7 @@ benchmarks/results/ (`--name` keeps a new measurement from overwriting a committ
 
     .venv/bin/python benchmarks/bench_design_contact.py [--task focus-vs-protect|focusing]
         [--evals 20] [--runs default,baseline] [--recheck-at 10 20 40 60] [--cold] [--out DIR]
-        [--seed N] [--name NAME]
+        [--seed N [--random-amplitude A]] [--name NAME]
 
 `--cold`: each run in a process of its own with an empty compilation cache of its own, so that
 its wall time includes what a fresh machine compiles.
@@ -44,10 +44,12 @@ RUNS = ("default", "default-1thread", "dopri8-static", "baseline")
 TASKS = ("focus-vs-protect", "focusing")
 
 
-def _task_file(out: Path, task: str, precompression: str) -> Path:
+def _task_file(out: Path, task: str, precompression: str, amplitude: float | None = None) -> Path:
     from design_engine.design.task import preset_path
 
     text = preset_path(task).read_text()
+    if amplitude is not None:  # the seeded start's noise, a fraction of the spacing
+        text = text.replace("[initial]\n", f"[initial]\nrandom_amplitude = {amplitude!r}\n", 1)
     path = out / f"{task}-{precompression}.toml"
     path.write_text(text.replace('precompression = "static"',
                                  f'precompression = "{precompression}"'))
@@ -77,6 +79,9 @@ def main(argv=None) -> int:
                         "own (OUT/jax-cache-<run>), as on a fresh machine")
     p.add_argument("--seed", type=int, help="every run starts from the seeded random design of "
                                             "`metarig design --seed N` (default the task's start)")
+    p.add_argument("--random-amplitude", type=float, help="with --seed: the start's noise as a "
+                   "fraction of the spacing, replacing the task's (1e-6: the task's start moved "
+                   "by nanometres)")
     p.add_argument("--name", help="the report's file name without its extension, in OUT and "
                                   "benchmarks/results/ (default bench_design_contact[_<task>])")
     args = p.parse_args(argv)
@@ -96,6 +101,8 @@ def main(argv=None) -> int:
             child = ["--task", args.task, "--evals", str(args.evals), "--runs", label,
                      "--out", str(args.out), "--name", name,
                      *(["--seed", str(args.seed)] if args.seed is not None else []),
+                     *(["--random-amplitude", repr(args.random_amplitude)]
+                       if args.random_amplitude is not None else []),
                      "--recheck-at", *map(str, args.recheck_at)]
             rc = subprocess.call([sys.executable, __file__, *child],
                                  env=dict(os.environ, METARIG_JAX_CACHE=str(cache.resolve())))
@@ -114,12 +121,16 @@ def main(argv=None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     # the reference model: the dynamic ramp where the task pre-compresses, else its one model
     ramps = args.task == "focus-vs-protect"
-    files = {m: _task_file(args.out, args.task, m) for m in ("static", "ramp")}
+    if args.random_amplitude is not None and args.seed is None:
+        raise SystemExit("--random-amplitude needs --seed")
+    files = {m: _task_file(args.out, args.task, m, args.random_amplitude)
+             for m in ("static", "ramp")}
     if not ramps:
         files["ramp"] = files["static"]
     report_path = args.out / f"{name}.json"
     report = json.loads(report_path.read_text()) if report_path.exists() else {"runs": {}}
-    report.update(task=args.task, evals=args.evals, seed=args.seed, machine={
+    report.update(task=args.task, evals=args.evals, seed=args.seed,
+                  random_amplitude=args.random_amplitude, machine={
         "platform": platform.platform(), "cpu": cpu_model(), "cpus": os.cpu_count(),
         "load_before": os.getloadavg()})
     setups = {"default": ("static", None, None), "default-1thread": ("static", None, 1),

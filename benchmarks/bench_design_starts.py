@@ -68,9 +68,12 @@ def read_start(path: Path, tag: str | None = None) -> dict:
         report = json.loads(path.read_text())
     except (OSError, ValueError) as exc:
         raise StartsError(f"{path}: not a readable report ({exc})") from None
-    seed = report.get("seed")
-    start = {"report": str(path), "start": "the task's start" if seed is None else f"seed {seed}",
-             "seed": seed, "task": report.get("task"), "runs": {}}
+    seed, amplitude = report.get("seed"), report.get("random_amplitude")
+    name = "the task's start" if seed is None else f"seed {seed}"
+    if seed is not None and amplitude is not None:
+        name = f"the task's start moved ({amplitude:g}, seed {seed})"
+    start = {"report": str(path), "start": name, "seed": seed, "random_amplitude": amplitude,
+             "task": report.get("task"), "runs": {}}
     for label, run in report.get("runs", {}).items():
         folder = path.parent / label
         try:
@@ -98,7 +101,7 @@ def merge_starts(starts: list[dict]) -> list[dict]:
     (a configuration in two reports of one start: the later one's)."""
     merged: dict = {}
     for start in starts:
-        key = (start["task"], start["seed"])
+        key = (start["task"], start["seed"], start["random_amplitude"])
         if key in merged:
             merged[key]["runs"].update(start["runs"])
             merged[key]["report"] += f", {start['report']}"

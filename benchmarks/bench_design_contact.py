@@ -49,6 +49,9 @@ def _task_file(out: Path, task: str, precompression: str, amplitude: float | Non
 
     text = preset_path(task).read_text()
     if amplitude is not None:  # the seeded start's noise, a fraction of the spacing
+        if "[initial]\n" not in text:
+            raise SystemExit(f"the {task} preset has no [initial] section to set "
+                             "random_amplitude in")
         text = text.replace("[initial]\n", f"[initial]\nrandom_amplitude = {amplitude!r}\n", 1)
     path = out / f"{task}-{precompression}.toml"
     path.write_text(text.replace('precompression = "static"',
@@ -85,6 +88,8 @@ def main(argv=None) -> int:
     p.add_argument("--name", help="the report's file name without its extension, in OUT and "
                                   "benchmarks/results/ (default bench_design_contact[_<task>])")
     args = p.parse_args(argv)
+    if args.random_amplitude is not None and args.seed is None:
+        p.error("--random-amplitude needs --seed")
     labels = [r for r in args.runs.split(",") if r]
     unknown = set(labels) - set(RUNS)
     if unknown:
@@ -121,8 +126,6 @@ def main(argv=None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     # the reference model: the dynamic ramp where the task pre-compresses, else its one model
     ramps = args.task == "focus-vs-protect"
-    if args.random_amplitude is not None and args.seed is None:
-        raise SystemExit("--random-amplitude needs --seed")
     files = {m: _task_file(args.out, args.task, m, args.random_amplitude)
              for m in ("static", "ramp")}
     if not ramps:
